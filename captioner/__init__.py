@@ -1,0 +1,1 @@
+"""Instruction grammar, splits, rule captioner and the language-goal environment wrapper."""

@@ -1,0 +1,193 @@
+"""Language-goal wrapper: an instruction per episode, sparse reward from the rule captioner.
+
+Wraps any environment whose unwrapped env has ``scene() -> SceneState``. At reset it
+samples an instruction from one set of a :class:`~captioner.splits.Split` among those
+feasible in the new scene (objects present, not already satisfied, room to do it), or takes
+the one passed as ``reset(options={"instruction": "..."})``. The observation gains an
+``instruction`` text entry; reward is 1.0 when ``satisfied(instruction, s0, s)`` and 0.0
+otherwise, ``info["is_success"]`` says the same, and the episode terminates on success by
+default.
+"""
+
+from __future__ import annotations
+
+import string
+from typing import Any
+
+import gymnasium as gym
+
+from captioner.grammar import FAMILIES, FAMILIES_2D, Instruction
+from captioner.rule import RuleCaptioner
+from captioner.splits import SPLIT_SETS, Split, make_split
+from envs.scene import SceneState
+from lcrl.errors import LcrlError
+
+#: Characters an ``instruction`` observation may contain.
+INSTRUCTION_CHARSET = string.ascii_letters + string.digits + " .,;:!?'-"
+MAX_INSTRUCTION_LENGTH = 200
+
+
+class LanguageGoalWrapper(gym.Wrapper):
+    """Adds an instruction to a scene-describing environment and rewards following it.
+
+    Args:
+        env: an environment whose ``unwrapped`` has ``scene()``.
+        split: the instruction split; default ``make_split(0, families)``.
+        split_set: which set to sample from: ``train``, ``heldout`` or ``paraphrase``.
+        families: families to sample; default the env's ``instruction_families``
+            attribute (all families if it has none).
+        captioner: the rule captioner that judges success.
+        terminate_on_success: end the episode when the instruction is satisfied.
+        max_resample: layouts to try before giving up when no instruction is feasible.
+    """
+
+    def __init__(
+        self,
+        env: gym.Env,
+        split: Split | None = None,
+        split_set: str = "train",
+        families: tuple[str, ...] | None = None,
+        captioner: RuleCaptioner | None = None,
+        terminate_on_success: bool = True,
+        max_resample: int = 100,
+    ) -> None:
+        super().__init__(env)
+        if not callable(getattr(env.unwrapped, "scene", None)):
+            raise LcrlError(
+                f"{type(env.unwrapped).__name__} has no scene() method: the language wrapper "
+                "needs an environment that describes its scene (see envs.scene.SceneState)"
+            )
+        if split_set not in SPLIT_SETS:
+            raise LcrlError(f"unknown split set {split_set!r}; choose one of {SPLIT_SETS}")
+        if families is None:
+            families = tuple(getattr(env.unwrapped, "instruction_families", FAMILIES))
+        self.families = tuple(families)
+        self.split = split if split is not None else make_split(0, self.families)
+        self.split_set = split_set
+        self.captioner = captioner or RuleCaptioner(self.families)
+        self.terminate_on_success = terminate_on_success
+        self.max_resample = max_resample
+        texts = self.split.texts(split_set)
+        meanings = self.split.instructions(split_set)
+        self._candidates = [
+            (t, m) for t, m in zip(texts, meanings) if m.family in self.families
+        ]
+        if not self._candidates:
+            raise LcrlError(
+                f"the {split_set!r} set of this split has no instruction of the families "
+                f"{self.families} (split families: {self.split.families})"
+            )
+        self.observation_space = gym.spaces.Dict(
+            {
+                **dict(env.observation_space.spaces),
+                "instruction": gym.spaces.Text(
+                    max_length=MAX_INSTRUCTION_LENGTH, charset=INSTRUCTION_CHARSET
+                ),
+            }
+        )
+        self.instruction: str = ""
+        self.meaning: Instruction | None = None
+        self.s0: SceneState | None = None
+
+    def _scene(self) -> SceneState:
+        return self.env.unwrapped.scene()
+
+    def _choose(self, s0: SceneState) -> tuple[str, Instruction] | None:
+        feasible = [(t, m) for t, m in self._candidates if self.captioner.feasible(m, s0)]
+        if not feasible:
+            return None
+        return feasible[int(self.env.unwrapped.np_random.integers(len(feasible)))]
+
+    def reset(
+        self, *, seed: int | None = None, options: dict[str, Any] | None = None
+    ) -> tuple[dict[str, Any], dict[str, Any]]:
+        """Reset the env and pick the episode's instruction.
+
+        ``options={"instruction": text}`` fixes the instruction (any phrasing the grammar
+        parses); the other options go to the wrapped env.
+        """
+        options = dict(options or {})
+        given = options.pop("instruction", None)
+        obs, info = self.env.reset(seed=seed, options=options or None)
+        s0 = self._scene()
+        if given is not None:
+            text = _check_text(given)
+            meaning = self.captioner.parse(text)
+        else:
+            choice = self._choose(s0)
+            tries = 1
+            while choice is None:
+                if tries >= self.max_resample:
+                    raise LcrlError(
+                        f"no instruction of the {self.split_set!r} set is feasible in "
+                        f"{self.max_resample} random layouts; check the split's families "
+                        f"{self.split.families} against the env's {self.families}"
+                    )
+                obs, info = self.env.reset(options=options or None)
+                s0 = self._scene()
+                choice = self._choose(s0)
+                tries += 1
+            text, meaning = choice
+        self.instruction, self.meaning, self.s0 = text, meaning, s0
+        obs["instruction"] = text
+        info = dict(info)
+        info["instruction"] = text
+        info["is_success"] = False
+        return obs, info
+
+    def step(self, action: Any) -> tuple[dict[str, Any], float, bool, bool, dict[str, Any]]:
+        """Step the env; reward 1.0 when the instruction is satisfied, else 0.0."""
+        if self.meaning is None:
+            raise LcrlError("call reset() before step()")
+        obs, _, terminated, truncated, info = self.env.step(action)
+        success = self.captioner.satisfied(self.meaning, self.s0, self._scene())
+        obs["instruction"] = self.instruction
+        info = dict(info)
+        info["is_success"] = success
+        info["instruction"] = self.instruction
+        if success and self.terminate_on_success:
+            terminated = True
+        return obs, float(success), bool(terminated), bool(truncated), info
+
+
+def _check_text(text: Any) -> str:
+    if not isinstance(text, str):
+        raise LcrlError(f"an instruction must be a string, got {type(text).__name__}")
+    text = " ".join(text.split())
+    if not text:
+        raise LcrlError("empty instruction")
+    if len(text) > MAX_INSTRUCTION_LENGTH:
+        raise LcrlError(
+            f"instruction is {len(text)} characters long; the limit is {MAX_INSTRUCTION_LENGTH}"
+        )
+    bad = sorted(set(text) - set(INSTRUCTION_CHARSET))
+    if bad:
+        raise LcrlError(f"instruction contains unsupported characters {''.join(bad)!r}")
+    return text
+
+
+def make_language_tabletop2d(
+    split_seed: int = 0,
+    split_set: str = "train",
+    terminate_on_success: bool = True,
+    **env_kwargs: Any,
+) -> LanguageGoalWrapper:
+    """Entry point of ``lcrl/LangTabletop2D-v0``: the 2D tabletop with language goals.
+
+    Args:
+        split_seed: seed of the instruction split (2D families).
+        split_set: ``train``, ``heldout`` or ``paraphrase``.
+        terminate_on_success: end episodes on success.
+        **env_kwargs: passed to :class:`envs.tabletop2d.Tabletop2DEnv`.
+    """
+    from envs.tabletop2d import Tabletop2DEnv
+
+    env = Tabletop2DEnv(**env_kwargs)
+    return LanguageGoalWrapper(
+        env,
+        split=make_split(split_seed, FAMILIES_2D),
+        split_set=split_set,
+        families=FAMILIES_2D,
+        terminate_on_success=terminate_on_success,
+    )
+
