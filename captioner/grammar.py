@@ -6,11 +6,14 @@ knows (synonyms, paraphrase templates) parses back to the same ``Instruction``.
 
 Families and their canonical forms (``{obj}`` is ``<colour> <shape>``)::
 
-    reach   reach the {obj}                    touch / go to / move to ...
-    push    push the {obj} {direction}         shove / slide / move ...; left, right, forward, backward
-    put     put the {obj} {relation} the {obj2} place / move ...; left of, right of, in front of, behind
-    lift    lift the {obj}                     pick up / raise ...
-    stack   stack the {obj} on the {obj2}      put ... on top of ...
+    reach   reach the {obj}                       touch / go to / move to ...
+    push    push the {obj} {direction}            shove / slide / move ...
+    put     put the {obj} {relation} the {obj2}   place / move ...
+    lift    lift the {obj}                        pick up / raise ...
+    stack   stack the {obj} on the {obj2}         put ... on top of ...
+
+Directions are left, right, forward, backward; relations are left of, right of, in front
+of, behind.
 
 Directions and relations are in the viewer frame (see :mod:`envs.scene`): ``forward`` is
 away from the viewer, ``behind X`` is farther from the viewer than X, ``in front of X`` is
@@ -273,13 +276,15 @@ def all_instructions(families: Iterable[str] = FAMILIES) -> list[Instruction]:
                         continue
                     if fam == "put":
                         out.extend(
-                            Instruction(fam, colour, shape, relation=r, target_colour=tc,
-                                        target_shape=ts)
+                            Instruction(
+                                fam, colour, shape, relation=r, target_colour=tc, target_shape=ts
+                            )
                             for r in RELATIONS
                         )
                     else:
-                        out.append(Instruction(fam, colour, shape, target_colour=tc,
-                                               target_shape=ts))
+                        out.append(
+                            Instruction(fam, colour, shape, target_colour=tc, target_shape=ts)
+                        )
     return out
 
 
@@ -385,7 +390,9 @@ def parse(text: str) -> Instruction:
         raise InstructionParseError(f"an instruction must be a string, got {type(text).__name__}")
     norm = normalise(text)
     if not norm:
-        raise InstructionParseError("empty instruction: say what to do, e.g. 'push the red cube left'")
+        raise InstructionParseError(
+            "empty instruction: say what to do, e.g. 'push the red cube left'"
+        )
     for fam, pattern in _PATTERNS:
         m = pattern.fullmatch(norm)
         if m is None:

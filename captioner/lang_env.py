@@ -70,7 +70,7 @@ class LanguageGoalWrapper(gym.Wrapper):
         texts = self.split.texts(split_set)
         meanings = self.split.instructions(split_set)
         self._candidates = [
-            (t, m) for t, m in zip(texts, meanings) if m.family in self.families
+            (t, m) for t, m in zip(texts, meanings, strict=True) if m.family in self.families
         ]
         if not self._candidates:
             raise LcrlError(
@@ -190,4 +190,3 @@ def make_language_tabletop2d(
         families=FAMILIES_2D,
         terminate_on_success=terminate_on_success,
     )
-

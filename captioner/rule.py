@@ -126,9 +126,7 @@ class RuleCaptioner:
             ok &= ~s.grasped[i]
         return ok
 
-    def _relation(
-        self, s: SceneState, i: np.ndarray, j: np.ndarray, vec: np.ndarray
-    ) -> np.ndarray:
+    def _relation(self, s: SceneState, i: np.ndarray, j: np.ndarray, vec: np.ndarray) -> np.ndarray:
         th = self.thresholds
         diff = s.positions[i, :2] - s.positions[j, :2]
         along = np.sum(diff * vec, axis=-1)
@@ -255,15 +253,26 @@ class RuleCaptioner:
                     for k in np.flatnonzero(self._put(s0, s, pi, pj, vec)):
                         a, b = pi[k], pj[k]
                         out.add(
-                            Instruction(fam, s.colours[a], s.shapes[a], relation=r,
-                                        target_colour=s.colours[b], target_shape=s.shapes[b])
+                            Instruction(
+                                fam,
+                                s.colours[a],
+                                s.shapes[a],
+                                relation=r,
+                                target_colour=s.colours[b],
+                                target_shape=s.shapes[b],
+                            )
                         )
             else:  # stack
                 for k in np.flatnonzero(self._stack(s0, s, pi, pj)):
                     a, b = pi[k], pj[k]
                     out.add(
-                        Instruction(fam, s.colours[a], s.shapes[a], target_colour=s.colours[b],
-                                    target_shape=s.shapes[b])
+                        Instruction(
+                            fam,
+                            s.colours[a],
+                            s.shapes[a],
+                            target_colour=s.colours[b],
+                            target_shape=s.shapes[b],
+                        )
                     )
         return out
 

@@ -43,7 +43,7 @@ class ScriptedController2D:
         return np.clip((target - g) / self.max_step, -1.0, 1.0)
 
     def _push_to(
-        self, g: np.ndarray, o: np.ndarray, half: float, goal: np.ndarray
+        self, g: np.ndarray, o: np.ndarray, half: float, goal: np.ndarray, limit: float
     ) -> np.ndarray:
         d = goal - o
         dist = float(np.linalg.norm(d))
@@ -59,13 +59,18 @@ class ScriptedController2D:
             a = u - perp * np.clip(lat / half, -1.0, 1.0)
             speed = min(1.0, (dist + 0.01) / self.max_step)
             return np.clip(a * speed, -1.0, 1.0)
-        if along > -contact:
-            side = 1.0 if lat >= 0 else -1.0
-            clear = contact + 0.02
-            if abs(lat) < clear:  # in the object's corridor: step sideways first
-                return np.clip(perp * side, -1.0, 1.0)
-            return self._toward(g, o + perp * side * clear - u * (contact + 0.01))
-        return self._toward(g, o - u * (contact + 0.005))
+        behind = o - u * (contact + 0.006)
+        if along <= -0.5 * contact:  # on the back half: slide round to the push point
+            return self._toward(g, behind)
+        side = 1.0 if lat >= 0 else -1.0
+        clear = contact + 0.02
+        waypoint = o + perp * side * clear - u * (contact + 0.01)
+        if np.any(np.abs(waypoint) > limit):  # no room on this side: go round the other
+            side = -side
+            waypoint = o + perp * side * clear - u * (contact + 0.01)
+        if abs(lat) < clear and lat * side >= 0:  # in the object's corridor: step out
+            return np.clip(perp * side, -1.0, 1.0)
+        return self._toward(g, np.clip(waypoint, -limit, limit))
 
     def act(self, instruction: str | Instruction, s0: SceneState, s: SceneState) -> np.ndarray:
         """Action in [-1, 1]^2 for the current scene; zeros when the object is missing."""
@@ -76,21 +81,33 @@ class ScriptedController2D:
             return np.zeros(2, dtype=np.float32)
         o = s.positions[i, :2]
         half = float(s.half_extents[i, :2].max())
+        limit = min(-s.table_bounds[0], s.table_bounds[1], -s.table_bounds[2], s.table_bounds[3])
+        limit -= self.pusher_radius
         th = self.thresholds
         if ins.family == "reach":
             a = self._toward(g, o)
         elif ins.family == "push":
             vec = np.asarray(DIRECTION_VECTORS[ins.direction])
             goal = s0.positions[i, :2] + vec * (th.push_distance + 0.02)
-            a = self._push_to(g, o, half, goal)
+            a = self._push_to(g, o, half, goal, limit)
         elif ins.family == "put":
             j = s.index(*ins.target)
             if j < 0:
                 return np.zeros(2, dtype=np.float32)
             vec = np.asarray(RELATION_VECTORS[ins.relation])
+            b = s.positions[j, :2]
             gap = th.relation_gap + half + float(s.half_extents[j, :2].max())
-            goal = s.positions[j, :2] + vec * gap
-            a = self._push_to(g, o, half, goal)
+            # keep to A's side of B (within the captioner's lateral tolerance) so that the
+            # straight push from A to the goal does not run into B
+            perp = np.array([-vec[1], vec[0]])
+            lat = float((o - b) @ perp)
+            clearance = half + float(s.half_extents[j, :2].max()) + 0.012
+            if float((o - b) @ vec) < gap and abs(lat) < clearance:
+                lat = clearance if lat >= 0 else -clearance
+            lat = float(np.clip(lat, -0.6 * th.relation_lateral, 0.6 * th.relation_lateral))
+            goal = b + vec * (gap + 0.005) + perp * lat
+            goal = np.clip(goal, -limit + half, limit - half)
+            a = self._push_to(g, o, half, goal, limit)
         else:
             raise ValueError(f"no 2D scripted controller for family {ins.family!r}")
         return np.asarray(a, dtype=np.float32)

@@ -90,7 +90,7 @@ class SceneState:
                 if arr.shape != (n,):
                     raise ValueError(f"SceneState.{attr} must have shape ({n},), got {arr.shape}")
                 object.__setattr__(self, attr, arr)
-        names = tuple(object_name(c, s) for c, s in zip(self.colours, self.shapes))
+        names = tuple(object_name(c, s) for c, s in zip(self.colours, self.shapes, strict=True))
         if len(set(names)) != n:
             raise ValueError(f"object kinds must be unique within a scene, got {names}")
         object.__setattr__(self, "names", names)

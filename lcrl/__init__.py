@@ -1,4 +1,5 @@
 """lcrl: the learning core (frozen text encoder, goal spaces, replay, learners)."""
+
 from lcrl.errors import LcrlError
 
 __all__ = ["LcrlError"]

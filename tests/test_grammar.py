@@ -49,11 +49,19 @@ def test_every_surface_form_parses_back_to_its_meaning():
         ("push the green tube back", "push the green cylinder backward"),
         ("touch a yellow box", "reach the yellow cube"),
         ("go to the red cylinder", "reach the red cylinder"),
-        ("move the blue cube to the left of the green cylinder",
-         "put the blue cube left of the green cylinder"),
-        ("place the red can in back of the yellow block", "put the red cylinder behind the yellow cube"),
+        (
+            "move the blue cube to the left of the green cylinder",
+            "put the blue cube left of the green cylinder",
+        ),
+        (
+            "place the red can in back of the yellow block",
+            "put the red cylinder behind the yellow cube",
+        ),
         ("pick the green cube up", "lift the green cube"),
-        ("put the yellow box on top of the red cylinder", "stack the yellow cube on the red cylinder"),
+        (
+            "put the yellow box on top of the red cylinder",
+            "stack the yellow cube on the red cylinder",
+        ),
         ("  PUSH   the RED cube   RIGHT  ", "push the red cube right"),
     ],
 )
@@ -70,8 +78,12 @@ def test_push_and_put_are_told_apart_by_the_whole_sentence():
 def test_slots_and_objects():
     ins = parse("put the red cube in front of the blue cylinder")
     assert ins.slots() == {
-        "family": "put", "colour": "red", "shape": "cube", "relation": "in front of",
-        "target_colour": "blue", "target_shape": "cylinder",
+        "family": "put",
+        "colour": "red",
+        "shape": "cube",
+        "relation": "in front of",
+        "target_colour": "blue",
+        "target_shape": "cylinder",
     }
     assert ins.objects == (("red", "cube"), ("blue", "cylinder"))
     assert str(ins) == "put the red cube in front of the blue cylinder"

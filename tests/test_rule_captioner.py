@@ -95,15 +95,18 @@ def test_lift_and_stack():
     s0 = scene([("red", "cube", 0, 0), ("blue", "cube", 0.1, 0)], grasped=[False, False])
     lifted = scene([("red", "cube", 0, 0, 0.09), ("blue", "cube", 0.1, 0)], grasped=[True, False])
     assert texts(s0, lifted) >= {"lift the red cube"}
-    dropped_high = scene([("red", "cube", 0, 0, 0.09), ("blue", "cube", 0.1, 0)],
-                         grasped=[False, False])
+    dropped_high = scene(
+        [("red", "cube", 0, 0, 0.09), ("blue", "cube", 0.1, 0)], grasped=[False, False]
+    )
     assert not CAP.satisfied("lift the red cube", s0, dropped_high)
-    stacked = scene([("red", "cube", 0.105, 0, 3 * H), ("blue", "cube", 0.1, 0)],
-                    grasped=[False, False])
+    stacked = scene(
+        [("red", "cube", 0.105, 0, 3 * H), ("blue", "cube", 0.1, 0)], grasped=[False, False]
+    )
     assert CAP.satisfied("put the red block on top of the blue box", s0, stacked)
     assert "stack the red cube on the blue cube" in texts(s0, stacked)
-    holding = scene([("red", "cube", 0.105, 0, 3 * H), ("blue", "cube", 0.1, 0)],
-                    grasped=[True, False])
+    holding = scene(
+        [("red", "cube", 0.105, 0, 3 * H), ("blue", "cube", 0.1, 0)], grasped=[True, False]
+    )
     assert not CAP.satisfied("stack the red cube on the blue cube", s0, holding)
     assert not CAP.satisfied("stack the red cube on the blue cube", stacked, stacked)
 
@@ -154,8 +157,9 @@ def scene_pairs(draw):
     has_grasp = draw(st.booleans())
     grasped0 = [False] * n if has_grasp else None
     grasped1 = draw(st.lists(st.booleans(), min_size=n, max_size=n)) if has_grasp else None
-    touching = draw(st.lists(st.booleans(), min_size=n, max_size=n)) if draw(
-        st.booleans()) else None
+    touching = (
+        draw(st.lists(st.booleans(), min_size=n, max_size=n)) if draw(st.booleans()) else None
+    )
     s0 = scene(objs0, gripper=draw(grip), grasped=grasped0)
     s1 = scene(objs1, gripper=draw(grip), grasped=grasped1, touching=touching)
     return s0, s1
@@ -185,8 +189,10 @@ def test_random_scenes_exercise_every_family():
         n = rng.integers(2, 5)
         kinds = rng.choice(len(OBJECT_KINDS), size=n, replace=False)
         o0 = [(*OBJECT_KINDS[k], *rng.uniform(-0.2, 0.2, 2)) for k in kinds]
-        o1 = [(c, s, x + rng.normal(0, 0.06), y + rng.normal(0, 0.06),
-               H + rng.choice([0.0, 0.06])) for c, s, x, y in o0]
+        o1 = [
+            (c, s, x + rng.normal(0, 0.06), y + rng.normal(0, 0.06), H + rng.choice([0.0, 0.06]))
+            for c, s, x, y in o0
+        ]
         if rng.random() < 0.3:
             o1[0] = (*o1[0][:2], o1[1][2], o1[1][3], o1[1][4] + 2 * H)
         g = (*rng.uniform(-0.2, 0.2, 2), 0.01)

@@ -57,7 +57,9 @@ class DemoConfig:
 
 def _validate(cfg: DemoConfig) -> None:
     if cfg.episodes < 2:
-        raise LcrlError(f"--episodes must be at least 2 (one scripted, one random), got {cfg.episodes}")
+        raise LcrlError(
+            f"--episodes must be at least 2 (one scripted, one random), got {cfg.episodes}"
+        )
     if cfg.max_steps < 1:
         raise LcrlError(f"--max-steps must be positive, got {cfg.max_steps}")
     if not 32 <= cfg.image_size <= 512:
@@ -75,8 +77,10 @@ def _paraphrase_check(encoder: FrozenTextEncoder, split) -> dict:
         emb = encoder.encode(texts)
         nearest = np.argmax(emb @ emb_train.T, axis=1)
         meanings = split.instructions(name)
-        same_meaning = [train_meanings[k] == m for k, m in zip(nearest, meanings)]
-        same_family = [train_meanings[k].family == m.family for k, m in zip(nearest, meanings)]
+        same_meaning = [train_meanings[k] == m for k, m in zip(nearest, meanings, strict=True)]
+        same_family = [
+            train_meanings[k].family == m.family for k, m in zip(nearest, meanings, strict=True)
+        ]
         result[name] = {
             "count": len(texts),
             "nearest_same_meaning": float(np.mean(same_meaning)),
@@ -138,9 +142,7 @@ def _summarise(records: list[dict]) -> dict:
         by_family = defaultdict(list)
         for r in recs:
             by_family[r["family"]].append(r["success"])
-        caption_families = Counter(
-            a.split()[0] for r in recs for a in r["achieved"]
-        )
+        caption_families = Counter(a.split()[0] for r in recs for a in r["achieved"])
         out[policy] = {
             "episodes": len(recs),
             "success_rate": float(np.mean([r["success"] for r in recs])) if recs else 0.0,
@@ -163,9 +165,10 @@ def _figures(out: Path, records: list[dict], films: list[list[np.ndarray]], summ
 
     scripted = [r for r in records if r["policy"] == "scripted"]
     n_cols = 6
-    fig, axes = plt.subplots(len(films), n_cols, figsize=(2.0 * n_cols, 2.5 * len(films)),
-                             squeeze=False)
-    for row, (frames, rec) in enumerate(zip(films, scripted)):
+    fig, axes = plt.subplots(
+        len(films), n_cols, figsize=(2.0 * n_cols, 2.5 * len(films)), squeeze=False
+    )
+    for row, (frames, rec) in enumerate(zip(films, scripted, strict=False)):
         picks = np.linspace(0, len(frames) - 1, n_cols).round().astype(int)
         for col, k in enumerate(picks):
             ax = axes[row, col]
@@ -177,8 +180,11 @@ def _figures(out: Path, records: list[dict], films: list[list[np.ndarray]], summ
         achieved = "; ".join(rec["achieved"][:3]) or "nothing"
         axes[row, 0].set_ylabel(f"ep {rec['episode']}", fontsize=8)
         axes[row, 0].annotate(
-            f"\"{rec['instruction']}\" ({status})   captioned: {achieved}",
-            xy=(0, 1.25), xycoords="axes fraction", fontsize=8, annotation_clip=False,
+            f'"{rec["instruction"]}" ({status})   captioned: {achieved}',
+            xy=(0, 1.25),
+            xycoords="axes fraction",
+            fontsize=8,
+            annotation_clip=False,
         )
     fig.tight_layout()
     fig.savefig(out / "episodes.png", dpi=90)
@@ -247,7 +253,7 @@ def _report(cfg: DemoConfig, split, para: dict, summary: dict, elapsed: float) -
             f"{100 * v['nearest_same_family']:.0f}% of {v['count']}"
         )
         for ex in v["examples"][:3]:
-            lines.append(f"  - \"{ex['text']}\" -> \"{ex['nearest_train']}\"")
+            lines.append(f'  - "{ex["text"]}" -> "{ex["nearest_train"]}"')
     lines += ["", "![episodes](episodes.png)", "", "![families](families.png)", ""]
     return "\n".join(lines)
 
@@ -274,8 +280,11 @@ def run_demo(cfg: DemoConfig) -> dict:
     elapsed = time.perf_counter() - start
     result = {
         "split_fingerprint": split.fingerprint(),
-        "text_encoder": {"model": cfg.text_encoder.model, "dim": encoder.dim,
-                         "texts_encoded": encoder.num_encoded},
+        "text_encoder": {
+            "model": cfg.text_encoder.model,
+            "dim": encoder.dim,
+            "texts_encoded": encoder.num_encoded,
+        },
         "paraphrase_check": para,
         "episodes": summary,
         "elapsed_s": elapsed,
@@ -288,11 +297,17 @@ def run_demo(cfg: DemoConfig) -> dict:
     for policy in ("scripted", "random"):
         s = summary[policy]
         per = ", ".join(f"{f} {v['success_rate']:.2f}" for f, v in s["success_by_family"].items())
-        print(f"{policy:>8}: success {s['success_rate']:.2f} ({per}); "
-              f"{s['mean_captions_per_episode']:.1f} captions/episode")
+        print(
+            f"{policy:>8}: success {s['success_rate']:.2f} ({per}); "
+            f"{s['mean_captions_per_episode']:.1f} captions/episode"
+        )
     p = para["paraphrase"]
-    print(f"paraphrases whose nearest training instruction means the same: "
-          f"{100 * p['nearest_same_meaning']:.0f}%")
-    print(f"outputs in {out}/: report.md, summary.json, episodes.json, episodes.png, "
-          f"families.png, split.json, config.json")
+    print(
+        f"paraphrases whose nearest training instruction means the same: "
+        f"{100 * p['nearest_same_meaning']:.0f}%"
+    )
+    print(
+        f"outputs in {out}/: report.md, summary.json, episodes.json, episodes.png, "
+        f"families.png, split.json, config.json"
+    )
     return result
