@@ -38,6 +38,9 @@ class LanguageGoalWrapper(gym.Wrapper):
             attribute (all families if it has none).
         captioner: the rule captioner that judges success.
         terminate_on_success: end the episode when the instruction is satisfied.
+        family_balanced: draw a family uniformly among those with a feasible instruction,
+            then an instruction of it; otherwise draw uniformly over all feasible
+            instructions (``put`` has far more instructions than ``reach``).
         max_resample: layouts to try before giving up when no instruction is feasible.
     """
 
@@ -49,6 +52,7 @@ class LanguageGoalWrapper(gym.Wrapper):
         families: tuple[str, ...] | None = None,
         captioner: RuleCaptioner | None = None,
         terminate_on_success: bool = True,
+        family_balanced: bool = True,
         max_resample: int = 100,
     ) -> None:
         super().__init__(env)
@@ -66,6 +70,7 @@ class LanguageGoalWrapper(gym.Wrapper):
         self.split_set = split_set
         self.captioner = captioner or RuleCaptioner(self.families)
         self.terminate_on_success = terminate_on_success
+        self.family_balanced = family_balanced
         self.max_resample = max_resample
         texts = self.split.texts(split_set)
         meanings = self.split.instructions(split_set)
@@ -96,7 +101,12 @@ class LanguageGoalWrapper(gym.Wrapper):
         feasible = [(t, m) for t, m in self._candidates if self.captioner.feasible(m, s0)]
         if not feasible:
             return None
-        return feasible[int(self.env.unwrapped.np_random.integers(len(feasible)))]
+        rng = self.env.unwrapped.np_random
+        if self.family_balanced:
+            families = sorted({m.family for _, m in feasible})
+            family = families[int(rng.integers(len(families)))]
+            feasible = [(t, m) for t, m in feasible if m.family == family]
+        return feasible[int(rng.integers(len(feasible)))]
 
     def reset(
         self, *, seed: int | None = None, options: dict[str, Any] | None = None
@@ -170,6 +180,7 @@ def make_language_tabletop2d(
     split_seed: int = 0,
     split_set: str = "train",
     terminate_on_success: bool = True,
+    family_balanced: bool = True,
     **env_kwargs: Any,
 ) -> LanguageGoalWrapper:
     """Entry point of ``lcrl/LangTabletop2D-v0``: the 2D tabletop with language goals.
@@ -178,6 +189,7 @@ def make_language_tabletop2d(
         split_seed: seed of the instruction split (2D families).
         split_set: ``train``, ``heldout`` or ``paraphrase``.
         terminate_on_success: end episodes on success.
+        family_balanced: sample the family uniformly first (see the wrapper).
         **env_kwargs: passed to :class:`envs.tabletop2d.Tabletop2DEnv`.
     """
     from envs.tabletop2d import Tabletop2DEnv
@@ -189,4 +201,5 @@ def make_language_tabletop2d(
         split_set=split_set,
         families=FAMILIES_2D,
         terminate_on_success=terminate_on_success,
+        family_balanced=family_balanced,
     )

@@ -77,6 +77,18 @@ class Thresholds:
     """sampling: room to keep from the table edge when judging an instruction feasible."""
 
 
+def _pair(family: str, s: SceneState, a: int, b: int, **slots: str) -> Instruction:
+    """The instruction of a two-object family acting on object ``a`` relative to ``b``."""
+    return Instruction(
+        family,
+        s.colours[a],
+        s.shapes[a],
+        target_colour=s.colours[b],
+        target_shape=s.shapes[b],
+        **slots,
+    )
+
+
 def _as_index(x: int | np.ndarray) -> np.ndarray:
     return np.atleast_1d(np.asarray(x, dtype=np.intp))
 
@@ -250,30 +262,11 @@ class RuleCaptioner:
             elif fam == "put":
                 for r in RELATIONS:
                     vec = np.asarray(RELATION_VECTORS[r])
-                    for k in np.flatnonzero(self._put(s0, s, pi, pj, vec)):
-                        a, b = pi[k], pj[k]
-                        out.add(
-                            Instruction(
-                                fam,
-                                s.colours[a],
-                                s.shapes[a],
-                                relation=r,
-                                target_colour=s.colours[b],
-                                target_shape=s.shapes[b],
-                            )
-                        )
+                    hits = np.flatnonzero(self._put(s0, s, pi, pj, vec))
+                    out.update(_pair(fam, s, pi[k], pj[k], relation=r) for k in hits)
             else:  # stack
-                for k in np.flatnonzero(self._stack(s0, s, pi, pj)):
-                    a, b = pi[k], pj[k]
-                    out.add(
-                        Instruction(
-                            fam,
-                            s.colours[a],
-                            s.shapes[a],
-                            target_colour=s.colours[b],
-                            target_shape=s.shapes[b],
-                        )
-                    )
+                hits = np.flatnonzero(self._stack(s0, s, pi, pj))
+                out.update(_pair(fam, s, pi[k], pj[k]) for k in hits)
         return out
 
     def feasible(self, instruction: str | Instruction, s0: SceneState) -> bool:

@@ -16,6 +16,7 @@ The demo exercises the whole foundation on its defaults, with no server and no d
 from __future__ import annotations
 
 import json
+import textwrap
 import time
 from collections import Counter, defaultdict
 from dataclasses import asdict, dataclass, field
@@ -41,7 +42,7 @@ class DemoConfig:
 
     out: str = "runs/demo"
     """Output folder (created; existing files in it are overwritten)."""
-    episodes: int = 40
+    episodes: int = 200
     """Episodes to run, alternating scripted controller and random actions."""
     max_steps: int = 50
     """Steps per episode."""
@@ -166,7 +167,7 @@ def _figures(out: Path, records: list[dict], films: list[list[np.ndarray]], summ
     scripted = [r for r in records if r["policy"] == "scripted"]
     n_cols = 6
     fig, axes = plt.subplots(
-        len(films), n_cols, figsize=(2.0 * n_cols, 2.5 * len(films)), squeeze=False
+        len(films), n_cols, figsize=(2.0 * n_cols, 2.8 * len(films)), squeeze=False
     )
     for row, (frames, rec) in enumerate(zip(films, scripted, strict=False)):
         picks = np.linspace(0, len(frames) - 1, n_cols).round().astype(int)
@@ -178,15 +179,19 @@ def _figures(out: Path, records: list[dict], films: list[list[np.ndarray]], summ
             ax.set_title(f"t={k}", fontsize=8)
         status = "success" if rec["success"] else "failure"
         achieved = "; ".join(rec["achieved"][:3]) or "nothing"
+        if len(rec["achieved"]) > 3:
+            achieved += f" (+{len(rec['achieved']) - 3} more)"
         axes[row, 0].set_ylabel(f"ep {rec['episode']}", fontsize=8)
+        text = f'"{rec["instruction"]}" ({status}). Captioned: {achieved}'
         axes[row, 0].annotate(
-            f'"{rec["instruction"]}" ({status})   captioned: {achieved}',
-            xy=(0, 1.25),
+            "\n".join(textwrap.wrap(text, 110)),
+            xy=(0, 1.2),
             xycoords="axes fraction",
             fontsize=8,
+            va="bottom",
             annotation_clip=False,
         )
-    fig.tight_layout()
+    fig.subplots_adjust(left=0.04, right=0.99, bottom=0.02, top=0.9, hspace=0.8, wspace=0.08)
     fig.savefig(out / "episodes.png", dpi=90)
     plt.close(fig)
 
