@@ -25,7 +25,7 @@ import hashlib
 import json
 import os
 from collections.abc import Sequence
-from dataclasses import asdict, dataclass, field
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
@@ -91,12 +91,13 @@ class Split:
 
     def to_dict(self) -> dict:
         """JSON-ready dictionary."""
-        d = asdict(self)
-        d.pop("_parsed", None)
-        d["heldout_combos"] = [list(c) for c in self.heldout_combos]
-        for k in ("families", *SPLIT_SETS):
-            d[k] = list(d[k])
-        return d
+        return {
+            "version": self.version,
+            "seed": self.seed,
+            "families": list(self.families),
+            "heldout_combos": [list(c) for c in self.heldout_combos],
+            **{name: list(getattr(self, name)) for name in SPLIT_SETS},
+        }
 
     @classmethod
     def from_dict(cls, d: dict) -> Split:
