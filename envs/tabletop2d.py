@@ -227,6 +227,13 @@ def _box_box(dx: float, dy: float) -> tuple[float, float]:
     return 0.0, math.copysign(py, dy)
 
 
+def _pusher_overlap(dx: float, dy: float, cube: bool) -> tuple[float, float]:
+    """Displacement of an object (``dx, dy`` from the pusher) that takes it out of the pusher."""
+    if cube:
+        return _circle_box(dx, dy, _R)
+    return _circle_circle(dx, dy, _CONTACT)
+
+
 def _object_separation(dx: float, dy: float, a_cube: bool, b_cube: bool) -> tuple[float, float]:
     """Displacement of object b (``dx, dy`` from object a) that removes their overlap."""
     if a_cube:
@@ -665,10 +672,7 @@ class Tabletop2DEnv(gym.Env):
                 ex = ox[i] - px
                 ey = oy[i] - py
                 if -reach < ex < reach and -reach < ey < reach:
-                    if cube[i]:
-                        mx, my = _circle_box(ex, ey, _R)
-                    else:
-                        mx, my = _circle_circle(ex, ey, reach)
+                    mx, my = _pusher_overlap(ex, ey, cube[i])
                     if mx or my:
                         x = ox[i] + mx
                         y = oy[i] + my
@@ -715,10 +719,7 @@ class Tabletop2DEnv(gym.Env):
                 ex = ox[i] - px
                 ey = oy[i] - py
                 if -reach < ex < reach and -reach < ey < reach:
-                    if cube[i]:
-                        mx, my = _circle_box(ex, ey, _R)
-                    else:
-                        mx, my = _circle_circle(ex, ey, reach)
+                    mx, my = _pusher_overlap(ex, ey, cube[i])
                     cx += mx
                     cy += my
             if not (cx or cy):
