@@ -1,6 +1,9 @@
 """The ``lcrl`` command line.
 
 Subcommands:
+    train   train a policy from a named preset (``lcrl train lang2d --total-steps 50000``)
+    eval    evaluate a checkpoint per instruction set and family
+    act     run a checkpoint on any free-text instruction
     demo    caption scripted and random episodes on the 2D tabletop, write a report
     split   make a compositional instruction split and save it as JSON
     parse   show how the grammar reads instructions (canonical form and slots)
@@ -16,6 +19,7 @@ import sys
 from collections.abc import Sequence
 from dataclasses import dataclass
 
+import numpy as np
 import tyro
 
 from lcrl.errors import LcrlError
@@ -73,17 +77,162 @@ class ParseCommand:
                 print(f"{r['text']!r} -> {r['canonical']!r}  [{slots}]")
 
 
+@dataclass
+class TrainStub:
+    """Train a policy from a preset: ``lcrl train PRESET [--field value ...]`` (see
+    ``lcrl train --help`` for the presets)."""
+
+    def run(self) -> None:
+        _train(["--help"])
+
+
+@dataclass
+class EvalCommand:
+    """Evaluate a checkpoint: success per instruction set (seen, held-out, paraphrase) and
+    family."""
+
+    checkpoint: tyro.conf.Positional[str]
+    """A checkpoint folder, or a run folder (its latest checkpoint)."""
+    episodes: int = 100
+    """Episodes per instruction set."""
+    sets: tuple[str, ...] = ()
+    """Instruction sets to evaluate (default: every set of the task)."""
+    families: tuple[str, ...] = ()
+    """Instruction families to evaluate (default: those it was trained on)."""
+    seed: int = 0
+    """Seed of the evaluation layouts."""
+    device: str | None = None
+    """Run the policy on this device (default: the one it was trained on)."""
+    json: str | None = None
+    """Also write the results to this JSON file."""
+
+    def run(self) -> None:
+        from train.evaluate import evaluate, format_results, load_policy
+
+        if self.episodes <= 0:
+            raise LcrlError("--episodes must be positive")
+        overrides = {"families": tuple(self.families)} if self.families else None
+        policy = load_policy(self.checkpoint, overrides, self.device)
+        sets = tuple(self.sets) or policy.task.sets
+        bad = [s for s in sets if s not in policy.task.sets]
+        if bad:
+            raise LcrlError(f"unknown sets {bad}; this task has {policy.task.sets}")
+        results = evaluate(
+            policy.agent, policy.task, policy.cfg, self.episodes, seed=self.seed, sets=sets
+        )
+        print(f"checkpoint {policy.checkpoint.path} (step {policy.checkpoint.meta['step']})")
+        print(format_results(results))
+        if self.json:
+            with open(self.json, "w") as f:
+                json.dump(results, f, indent=1)
+            print(f"saved {self.json}")
+
+
+@dataclass
+class ActCommand:
+    """Run a checkpoint's policy on a free-text instruction and report what happened."""
+
+    checkpoint: tyro.conf.Positional[str]
+    """A checkpoint folder, or a run folder (its latest checkpoint)."""
+    instruction: str
+    """Any text; success is reported when the rule captioner can parse and check it."""
+    episodes: int = 10
+    """Episodes to run."""
+    seed: int = 0
+    """Seed of the layouts."""
+    stochastic: bool = False
+    """Sample actions instead of taking the policy's mean action."""
+
+    def run(self) -> None:
+        from captioner.grammar import try_parse
+        from train.evaluate import load_policy, run_episode
+        from train.tasks import LanguageTask
+
+        if self.episodes <= 0:
+            raise LcrlError("--episodes must be positive")
+        policy = load_policy(self.checkpoint)
+        task = policy.task
+        if not isinstance(task, LanguageTask):
+            raise LcrlError("this checkpoint was not trained with language goals")
+        text = " ".join(self.instruction.split())
+        if not text:
+            raise LcrlError("empty instruction")
+        meaning = try_parse(text)
+        vector = np.asarray(task.encoder.encode([text])[0], np.float32)
+        if meaning is None:
+            print(f"{text!r}: the captioner cannot parse it, so success is not checked")
+        else:
+            print(f"{text!r} -> {meaning.text!r}")
+        successes, checked = [], 0
+        for i in range(self.episodes):
+            options = {"instruction": text} if meaning is not None else None
+            try:
+                r = run_episode(
+                    policy.agent,
+                    task,
+                    policy.env,
+                    seed=self.seed + i,
+                    options=options,
+                    goal_vector=vector,
+                    deterministic=not self.stochastic,
+                )
+            except LcrlError as e:
+                print(f"episode {i}: {e}")
+                continue
+            if meaning is not None:
+                checked += 1
+                successes.append(r["success"])
+                status = "success" if r["success"] else "failure"
+            else:
+                status = "not checked"
+            print(f"episode {i}: {r['steps']} steps, {status}")
+        if checked:
+            print(f"success {np.mean(successes):.2f} over {checked} episodes")
+
+
+def _train(argv: Sequence[str]) -> None:
+    from train.config import PRESETS, TrainConfig
+    from train.loop import Trainer
+
+    presets = {name: cfg for name, (_, cfg) in PRESETS.items()}
+    descriptions = {name: desc for name, (desc, _) in PRESETS.items()}
+    cfg = tyro.cli(
+        tyro.extras.subcommand_type_from_defaults(presets, descriptions),
+        prog="lcrl train",
+        description="Train a policy. Pick a preset, then override any field.",
+        args=list(argv),
+    )
+    assert isinstance(cfg, TrainConfig)
+    trainer = Trainer(cfg)
+    results = trainer.run()
+    out = trainer.out
+    print(f"outputs in {out}/: config.json, progress.csv, eval.csv, tb/, checkpoints/")
+    print(f"evaluate again with: lcrl eval {out}")
+    del results
+
+
 def main(argv: Sequence[str] | None = None) -> None:
     """Entry point of the ``lcrl`` console script."""
     from train.demo import DemoConfig, run_demo
 
-    commands = {"demo": DemoConfig, "split": SplitCommand, "parse": ParseCommand}
+    args = list(sys.argv[1:] if argv is None else argv)
+    commands = {
+        "train": TrainStub,
+        "eval": EvalCommand,
+        "act": ActCommand,
+        "demo": DemoConfig,
+        "split": SplitCommand,
+        "parse": ParseCommand,
+    }
     try:
+        if args and args[0] == "train":
+            _train(args[1:])
+            return
         cfg = tyro.extras.subcommand_cli_from_dict(
             commands,
             prog="lcrl",
             description="lcrl: language-conditioned reinforcement learning toolkit.",
-            args=argv,
+            args=args,
         )
         if isinstance(cfg, DemoConfig):
             run_demo(cfg)

@@ -1,0 +1,186 @@
+"""Learning curves that the project must show, with their targets.
+
+Run from the repository root (needs ``pip install -e '.[bench]'`` for Fetch)::
+
+    python benchmarks/learning_curves.py fetch-reach   # SAC + HER, FetchReach-v4, 10k steps
+    python benchmarks/learning_curves.py lang2d        # language HER vs no relabelling, 100k
+
+``fetch-reach``: SAC + HER (future, k=4) on gymnasium-robotics ``FetchReach-v4``; target:
+at least 90% success over 50 evaluation episodes within 10,000 environment steps.
+
+``lang2d``: the 2D tabletop with language goals (reach and push families), SAC with
+language hindsight relabelling against the same run without relabelling (``k=0``);
+target: at least 80% success on seen instructions within 100,000 steps, the baseline far
+below. Held-out word combinations and unseen phrasings are reported too.
+
+Each run writes ``benchmarks/results/<suite>.{json,md,png}``; the training runs themselves
+go to ``runs/bench/`` (not kept in the repository).
+"""
+
+from __future__ import annotations
+
+import argparse
+import csv
+import dataclasses
+import shutil
+import sys
+import time
+from pathlib import Path
+from typing import Any
+
+import matplotlib
+
+matplotlib.use("Agg")
+import matplotlib.pyplot as plt
+
+sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
+
+from benchmarks.common import caption, machine, save_json, save_markdown
+from train.config import PRESETS, BufferConfig, TrainConfig
+from train.loop import Trainer
+
+SUITES: dict[str, dict[str, Any]] = {
+    "fetch-reach": {
+        "title": "SAC + HER on FetchReach-v4",
+        "runs": {"her": ("fetch-reach", {})},
+        "eval_every": 1_000,
+        "eval_episodes": 50,
+        "target": ("her", "all", 0.90, 10_000),
+    },
+    "lang2d": {
+        "title": "Language HER on the 2D tabletop (reach, push)",
+        "runs": {
+            "her": ("lang2d", {}),
+            "no-her": ("lang2d", {"buffer": BufferConfig(k=0)}),
+        },
+        "eval_every": 10_000,
+        "eval_episodes": 100,
+        "target": ("her", "train", 0.80, 100_000),
+    },
+}
+
+
+def run_one(
+    preset: str,
+    overrides: dict[str, Any],
+    out: Path,
+    suite: dict[str, Any],
+    steps: int | None,
+    seed: int,
+) -> dict[str, Any]:
+    """Train one configuration and return its evaluation curve."""
+    cfg: TrainConfig = dataclasses.replace(PRESETS[preset][1], **overrides)
+    cfg = dataclasses.replace(
+        cfg,
+        out=str(out),
+        eval_every=suite["eval_every"],
+        eval_episodes=suite["eval_episodes"],
+        checkpoint_every=0,
+        save_buffer=False,
+        progress=False,
+        seed=seed,
+        total_steps=steps or cfg.total_steps,
+    )
+    cfg.agent.seed = seed
+    shutil.rmtree(out, ignore_errors=True)
+    t0 = time.perf_counter()
+    Trainer(cfg).run()
+    seconds = time.perf_counter() - t0
+    with (out / "eval.csv").open() as f:
+        rows = [{k: float(v) for k, v in r.items()} for r in csv.DictReader(f)]
+    return {
+        "preset": preset,
+        "k": cfg.buffer.k,
+        "seconds": seconds,
+        "curve": rows,
+        "total_steps": cfg.total_steps,
+    }
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    parser.add_argument("suite", choices=sorted(SUITES))
+    parser.add_argument("--steps", type=int, default=None, help="override the step budget")
+    parser.add_argument("--seed", type=int, default=0)
+    args = parser.parse_args(argv)
+    suite = SUITES[args.suite]
+    info = machine()
+    results: dict[str, Any] = {}
+    for name, (preset, overrides) in suite["runs"].items():
+        out = Path("runs/bench") / f"{args.suite}-{name}"
+        print(f"== {name}: preset {preset} {overrides or ''}", flush=True)
+        results[name] = run_one(preset, overrides, out, suite, args.steps, args.seed)
+    run_name, set_name, threshold, budget = suite["target"]
+    curve = results[run_name]["curve"]
+    key = f"{set_name}/success"
+    reached = next((r["step"] for r in curve if r[key] >= threshold and r["step"] <= budget), None)
+    payload = {
+        "suite": args.suite,
+        "machine": info,
+        "target": {
+            "run": run_name,
+            "set": set_name,
+            "success": threshold,
+            "within": budget,
+            "first_step_reached": reached,
+            "met": reached is not None,
+        },
+        "runs": results,
+    }
+    save_json(args.suite, payload)
+
+    sets = [k.split("/")[0] for k in curve[0] if k.endswith("/success")]
+    lines = [
+        "| run | step | " + " | ".join(sets) + " | per family (seen) |",
+        "|---|---:|" + "---:|" * len(sets) + "---|",
+    ]
+    for name, res in results.items():
+        for r in res["curve"]:
+            fams = ", ".join(
+                f"{k.split('/')[1]} {v:.2f}"
+                for k, v in r.items()
+                if k.startswith(f"{sets[0]}/") and not k.endswith("/success")
+            )
+            lines.append(
+                f"| {name} | {int(r['step'])} | "
+                + " | ".join(f"{r[f'{s}/success']:.2f}" for s in sets)
+                + f" | {fams} |"
+            )
+    lines.append("")
+    verdict = f"first reached at step {reached}" if reached is not None else "NOT reached"
+    lines.append(
+        f"Target: {set_name} success >= {threshold:.0%} within {budget:,} steps "
+        f"({run_name}): {verdict}."
+    )
+    for name, res in results.items():
+        lines.append(
+            f"- {name}: {res['total_steps']:,} steps in {res['seconds']:.0f} s "
+            f"({res['total_steps'] / res['seconds']:.0f} steps/s incl. evaluation)"
+        )
+    table = "\n".join(lines)
+    print(table)
+    save_markdown(args.suite, suite["title"], table, info)
+
+    fig, ax = plt.subplots(figsize=(7, 4.2))
+    styles = {"train": "-", "all": "-", "heldout": "--", "paraphrase": ":"}
+    for name, res in results.items():
+        for s in sets:
+            xs = [r["step"] for r in res["curve"]]
+            ys = [r[f"{s}/success"] for r in res["curve"]]
+            ax.plot(xs, ys, styles.get(s, "-"), marker="o", ms=3, label=f"{name}: {s}")
+    ax.axhline(threshold, color="grey", lw=0.8)
+    ax.axvline(budget, color="grey", lw=0.8)
+    ax.set_xlabel("environment steps")
+    ax.set_ylabel("success rate")
+    ax.set_ylim(-0.02, 1.02)
+    ax.set_title(suite["title"])
+    ax.legend(fontsize=7)
+    fig.subplots_adjust(bottom=0.22)
+    caption(fig, info)
+    fig.savefig(Path(__file__).resolve().parent / "results" / f"{args.suite}.png", dpi=120)
+    print(f"saved benchmarks/results/{args.suite}.{{json,md,png}}")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -1,0 +1,291 @@
+"""Episode replay buffer with hindsight relabelling at sample time.
+
+Storage is preallocated numpy, one row per *observation slot*. An episode of ``T``
+transitions takes ``T + 1`` consecutive slots: slot ``s + t`` holds observation ``t`` and
+the action, reward and termination of step ``t``; the next observation of a transition is
+simply the following slot, so observations (images included) are stored once. Episodes are
+written whole; one that does not fit before the end of the storage starts again at slot
+0, and every episode it overlaps is dropped at once, so a partly overwritten episode can
+never be sampled.
+
+Sampling draws transitions uniformly, then replaces the goal of a fraction
+``relabel_ratio`` of them (``k / (k + 1)``: 0.8 for ``k = 4``) by a goal the same episode
+achieved (``future``, ``final`` or ``episode``; see :mod:`lcrl.goals`), and recomputes the
+reward of every sampled transition with the goal space's reward function, vectorised.
+
+What fraction of relabelled transitions become successes? Not ``k / (k + 1)``: that is the
+relabelled fraction. With sparse rewards and an episode whose achieved goals are all
+distinct (far apart), a relabelled transition at step ``t`` of a ``T``-step episode is a
+success only if the chosen goal is its own next achieved goal:
+
+* ``future`` (uniform over steps ``t' >= t``): probability ``1 / (T - t)``, so on average
+  ``H_T / T`` where ``H_T = 1 + 1/2 + ... + 1/T`` (0.090 for ``T = 50``);
+* ``final``: only the last transition, ``1 / T`` (0.02 for ``T = 50``);
+* ``episode``: ``1 / T`` (0.02 for ``T = 50``).
+
+Real episodes revisit goals (an arm resting still, an object never touched), so real
+positive fractions are higher; ``tests/test_buffer.py`` checks the exact figures above.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+from typing import Any, NamedTuple
+
+import numpy as np
+
+from lcrl.errors import LcrlError
+from lcrl.goals import STRATEGIES, GoalSpace
+
+
+class Batch(NamedTuple):
+    """A sampled batch (numpy; learners move it to their device).
+
+    Attributes:
+        obs: observation arrays by key, ``(B, ...)`` (uint8 images stay uint8).
+        action: ``(B, *action_shape)``.
+        reward: ``(B,)`` float32, recomputed for the batch's goals.
+        next_obs: next observation arrays by key.
+        terminated: ``(B,)`` float32: 1.0 where the transition ended the episode for a
+            reason other than a time limit (no bootstrap); truncations are 0.0.
+        goal: ``(B, ...)`` goals in the goal space's representation.
+        relabelled: ``(B,)`` bool, which goals were relabelled.
+        index: ``(B,)`` slots of the sampled transitions.
+    """
+
+    obs: dict[str, np.ndarray]
+    action: np.ndarray
+    reward: np.ndarray
+    next_obs: dict[str, np.ndarray]
+    terminated: np.ndarray
+    goal: np.ndarray
+    relabelled: np.ndarray
+    index: np.ndarray
+
+
+class HindsightReplayBuffer:
+    """Preallocated episode storage with vectorised hindsight relabelling.
+
+    Args:
+        capacity: observation slots (an episode of ``T`` steps takes ``T + 1``).
+        obs_spec: ``{key: (shape, dtype)}`` of the stored observation arrays, e.g.
+            ``{"state": ((26,), np.float32), "image": ((64, 64, 3), np.uint8)}``.
+        action_shape: shape of one action (``()`` for discrete actions).
+        action_dtype: ``np.float32`` for continuous, ``np.int64`` for discrete actions.
+        goal_space: a :class:`lcrl.goals.GoalSpace`.
+        strategy: ``future``, ``final`` or ``episode``.
+        k: relabelled goals per original goal; the relabel ratio is ``k / (k + 1)``.
+            ``k = 0`` turns hindsight relabelling off.
+        seed: seed of the sampling generator.
+    """
+
+    def __init__(
+        self,
+        capacity: int,
+        obs_spec: Mapping[str, tuple[tuple[int, ...], Any]],
+        action_shape: tuple[int, ...],
+        action_dtype: Any,
+        goal_space: GoalSpace,
+        strategy: str = "future",
+        k: int = 4,
+        seed: int = 0,
+    ) -> None:
+        if capacity < 2:
+            raise LcrlError(f"buffer capacity must be at least 2 slots, got {capacity}")
+        if strategy not in STRATEGIES:
+            raise LcrlError(
+                f"unknown relabelling strategy {strategy!r}; choose one of {STRATEGIES}"
+            )
+        if k < 0:
+            raise LcrlError(f"k must be >= 0, got {k}")
+        self.capacity = int(capacity)
+        self.obs_spec = {key: (tuple(shape), np.dtype(dt)) for key, (shape, dt) in obs_spec.items()}
+        self.action_shape = tuple(action_shape)
+        self.action_dtype = np.dtype(action_dtype)
+        self.goal_space = goal_space
+        self.strategy = strategy
+        self.k = int(k)
+        self.relabel_ratio = self.k / (self.k + 1)
+        self.rng = np.random.default_rng(seed)
+
+        self.obs = {
+            key: np.zeros((self.capacity, *shape), dt) for key, (shape, dt) in self.obs_spec.items()
+        }
+        self.action = np.zeros((self.capacity, *self.action_shape), self.action_dtype)
+        self.env_reward = np.zeros(self.capacity, np.float32)
+        self.terminated = np.zeros(self.capacity, bool)
+        self.ep_start = np.zeros(self.capacity, np.int64)
+        self.ep_end = np.zeros(self.capacity, np.int64)  # slot of the episode's last observation
+        self.valid = np.zeros(self.capacity, bool)  # sampleable transition slots
+        goal_space.allocate(self.capacity)
+        self.ptr = 0
+        self.episodes_added = 0
+        self.steps_added = 0
+        self._valid_idx: np.ndarray | None = None
+
+    # --- writing ---------------------------------------------------------------------
+    def add_episode(self, episode: Mapping[str, Any]) -> None:
+        """Store one finished episode.
+
+        Args:
+            episode: ``obs`` (dict of ``(T + 1, ...)`` arrays, the first and every next
+                observation), ``action`` ``(T, ...)``, ``reward`` ``(T,)`` (the env's
+                reward, kept for reference), ``terminated`` ``(T,)`` bool (true only where
+                the episode ended for a reason other than a time limit), plus the goal
+                space's fields (see :mod:`lcrl.goals`).
+        """
+        action = np.asarray(episode["action"], self.action_dtype)
+        t = action.shape[0]
+        if t < 1:
+            raise LcrlError("an episode needs at least one step")
+        if action.shape[1:] != self.action_shape:
+            raise LcrlError(
+                f"actions have shape {action.shape[1:]}; the buffer was built for "
+                f"{self.action_shape}"
+            )
+        n = t + 1
+        if n > self.capacity:
+            raise LcrlError(f"an episode of {t} steps does not fit in {self.capacity} slots")
+        obs = episode["obs"]
+        if set(obs) != set(self.obs_spec):
+            raise LcrlError(
+                f"episode observations have keys {sorted(obs)}; expected {sorted(self.obs_spec)}"
+            )
+        for key, (shape, _) in self.obs_spec.items():
+            got = np.shape(obs[key])
+            if got != (n, *shape):
+                raise LcrlError(f"obs[{key!r}] has shape {got}; expected {(n, *shape)}")
+        start = self.ptr if self.ptr + n <= self.capacity else 0
+        end = start + n
+        self._drop_overlapping(start, end)
+        for key in self.obs_spec:
+            self.obs[key][start:end] = obs[key]
+        self.action[start : end - 1] = action
+        self.env_reward[start : end - 1] = np.asarray(episode["reward"], np.float32)
+        term = np.asarray(episode["terminated"], bool)
+        self.terminated[start : end - 1] = term
+        self.terminated[end - 1] = False
+        self.ep_start[start:end] = start
+        self.ep_end[start:end] = end - 1
+        self.goal_space.write(start, episode)
+        self.valid[start : end - 1] = True
+        self.valid[end - 1] = False
+        self.ptr = end % self.capacity
+        self.episodes_added += 1
+        self.steps_added += t
+        self._valid_idx = None
+
+    def _drop_overlapping(self, start: int, end: int) -> None:
+        """Invalidate every stored episode with a slot in ``[start, end)``."""
+        touched = self.valid[start:end] | (self.ep_end[start:end] > 0)
+        if not touched.any():
+            return
+        for s in np.unique(self.ep_start[start:end][touched]):
+            e = self.ep_end[s]
+            if e >= s and (self.ep_start[s] == s):
+                self.valid[s : e + 1] = False
+                self.ep_end[s : e + 1] = 0
+                self.ep_start[s : e + 1] = 0
+        # Forget the cached indices now: if the episode being added is then rejected (a
+        # goal-space check raises), the dropped episodes must not stay sampleable.
+        self._valid_idx = None
+
+    # --- reading ---------------------------------------------------------------------
+    @property
+    def size(self) -> int:
+        """Number of sampleable transitions."""
+        return int(self._valid_indices().size)
+
+    def __len__(self) -> int:
+        return self.size
+
+    def _valid_indices(self) -> np.ndarray:
+        if self._valid_idx is None:
+            self._valid_idx = np.flatnonzero(self.valid)
+        return self._valid_idx
+
+    def sample(self, batch_size: int, relabel: bool = True) -> Batch:
+        """Sample transitions uniformly and relabel a ``k / (k + 1)`` fraction of goals.
+
+        Args:
+            batch_size: transitions to draw (with replacement).
+            relabel: set ``False`` to keep every original goal (rewards are still
+                recomputed, so they agree with the goal space).
+        """
+        valid = self._valid_indices()
+        if valid.size == 0:
+            raise LcrlError("the replay buffer is empty: add an episode before sampling")
+        idx = valid[self.rng.integers(0, valid.size, batch_size)]
+        goals = self.goal_space.desired(idx)
+        relabelled = np.zeros(batch_size, bool)
+        if relabel and self.k > 0:
+            which = np.flatnonzero(self.rng.random(batch_size) < self.relabel_ratio)
+            if which.size:
+                sub = idx[which]
+                new, ok = self.goal_space.relabel(
+                    sub, self.ep_start[sub], self.ep_end[sub], self.strategy, self.rng
+                )
+                goals[which] = new
+                relabelled[which] = ok
+        reward = self.goal_space.reward(idx, goals)
+        terminated = self.terminated[idx].astype(np.float32)
+        if self.goal_space.terminate_on_success:
+            # Reaching the (relabelled) goal ends the episode; the original goal's
+            # termination is replaced by the relabelled goal's.
+            success = self.goal_space.success(reward)
+            terminated = np.where(relabelled, success, terminated).astype(np.float32)
+        nxt = idx + 1
+        return Batch(
+            obs={key: arr[idx] for key, arr in self.obs.items()},
+            action=self.action[idx],
+            reward=reward,
+            next_obs={key: arr[nxt] for key, arr in self.obs.items()},
+            terminated=terminated,
+            goal=goals,
+            relabelled=relabelled,
+            index=idx,
+        )
+
+    # --- saving ----------------------------------------------------------------------
+    def arrays(self) -> dict[str, np.ndarray]:
+        """All storage and counters as plain arrays (for checkpoints; no pickling)."""
+        out = {f"obs.{key}": arr for key, arr in self.obs.items()}
+        out.update(
+            action=self.action,
+            env_reward=self.env_reward,
+            terminated=self.terminated,
+            ep_start=self.ep_start,
+            ep_end=self.ep_end,
+            valid=self.valid,
+            counters=np.array([self.ptr, self.episodes_added, self.steps_added], np.int64),
+        )
+        out.update({f"goal.{key}": arr for key, arr in self.goal_space.arrays().items()})
+        return out
+
+    def load_arrays(self, arrays: Mapping[str, np.ndarray]) -> None:
+        """Restore storage saved by :meth:`arrays` (capacity and shapes must match)."""
+        expected = self.arrays()
+        missing = sorted(set(expected) - set(arrays))
+        if missing:
+            raise LcrlError(f"saved replay buffer lacks {missing}")
+        for key, arr in expected.items():
+            if key == "counters" or key.startswith("goal."):
+                continue
+            if arrays[key].shape != arr.shape:
+                raise LcrlError(
+                    f"saved replay buffer array {key!r} has shape {arrays[key].shape}; this "
+                    f"buffer has {arr.shape} (capacity or observation shapes differ)"
+                )
+        for key, value in self.obs.items():
+            value[...] = arrays[f"obs.{key}"]
+        self.action[...] = arrays["action"]
+        self.env_reward[...] = arrays["env_reward"]
+        self.terminated[...] = arrays["terminated"]
+        self.ep_start[...] = arrays["ep_start"]
+        self.ep_end[...] = arrays["ep_end"]
+        self.valid[...] = arrays["valid"]
+        self.ptr, self.episodes_added, self.steps_added = (int(x) for x in arrays["counters"])
+        self.goal_space.load_arrays(
+            {key[5:]: arr for key, arr in arrays.items() if key.startswith("goal.")}
+        )
+        self._valid_idx = None

@@ -1,0 +1,400 @@
+"""Encoders and universal value function approximators (UVFA) for goal-conditioned RL.
+
+A network sees an observation and a goal through *separate* encoders, then fuses them:
+
+* the observation encoder concatenates one encoder per observation key: an MLP (or the
+  identity) for vector keys, a CNN for uint8 image keys (``(H, W, C)``);
+* the goal encoder is an MLP (or the identity) for vector goals, a learned projection of
+  the frozen text embedding for language goals, a linear layer for one-hot task ids, or a
+  CNN for image goals;
+* fusion is concatenation followed by an MLP (default), or FiLM: the goal produces a
+  per-unit scale and shift for every hidden layer of the MLP that reads the observation.
+
+Parameters of each network are packed into one flat buffer (:func:`flatten_parameters`)
+so that :class:`FlatAdam` updates them with a handful of vectorised operations.
+"""
+
+from __future__ import annotations
+
+import itertools
+import math
+from collections.abc import Iterable, Mapping, Sequence
+from dataclasses import dataclass
+
+import torch
+import torch.nn.functional as F
+from torch import nn
+
+from lcrl.errors import LcrlError
+
+FUSIONS = ("concat", "film")
+GOAL_KINDS = ("vector", "text", "onehot", "image")
+
+
+@dataclass
+class NetConfig:
+    """Network sizes and fusion."""
+
+    hidden: tuple[int, ...] = (256, 256)
+    """Hidden layer widths of the fused MLP (actor and critics)."""
+    state_layers: tuple[int, ...] = ()
+    """Hidden widths of the vector-observation encoder; empty means the identity."""
+    goal_layers: tuple[int, ...] = ()
+    """Hidden widths of the vector-goal encoder; empty means the identity."""
+    text_dim: int = 64
+    """Width of the learned projection of a frozen text embedding (or one-hot task id)."""
+    fusion: str = "concat"
+    """How goal and observation features meet: ``concat`` or ``film``."""
+    cnn_channels: tuple[int, ...] = (32, 32, 32, 32)
+    """Channels of the image encoder's 3x3 convolutions (the first has stride 2)."""
+    cnn_features: int = 50
+    """Output width of the image encoder (linear + layer norm after the convolutions)."""
+
+
+def mlp(sizes: Sequence[int], out_act: bool = False) -> nn.Sequential:
+    """``Linear-ReLU`` stack through ``sizes``; ReLU after the last layer if ``out_act``."""
+    layers: list[nn.Module] = []
+    for i, (a, b) in enumerate(itertools.pairwise(sizes)):
+        layers.append(nn.Linear(a, b))
+        if i < len(sizes) - 2 or out_act:
+            layers.append(nn.ReLU())
+    return nn.Sequential(*layers)
+
+
+class ConvEncoder(nn.Module):
+    """CNN for uint8 ``(B, H, W, C)`` images: conv stack, linear, layer norm, tanh."""
+
+    def __init__(self, shape: Sequence[int], channels: Sequence[int], features: int) -> None:
+        super().__init__()
+        h, w, c = shape
+        convs: list[nn.Module] = []
+        for i, ch in enumerate(channels):
+            convs += [nn.Conv2d(c, ch, 3, stride=2 if i == 0 else 1), nn.ReLU()]
+            c = ch
+        self.convs = nn.Sequential(*convs)
+        with torch.no_grad():
+            n = self.convs(torch.zeros(1, shape[2], h, w)).numel()
+        self.head = nn.Sequential(nn.Linear(n, features), nn.LayerNorm(features), nn.Tanh())
+        self.out_dim = features
+
+    def forward(self, image: torch.Tensor) -> torch.Tensor:
+        x = image.permute(0, 3, 1, 2).float() / 255.0 - 0.5
+        return self.head(self.convs(x).flatten(1))
+
+
+class ObsEncoder(nn.Module):
+    """One encoder per observation key, outputs concatenated (keys in sorted order).
+
+    Args:
+        obs_shapes: ``{key: shape}``; 1-D shapes are vectors, 3-D ``(H, W, C)`` images.
+        cfg: network config.
+    """
+
+    def __init__(self, obs_shapes: Mapping[str, Sequence[int]], cfg: NetConfig) -> None:
+        super().__init__()
+        self.keys = sorted(obs_shapes)
+        self.encoders = nn.ModuleDict()
+        dim = 0
+        for key in self.keys:
+            shape = tuple(obs_shapes[key])
+            if len(shape) == 1:
+                if cfg.state_layers:
+                    enc: nn.Module = mlp([shape[0], *cfg.state_layers], out_act=True)
+                    dim += cfg.state_layers[-1]
+                else:
+                    enc = nn.Identity()
+                    dim += shape[0]
+            elif len(shape) == 3:
+                enc = ConvEncoder(shape, cfg.cnn_channels, cfg.cnn_features)
+                dim += enc.out_dim
+            else:
+                raise LcrlError(
+                    f"observation {key!r} has shape {shape}: expected (d,) or (H, W, C)"
+                )
+            self.encoders[key] = enc
+        self.out_dim = dim
+
+    def forward(self, obs: Mapping[str, torch.Tensor]) -> torch.Tensor:
+        feats = [self.encoders[k](obs[k]) for k in self.keys]
+        return feats[0] if len(feats) == 1 else torch.cat(feats, -1)
+
+
+class GoalEncoder(nn.Module):
+    """Encodes embedded goals: identity/MLP, text projection, one-hot projection or CNN.
+
+    Args:
+        kind: ``vector``, ``text``, ``onehot`` or ``image``.
+        shape: shape of one embedded goal.
+        cfg: network config.
+    """
+
+    def __init__(self, kind: str, shape: Sequence[int], cfg: NetConfig) -> None:
+        super().__init__()
+        if kind not in GOAL_KINDS:
+            raise LcrlError(f"unknown goal kind {kind!r}; choose one of {GOAL_KINDS}")
+        self.kind = kind
+        shape = tuple(shape)
+        if kind == "image":
+            self.net: nn.Module = ConvEncoder(shape, cfg.cnn_channels, cfg.cnn_features)
+            self.out_dim = cfg.cnn_features
+        elif kind in ("text", "onehot"):
+            self.net = nn.Sequential(nn.Linear(shape[0], cfg.text_dim), nn.LayerNorm(cfg.text_dim))
+            self.out_dim = cfg.text_dim
+        elif cfg.goal_layers:
+            self.net = mlp([shape[0], *cfg.goal_layers], out_act=True)
+            self.out_dim = cfg.goal_layers[-1]
+        else:
+            self.net = nn.Identity()
+            self.out_dim = shape[0]
+
+    def forward(self, goal: torch.Tensor) -> torch.Tensor:
+        return self.net(goal)
+
+
+class FusedMLP(nn.Module):
+    """MLP over (features, goal features [, extra input]) with concat or FiLM fusion.
+
+    ``concat``: ``MLP([x, g, extra])``. ``film``: ``h_l = relu(W_l h_{l-1}) * (1 + gamma_l(g))
+    + beta_l(g)`` for every hidden layer, the first reading ``[x, extra]``.
+    """
+
+    def __init__(
+        self, in_dim: int, goal_dim: int, out_dim: int, hidden: Sequence[int], fusion: str
+    ) -> None:
+        super().__init__()
+        if fusion not in FUSIONS:
+            raise LcrlError(f"unknown fusion {fusion!r}; choose one of {FUSIONS}")
+        if not hidden:
+            raise LcrlError("the fused MLP needs at least one hidden layer")
+        self.fusion = fusion
+        if fusion == "concat":
+            self.net = mlp([in_dim + goal_dim, *hidden, out_dim])
+        else:
+            sizes = [in_dim, *hidden]
+            self.layers = nn.ModuleList(nn.Linear(a, b) for a, b in itertools.pairwise(sizes))
+            self.film = nn.Linear(goal_dim, 2 * sum(hidden))
+            nn.init.zeros_(self.film.weight)
+            nn.init.zeros_(self.film.bias)
+            self.out = nn.Linear(hidden[-1], out_dim)
+            self.hidden = tuple(hidden)
+
+    def forward(self, x: torch.Tensor, g: torch.Tensor) -> torch.Tensor:
+        if self.fusion == "concat":
+            return self.net(torch.cat([x, g], -1))
+        params = self.film(g).split([h for h in self.hidden for _ in range(2)], -1)
+        h = x
+        for i, layer in enumerate(self.layers):
+            h = F.relu(layer(h)) * (1 + params[2 * i]) + params[2 * i + 1]
+        return self.out(h)
+
+
+class GoalConditionedNet(nn.Module):
+    """Observation encoder + goal encoder + fused MLP: ``f(obs, goal[, action])``.
+
+    Args:
+        obs_shapes: ``{key: shape}`` of the observation.
+        goal_kind: goal encoder kind (see :class:`GoalEncoder`).
+        goal_shape: shape of one embedded goal.
+        out_dim: output width.
+        cfg: network config.
+        action_dim: width of an action input (critics), 0 for none.
+    """
+
+    def __init__(
+        self,
+        obs_shapes: Mapping[str, Sequence[int]],
+        goal_kind: str,
+        goal_shape: Sequence[int],
+        out_dim: int,
+        cfg: NetConfig,
+        action_dim: int = 0,
+    ) -> None:
+        super().__init__()
+        self.obs_encoder = ObsEncoder(obs_shapes, cfg)
+        self.goal_encoder = GoalEncoder(goal_kind, goal_shape, cfg)
+        self.head = FusedMLP(
+            self.obs_encoder.out_dim + action_dim,
+            self.goal_encoder.out_dim,
+            out_dim,
+            cfg.hidden,
+            cfg.fusion,
+        )
+
+    def forward(
+        self,
+        obs: Mapping[str, torch.Tensor],
+        goal: torch.Tensor,
+        action: torch.Tensor | None = None,
+    ) -> torch.Tensor:
+        x = self.obs_encoder(obs)
+        if action is not None:
+            x = torch.cat([x, action], -1)
+        return self.head(x, self.goal_encoder(goal))
+
+
+class Ensemble(nn.Module):
+    """``n`` independent copies of a network; ``forward`` stacks their outputs: ``(n, ...)``."""
+
+    def __init__(self, members: Iterable[nn.Module]) -> None:
+        super().__init__()
+        self.members = nn.ModuleList(members)
+
+    def forward(self, *args: torch.Tensor | Mapping[str, torch.Tensor] | None) -> torch.Tensor:
+        return torch.stack([m(*args) for m in self.members])
+
+
+class RunningNorm(nn.Module):
+    """Running mean / std normaliser with clipping; statistics are saved as buffers.
+
+    Args:
+        dim: feature width.
+        clip: clip normalised values to ``[-clip, clip]``.
+        eps: floor of the standard deviation.
+    """
+
+    def __init__(self, dim: int, clip: float = 5.0, eps: float = 1e-2) -> None:
+        super().__init__()
+        self.clip = clip
+        self.eps = eps
+        self.register_buffer("mean", torch.zeros(dim))
+        self.register_buffer("var", torch.ones(dim))
+        self.register_buffer("count", torch.zeros((), dtype=torch.float64))
+
+    @torch.no_grad()
+    def update(self, x: torch.Tensor) -> None:
+        """Fold a ``(N, dim)`` batch into the statistics (parallel Welford)."""
+        x = x.reshape(-1, self.mean.shape[0]).to(self.mean.device, torch.float32)
+        n = x.shape[0]
+        if n == 0:
+            return
+        mean, var = x.mean(0), x.var(0, unbiased=False)
+        total = self.count + n
+        delta = mean - self.mean
+        new_mean = self.mean + delta * (n / total)
+        m2 = self.var * self.count + var * n + delta.pow(2) * (self.count * n / total)
+        self.mean.copy_(new_mean)
+        self.var.copy_((m2 / total).float())
+        self.count.fill_(total)
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        std = self.var.sqrt().clamp_min(self.eps)
+        return ((x - self.mean) / std).clamp(-self.clip, self.clip)
+
+
+# --- flat parameters and a fast Adam ---------------------------------------------------
+def flatten_parameters(params: Sequence[nn.Parameter]) -> tuple[torch.Tensor, torch.Tensor]:
+    """Make ``params`` views of one flat buffer, and their grads views of another.
+
+    After this, ``backward`` accumulates every gradient into the flat gradient buffer, so an
+    optimiser steps all parameters with a few vectorised operations. Call it after moving
+    the module to its device.
+
+    Returns:
+        ``(flat_params, flat_grads)``.
+    """
+    if not params:
+        raise LcrlError("no parameters to flatten")
+    device, dtype = params[0].device, params[0].dtype
+    total = sum(p.numel() for p in params)
+    flat = torch.zeros(total, device=device, dtype=dtype)
+    grads = torch.zeros(total, device=device, dtype=dtype)
+    offset = 0
+    for p in params:
+        n = p.numel()
+        flat[offset : offset + n].copy_(p.data.reshape(-1))
+        p.data = flat[offset : offset + n].view_as(p)
+        p.grad = grads[offset : offset + n].view_as(p)
+        offset += n
+    return flat, grads
+
+
+class FlatAdam:
+    """Adam over parameters packed by :func:`flatten_parameters` (optional grad clipping).
+
+    Args:
+        params: the parameters (flattened here, in place).
+        lr: learning rate.
+        betas: Adam's moment decay rates.
+        eps: Adam's epsilon.
+        max_grad_norm: clip the global gradient norm to this; ``None`` for no clipping.
+    """
+
+    def __init__(
+        self,
+        params: Iterable[nn.Parameter],
+        lr: float,
+        betas: tuple[float, float] = (0.9, 0.999),
+        eps: float = 1e-8,
+        max_grad_norm: float | None = None,
+    ) -> None:
+        self.params = [p for p in params if p.requires_grad]
+        self.flat, self.grad = flatten_parameters(self.params)
+        self.lr = lr
+        self.betas = betas
+        self.eps = eps
+        self.max_grad_norm = max_grad_norm
+        self.step_count = 0
+        self.exp_avg = torch.zeros_like(self.flat)
+        self.exp_avg_sq = torch.zeros_like(self.flat)
+
+    def zero_grad(self) -> None:
+        """Zero the flat gradient buffer (in place, keeping the views)."""
+        self.grad.zero_()
+
+    @torch.no_grad()
+    def step(self) -> float:
+        """One Adam step; returns the gradient norm before clipping (0.0 if not computed)."""
+        norm = 0.0
+        g = self.grad
+        if self.max_grad_norm is not None:
+            n = torch.linalg.vector_norm(g)
+            norm = float(n)
+            if norm > self.max_grad_norm:
+                g = g * (self.max_grad_norm / (norm + 1e-6))
+        self.step_count += 1
+        b1, b2 = self.betas
+        self.exp_avg.lerp_(g, 1 - b1)
+        self.exp_avg_sq.mul_(b2).addcmul_(g, g, value=1 - b2)
+        bc1 = 1 - b1**self.step_count
+        bc2 = 1 - b2**self.step_count
+        denom = (self.exp_avg_sq / bc2).sqrt_().add_(self.eps)
+        self.flat.addcdiv_(self.exp_avg, denom, value=-self.lr / bc1)
+        return norm
+
+    def state_dict(self) -> dict[str, object]:
+        """Moments and step count (tensors and plain numbers)."""
+        return {
+            "step": self.step_count,
+            "exp_avg": self.exp_avg,
+            "exp_avg_sq": self.exp_avg_sq,
+            "lr": self.lr,
+        }
+
+    def load_state_dict(self, state: Mapping[str, object]) -> None:
+        """Restore :meth:`state_dict` (shapes must match)."""
+        exp_avg = torch.as_tensor(state["exp_avg"])
+        if exp_avg.shape != self.exp_avg.shape:
+            raise LcrlError(
+                f"optimiser state has {exp_avg.numel()} values; this model has "
+                f"{self.exp_avg.numel()} parameters"
+            )
+        self.step_count = int(state["step"])  # type: ignore[arg-type]
+        self.exp_avg.copy_(exp_avg)
+        self.exp_avg_sq.copy_(torch.as_tensor(state["exp_avg_sq"]))
+
+
+def polyak(target: Sequence[torch.Tensor], source: Sequence[torch.Tensor], tau: float) -> None:
+    """``target <- (1 - tau) target + tau source`` for every pair, in place."""
+    with torch.no_grad():
+        torch._foreach_lerp_(list(target), list(source), tau)
+
+
+def gaussian_log_prob_tanh(
+    mean: torch.Tensor, log_std: torch.Tensor, noise: torch.Tensor
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """Sample ``tanh(mean + std * noise)`` and its log-probability (tanh-corrected)."""
+    u = mean + log_std.exp() * noise
+    action = torch.tanh(u)
+    log_prob = (-0.5 * noise.pow(2) - log_std - 0.5 * math.log(2 * math.pi)).sum(-1)
+    log_prob = log_prob - (2 * (math.log(2) - u - F.softplus(-2 * u))).sum(-1)
+    return action, log_prob

@@ -1,0 +1,715 @@
+"""Tests for lcrl.nets and lcrl.algos: FlatAdam, fusion, normalisers, SAC, TD3 and DQN."""
+
+from __future__ import annotations
+
+import copy
+import math
+from types import SimpleNamespace
+
+import numpy as np
+import pytest
+import torch
+import torch.nn.functional as F
+from torch import nn
+
+from lcrl import algos
+from lcrl.algos import (
+    ALGOS,
+    DQN,
+    SAC,
+    TD3,
+    AgentOptions,
+    DQNConfig,
+    Problem,
+    SACConfig,
+    TD3Config,
+)
+from lcrl.buffer import Batch
+from lcrl.errors import LcrlError
+from lcrl.nets import FlatAdam, FusedMLP, NetConfig, RunningNorm
+
+
+@pytest.fixture(scope="module", autouse=True)
+def _one_thread():
+    """Tiny nets are fastest (and not starved by other processes) on one intra-op thread."""
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)
+    torch.optim.Adam([nn.Parameter(torch.zeros(1))])  # pay torch's lazy imports here
+    yield
+    torch.set_num_threads(threads)
+
+
+# --- helpers -----------------------------------------------------------------------------
+TEXT_TABLE = torch.randn(10, 16, generator=torch.Generator().manual_seed(1234))
+KEYS = {
+    "sac": {"critic_loss", "actor_loss", "alpha", "q", "entropy"},
+    "td3": {"critic_loss", "actor_loss", "q"},
+    "dqn": {"loss", "q", "epsilon"},
+}
+
+
+def vector_embed(goals, device):
+    return torch.as_tensor(goals, dtype=torch.float32, device=device)
+
+
+def text_embed(goals, device):
+    return TEXT_TABLE[torch.as_tensor(goals, dtype=torch.long)].to(device)
+
+
+def onehot_embed(goals, device):
+    return torch.eye(5, device=device)[torch.as_tensor(goals, dtype=torch.long, device=device)]
+
+
+def image_embed(goals, device):
+    return torch.as_tensor(goals, device=device)
+
+
+EMBEDS = {"vector": vector_embed, "text": text_embed, "onehot": onehot_embed, "image": image_embed}
+
+
+def options(seed: int = 0, **net) -> AgentOptions:
+    net.setdefault("hidden", (32, 32))
+    return AgentOptions(net=NetConfig(**net), seed=seed)
+
+
+def problem(discrete: bool, obs_dim: int = 3, goal_dim: int = 2, action_dim: int = 2) -> Problem:
+    return Problem({"state": (obs_dim,)}, "vector", (goal_dim,), action_dim, discrete)
+
+
+def make_agent(algo: str, seed: int = 0, prob: Problem | None = None, config=None, **net):
+    cls = ALGOS[algo]
+    prob = prob or problem(algo == "dqn")
+    return cls(prob, options(seed, **net), EMBEDS[prob.goal_kind], config)
+
+
+def make_batch(prob: Problem, rng: np.random.Generator, size: int = 16) -> Batch:
+    def obs():
+        out = {}
+        for key, shape in prob.obs_shapes.items():
+            if len(shape) == 3:
+                out[key] = rng.integers(0, 256, (size, *shape), dtype=np.uint8)
+            else:
+                out[key] = rng.normal(size=(size, *shape)).astype(np.float32)
+        return out
+
+    if prob.discrete:
+        action = rng.integers(0, prob.action_dim, size).astype(np.int64)
+    else:
+        action = rng.uniform(-1, 1, (size, prob.action_dim)).astype(np.float32)
+    if prob.goal_kind == "vector":
+        goal = rng.normal(size=(size, *prob.goal_shape)).astype(np.float32)
+    elif prob.goal_kind == "image":
+        goal = rng.integers(0, 256, (size, *prob.goal_shape), dtype=np.uint8)
+    else:
+        goal = rng.integers(0, 10 if prob.goal_kind == "text" else 5, size).astype(np.int64)
+    return Batch(
+        obs=obs(),
+        action=action,
+        reward=(rng.random(size) < 0.3).astype(np.float32),
+        next_obs=obs(),
+        terminated=(rng.random(size) < 0.2).astype(np.float32),
+        goal=goal,
+        relabelled=np.zeros(size, bool),
+        index=np.arange(size),
+    )
+
+
+def batches(prob: Problem, n: int, seed: int = 0, size: int = 16) -> list[Batch]:
+    rng = np.random.default_rng(seed)
+    return [make_batch(prob, rng, size) for _ in range(n)]
+
+
+def snapshot(agent) -> dict[str, torch.Tensor]:
+    """Every weight and buffer of the agent (and SAC's temperature), cloned."""
+    out = {
+        f"{name}.{key}": value.detach().clone()
+        for name, module in agent.modules().items()
+        for key, value in module.state_dict().items()
+    }
+    if isinstance(agent, SAC):
+        out["log_alpha"] = agent.log_alpha.detach().clone()
+    return out
+
+
+def assert_identical(a: dict[str, torch.Tensor], b: dict[str, torch.Tensor]) -> None:
+    assert a.keys() == b.keys()
+    for key in a:
+        assert torch.equal(a[key], b[key]), key
+
+
+def repeated(batch: Batch, i: int, size: int, **override) -> Batch:
+    """A batch of ``size`` copies of transition ``i`` of ``batch`` (fields overridable)."""
+
+    def rep(x):
+        return np.repeat(x[i : i + 1], size, axis=0)
+
+    fields = {
+        "obs": {k: rep(v) for k, v in batch.obs.items()},
+        "action": rep(batch.action),
+        "reward": rep(batch.reward),
+        "next_obs": {k: rep(v) for k, v in batch.next_obs.items()},
+        "terminated": rep(batch.terminated),
+        "goal": rep(batch.goal),
+        "relabelled": np.zeros(size, bool),
+        "index": np.zeros(size, np.int64),
+    }
+    fields.update(override)
+    return Batch(**fields)
+
+
+class ConstCritics(nn.Module):
+    """Stand-in for a target critic ensemble: every member predicts ``value``."""
+
+    def __init__(self, value: float, members: int = 2) -> None:
+        super().__init__()
+        self.value = value
+        self.members = members
+
+    def forward(self, obs, goal, action=None):
+        return torch.full((self.members, goal.shape[0], 1), self.value)
+
+
+class ConstQ(nn.Module):
+    """Stand-in for a DQN target network: fixed per-action values."""
+
+    def __init__(self, values: torch.Tensor) -> None:
+        super().__init__()
+        self.values = values
+
+    def forward(self, obs, goal):
+        return self.values.expand(goal.shape[0], -1)
+
+
+def small_mlp(seed: int) -> nn.Module:
+    torch.manual_seed(seed)
+    return nn.Sequential(
+        nn.Linear(5, 16), nn.ReLU(), nn.Linear(16, 16), nn.Tanh(), nn.Linear(16, 3)
+    )
+
+
+def mlp_loss(model: nn.Module, gen: torch.Generator) -> torch.Tensor:
+    x = torch.randn(8, 5, generator=gen)
+    y = torch.randn(8, 3, generator=gen)
+    return F.mse_loss(model(x), y)
+
+
+def assert_views(params, flat: torch.Tensor) -> None:
+    """Every tensor in ``params`` is a view of consecutive slices of ``flat``."""
+    offset = 0
+    base = flat.untyped_storage().data_ptr()
+    size = flat.element_size()
+    for p in params:
+        assert p.untyped_storage().data_ptr() == base
+        assert p.data_ptr() == base + size * (flat.storage_offset() + offset)
+        offset += p.numel()
+    assert offset == flat.numel()
+
+
+# --- 1. FlatAdam -------------------------------------------------------------------------
+def test_flat_adam_matches_torch_adam():
+    ref, flat_model = small_mlp(0), small_mlp(0)
+    kwargs = {"lr": 1e-2, "betas": (0.8, 0.99), "eps": 1e-6}
+    ref_opt = torch.optim.Adam(ref.parameters(), foreach=False, **kwargs)
+    opt = FlatAdam(flat_model.parameters(), **kwargs)
+    gen_a, gen_b = torch.Generator().manual_seed(5), torch.Generator().manual_seed(5)
+    for _ in range(20):
+        ref_opt.zero_grad()
+        mlp_loss(ref, gen_a).backward()
+        ref_opt.step()
+        opt.zero_grad()
+        mlp_loss(flat_model, gen_b).backward()
+        assert opt.step() == 0.0  # no clipping: the norm is not computed
+    assert opt.step_count == 20
+    moved = 0.0
+    for p, q, p0 in zip(
+        ref.parameters(), flat_model.parameters(), small_mlp(0).parameters(), strict=True
+    ):
+        torch.testing.assert_close(q, p, rtol=0, atol=1e-6)
+        moved = max(moved, float((p - p0).detach().abs().max()))
+    assert moved > 0.05  # the comparison is not trivially between unchanged weights
+    assert_views(flat_model.parameters(), opt.flat)
+    assert_views([p.grad for p in flat_model.parameters()], opt.grad)
+
+
+def test_flat_adam_state_round_trip_keeps_views():
+    model = small_mlp(0)
+    opt = FlatAdam(model.parameters(), lr=1e-2)
+    gen = torch.Generator().manual_seed(0)
+    for _ in range(3):
+        opt.zero_grad()
+        mlp_loss(model, gen).backward()
+        opt.step()
+    saved_model = copy.deepcopy(model.state_dict())
+    saved_opt = copy.deepcopy(opt.state_dict())
+
+    other = small_mlp(1)
+    other_opt = FlatAdam(other.parameters(), lr=1e-2)
+    other.load_state_dict(saved_model)
+    other_opt.load_state_dict(saved_opt)
+    assert_views(other.parameters(), other_opt.flat)
+    assert_views([p.grad for p in other.parameters()], other_opt.grad)
+    assert torch.equal(other_opt.flat, opt.flat)
+    assert other_opt.step_count == 3
+    # Loading into itself is harmless too.
+    opt.load_state_dict(opt.state_dict())
+    assert_views(model.parameters(), opt.flat)
+
+    gen_a, gen_b = torch.Generator().manual_seed(9), torch.Generator().manual_seed(9)
+    for _ in range(5):
+        for m, o, g in ((model, opt, gen_a), (other, other_opt, gen_b)):
+            o.zero_grad()
+            mlp_loss(m, g).backward()
+            o.step()
+    for p, q in zip(model.parameters(), other.parameters(), strict=True):
+        assert torch.equal(p, q)
+    assert not torch.equal(opt.flat, torch.cat([v.reshape(-1) for v in saved_model.values()]))
+
+    wrong = FlatAdam(nn.Linear(2, 2).parameters(), lr=1e-2)
+    with pytest.raises(LcrlError, match="parameters"):
+        wrong.load_state_dict(saved_opt)
+
+
+def test_flat_adam_clips_gradient_norm():
+    def one_step(max_norm):
+        model = small_mlp(0)
+        opt = FlatAdam(model.parameters(), lr=1e-2, eps=1e-3, max_grad_norm=max_norm)
+        before = opt.flat.clone()
+        loss = mlp_loss(model, torch.Generator().manual_seed(3)) * 100.0
+        loss.backward()
+        grad_norm = float(torch.linalg.vector_norm(opt.grad))
+        returned = opt.step()
+        return returned, grad_norm, float(torch.linalg.vector_norm(opt.flat - before)), opt
+
+    returned, grad_norm, free_step, _ = one_step(None)
+    assert returned == 0.0
+    assert grad_norm > 1.0
+
+    returned, grad_norm, clipped_step, opt = one_step(1e-3)
+    assert returned == pytest.approx(grad_norm, rel=1e-6)  # the norm before clipping
+    # The first moment holds (1 - beta1) times the clipped gradient, of norm max_grad_norm.
+    assert float(torch.linalg.vector_norm(opt.exp_avg)) == pytest.approx(0.1 * 1e-3, rel=1e-4)
+    assert float(opt.grad.norm()) == pytest.approx(grad_norm, rel=1e-6)  # grads are not modified
+    assert clipped_step < 0.1 * free_step
+
+    returned, grad_norm, loose_step, _ = one_step(1e9)  # above the norm: no clipping
+    assert returned == pytest.approx(grad_norm, rel=1e-6)
+    assert loose_step == free_step
+
+
+# --- 2. determinism ----------------------------------------------------------------------
+@pytest.mark.parametrize("algo", ["sac", "td3", "dqn"])
+def test_same_seed_is_bit_identical(algo):
+    prob = problem(algo == "dqn")
+    data = batches(prob, 4)
+    act_obs = {"state": np.linspace(-1, 1, 6, dtype=np.float32).reshape(2, 3)}
+    act_goal = np.array([[0.5, -0.5], [1.0, 0.0]], np.float32)
+    runs = []
+    for seed in (0, 0, 1):
+        agent = make_agent(algo, seed, prob)
+        agent.observe(data[0].obs, data[0].goal)
+        metrics = [agent.update(b) for b in data]
+        actions = agent.act(act_obs, act_goal)
+        runs.append((snapshot(agent), metrics, actions))
+    (snap_a, metrics_a, act_a), (snap_b, metrics_b, act_b), (snap_c, metrics_c, _) = runs
+    assert_identical(snap_a, snap_b)
+    assert metrics_a == metrics_b
+    np.testing.assert_array_equal(act_a, act_b)
+    differing = [k for k in snap_a if not torch.equal(snap_a[k], snap_c[k])]
+    assert len(differing) > len(snap_a) // 2
+    assert metrics_a != metrics_c
+
+
+# --- 3. metrics and target networks ------------------------------------------------------
+@pytest.mark.parametrize("algo", ["sac", "td3", "dqn"])
+def test_update_returns_finite_documented_metrics(algo):
+    prob = problem(algo == "dqn")
+    agent = make_agent(algo, 0, prob)
+    before = snapshot(agent)
+    for b in batches(prob, 3):
+        metrics = agent.update(b)
+        assert set(metrics) == KEYS[algo]
+        for value in metrics.values():
+            assert type(value) is float
+            assert math.isfinite(value)
+    assert agent.updates == 3
+    after = snapshot(agent)
+    online = "critic" if algo != "dqn" else "q"
+    assert any(not torch.equal(before[k], after[k]) for k in before if k.startswith(f"{online}."))
+
+
+def test_sac_target_critic_moves_by_tau():
+    tau = 0.3
+    prob = problem(False)
+    agent = make_agent("sac", 0, prob, SACConfig(tau=tau))
+    assert torch.equal(agent._target_flat, agent.critic_opt.flat)  # starts as a copy
+    data = batches(prob, 2)
+    agent.update(data[0])  # make target and online differ
+    old_target = agent._target_flat.clone()
+    old_state = {k: v.clone() for k, v in agent.critic_target.state_dict().items()}
+    agent.update(data[1])
+    new_online = agent.critic_opt.flat
+    assert not torch.equal(old_target, new_online)
+    assert torch.equal(agent._target_flat, torch.lerp(old_target, new_online, tau))
+    online_state = agent.critic.state_dict()
+    for key, value in agent.critic_target.state_dict().items():
+        expected = (1 - tau) * old_state[key] + tau * online_state[key]
+        torch.testing.assert_close(value, expected, rtol=0, atol=1e-6)
+        assert not value.requires_grad
+
+
+def test_td3_targets_move_with_policy_delay():
+    tau = 0.25
+    prob = problem(False)
+    agent = make_agent("td3", 0, prob, TD3Config(tau=tau, policy_delay=2))
+    data = batches(prob, 3)
+    initial_actor, initial_critic = (
+        agent._actor_target_flat.clone(),
+        agent._critic_target_flat.clone(),
+    )
+    agent.update(data[0])  # critic only: targets stay
+    assert not torch.equal(agent.critic_opt.flat, initial_critic)
+    assert torch.equal(agent._actor_target_flat, initial_actor)
+    assert torch.equal(agent._critic_target_flat, initial_critic)
+    old_actor, old_critic = agent._actor_target_flat.clone(), agent._critic_target_flat.clone()
+    metrics = agent.update(data[1])  # second call: actor and targets
+    assert metrics["actor_loss"] != 0.0
+    assert torch.equal(agent._actor_target_flat, torch.lerp(old_actor, agent.actor_opt.flat, tau))
+    assert torch.equal(
+        agent._critic_target_flat, torch.lerp(old_critic, agent.critic_opt.flat, tau)
+    )
+    old_actor, old_critic = agent._actor_target_flat.clone(), agent._critic_target_flat.clone()
+    actor = agent.actor_opt.flat.clone()
+    third = agent.update(data[2])  # critic only again
+    assert torch.equal(agent._actor_target_flat, old_actor)
+    assert torch.equal(agent._critic_target_flat, old_critic)
+    assert torch.equal(agent.actor_opt.flat, actor)
+    assert third["actor_loss"] == metrics["actor_loss"]
+
+
+def test_dqn_target_moves_by_tau():
+    tau = 0.4
+    prob = problem(True)
+    agent = make_agent("dqn", 0, prob, DQNConfig(tau=tau))
+    data = batches(prob, 2)
+    agent.update(data[0])
+    old = agent._target_flat.clone()
+    agent.update(data[1])
+    assert not torch.equal(old, agent.opt.flat)
+    assert torch.equal(agent._target_flat, torch.lerp(old, agent.opt.flat, tau))
+    for p, q in zip(agent.q_target.parameters(), agent.q.parameters(), strict=True):
+        assert p.shape == q.shape
+
+
+# --- 4. terminated vs truncated targets ----------------------------------------------------
+@pytest.mark.parametrize("algo", ["sac", "td3"])
+@pytest.mark.parametrize("terminated", [1.0, 0.0])
+def test_actor_critic_td_target(algo, terminated):
+    """With the target critics fixed at C, ``y = 1`` when terminated, ``1 + gamma C`` if not
+    (a truncated transition is stored with ``terminated = 0``, so it bootstraps)."""
+    gamma, value, size = 0.9, 10.0, 8
+    prob = problem(False)
+    if algo == "sac":
+        # A negligible temperature makes SAC's entropy bonus vanish from the target.
+        config = SACConfig(gamma=gamma, init_alpha=1e-30, autotune_alpha=False)
+    else:
+        config = TD3Config(gamma=gamma)
+    agent = make_agent(algo, 0, prob, config)
+    agent.critic_target = ConstCritics(value)
+    batch = repeated(
+        batches(prob, 1)[0],
+        0,
+        size,
+        reward=np.ones(size, np.float32),
+        terminated=np.full(size, terminated, np.float32),
+    )
+    obs, _, goal, act, _, _ = agent.batch_tensors(batch)
+    with torch.no_grad():
+        q = agent.critic(obs, goal, act).squeeze(-1)  # (2, size)
+    y = 1.0 if terminated else 1.0 + gamma * value
+    expected = 0.5 * float(((q - y) ** 2).mean(-1).sum())
+    metrics = agent.update(batch)
+    assert metrics["critic_loss"] == pytest.approx(expected, rel=1e-5)
+    wrong_y = 1.0 + gamma * value if terminated else 1.0
+    wrong = 0.5 * float(((q - wrong_y) ** 2).mean(-1).sum())
+    assert abs(wrong - expected) > 10.0
+
+
+@pytest.mark.parametrize("terminated", [1.0, 0.0])
+def test_dqn_td_target(monkeypatch, terminated):
+    """Double DQN: ``y = r + gamma (1 - terminated) Q_target(s', argmax_a Q(s', a))``."""
+    gamma, size = 0.9, 8
+    prob = problem(True)
+    agent = make_agent("dqn", 0, prob, DQNConfig(gamma=gamma))
+    target_values = torch.tensor([[3.0, 5.0, 7.0, 11.0]])
+    agent.q_target = ConstQ(target_values)
+    captured = {}
+
+    def spy(q, y):
+        captured["y"] = y.clone()
+        return F.smooth_l1_loss(q, y)
+
+    monkeypatch.setattr(algos, "F", SimpleNamespace(smooth_l1_loss=spy))
+    batch = repeated(
+        batches(prob, 1)[0],
+        0,
+        size,
+        reward=np.ones(size, np.float32),
+        terminated=np.full(size, terminated, np.float32),
+    )
+    _, nobs, goal, _, _, _ = agent.batch_tensors(batch)
+    with torch.no_grad():
+        best = int(agent.q(nobs, goal)[0].argmax())
+    agent.update(batch)
+    y = captured["y"]
+    assert y.shape == (size,)
+    if terminated:
+        assert torch.equal(y, torch.ones(size))
+    else:
+        expected = 1.0 + gamma * float(target_values[0, best])
+        torch.testing.assert_close(y, torch.full((size,), expected), rtol=0, atol=1e-6)
+
+
+# --- 5. tiny learning checks ---------------------------------------------------------------
+def test_dqn_learns_goal_conditioned_bandit():
+    prob = Problem({"state": (2,)}, "vector", (4,), 4, discrete=True)
+    agent = DQN(prob, options(0), vector_embed, DQNConfig(lr=3e-3))
+    rng = np.random.default_rng(0)
+    eye = np.eye(4, dtype=np.float32)
+    size = 64
+    for _ in range(300):
+        idx = rng.integers(0, 4, size)
+        action = rng.integers(0, 4, size)
+        obs = {"state": rng.normal(size=(size, 2)).astype(np.float32)}
+        batch = Batch(
+            obs=obs,
+            action=action,
+            reward=(action == idx).astype(np.float32),
+            next_obs=obs,
+            terminated=np.ones(size, np.float32),
+            goal=eye[idx],
+            relabelled=np.zeros(size, bool),
+            index=np.arange(size),
+        )
+        agent.update(batch)
+    obs = {"state": np.zeros((4, 2), np.float32)}
+    np.testing.assert_array_equal(agent.act(obs, eye, deterministic=True), np.arange(4))
+    with torch.no_grad():
+        q = agent.q(agent.obs_tensors(obs), agent.goal_tensor(eye))
+    np.testing.assert_allclose(q.numpy(), np.eye(4), atol=0.2)
+
+
+def test_sac_moves_mean_action_to_goal():
+    prob = Problem({"state": (1,)}, "vector", (1,), 1)
+    agent = SAC(prob, options(0), vector_embed, SACConfig(actor_lr=3e-3, critic_lr=3e-3))
+    goals = np.array([[-0.6], [0.6]], np.float32)
+    obs = {"state": np.zeros((2, 1), np.float32)}
+    start = agent.act(obs, goals, deterministic=True)[:, 0]
+    assert np.all(np.abs(start - goals[:, 0]) > 0.4)
+    rng = np.random.default_rng(0)
+    size = 64
+    for _ in range(300):
+        goal = goals[rng.integers(0, 2, size)]
+        action = rng.uniform(-1, 1, (size, 1)).astype(np.float32)
+        state = {"state": np.zeros((size, 1), np.float32)}
+        batch = Batch(
+            obs=state,
+            action=action,
+            reward=(np.abs(action - goal)[:, 0] < 0.3).astype(np.float32),
+            next_obs=state,
+            terminated=np.ones(size, np.float32),
+            goal=goal,
+            relabelled=np.zeros(size, bool),
+            index=np.arange(size),
+        )
+        agent.update(batch)
+    end = agent.act(obs, goals, deterministic=True)[:, 0]
+    assert np.all(np.abs(end - goals[:, 0]) < 0.2), end
+
+
+# --- 6. fusion and goal/observation encoders ---------------------------------------------
+def test_fused_mlp_shapes_and_film_identity():
+    torch.manual_seed(0)
+    x, g, g2 = torch.randn(4, 5), torch.randn(4, 3), torch.randn(4, 3)
+    concat = FusedMLP(5, 3, 2, (8, 8), "concat")
+    film = FusedMLP(5, 3, 2, (8, 8), "film")
+    assert concat(x, g).shape == (4, 2)
+    assert film(x, g).shape == (4, 2)
+    assert not torch.equal(concat(x, g), concat(x, g2))
+
+    # FiLM starts as the identity modulation: the plain layer stack, whatever the goal.
+    assert torch.count_nonzero(film.film(g)) == 0
+    h = x
+    for layer in film.layers:
+        h = F.relu(layer(h))
+    plain = film.out(h)
+    assert torch.equal(film(x, g), plain)
+    assert torch.equal(film(x, g2), plain)
+
+    # Once the FiLM layer is non-zero, h = relu(W h) * (1 + gamma) + beta per hidden layer.
+    with torch.no_grad():
+        film.film.weight.normal_()
+        film.film.bias.normal_()
+    gamma1, beta1, gamma2, beta2 = film.film(g).split([8, 8, 8, 8], -1)
+    h = F.relu(film.layers[0](x)) * (1 + gamma1) + beta1
+    h = F.relu(film.layers[1](h)) * (1 + gamma2) + beta2
+    torch.testing.assert_close(film(x, g), film.out(h))
+    assert not torch.equal(film(x, g), plain)
+
+
+@pytest.mark.parametrize("fusion", ["concat", "film"])
+@pytest.mark.parametrize(
+    "prob",
+    [
+        Problem({"state": (3,)}, "text", (16,), 2),
+        Problem({"state": (3,)}, "onehot", (5,), 2),
+        Problem({"state": (3,), "image": (16, 16, 3)}, "vector", (2,), 2),
+        Problem({"state": (3,)}, "image", (16, 16, 3), 2),
+    ],
+    ids=["text", "onehot", "image-obs", "image-goal"],
+)
+def test_sac_end_to_end_inputs(prob, fusion):
+    agent = SAC(
+        prob,
+        options(0, fusion=fusion, text_dim=8, cnn_channels=(8, 8), cnn_features=16),
+        EMBEDS[prob.goal_kind],
+        SACConfig(),
+    )
+    data = batches(prob, 2, size=8)
+    agent.observe(data[0].obs, data[0].goal)
+    before = snapshot(agent)
+    for b in data:
+        metrics = agent.update(b)
+        assert set(metrics) == KEYS["sac"]
+        assert all(math.isfinite(v) for v in metrics.values())
+    after = snapshot(agent)
+    changed = {k for k in before if not torch.equal(before[k], after[k])}
+    # The goal encoder of the critics and the actor learns (text/one-hot projection, CNN).
+    if prob.goal_kind != "vector":
+        assert any(k.startswith("critic.") and ".goal_encoder." in k for k in changed)
+        assert any(k.startswith("actor.") and ".goal_encoder." in k for k in changed)
+    if "image" in prob.obs_shapes:
+        assert any(".obs_encoder.encoders.image.convs." in k for k in changed)
+    actions = agent.act(data[0].obs, data[0].goal)
+    assert actions.shape == (8, 2)
+    assert np.all(np.abs(actions) <= 1.0)
+
+
+# --- 7. errors ------------------------------------------------------------------------------
+def test_algorithm_action_space_mismatch():
+    with pytest.raises(LcrlError, match="continuous"):
+        SAC(problem(True), options(), vector_embed)
+    with pytest.raises(LcrlError, match="continuous"):
+        TD3(problem(True), options(), vector_embed)
+    with pytest.raises(LcrlError, match="discrete"):
+        DQN(problem(False), options(), vector_embed)
+
+
+@pytest.mark.skipif(torch.cuda.is_available(), reason="CUDA is available here")
+@pytest.mark.parametrize("device", ["cuda", "cuda:0"])
+def test_cuda_unavailable(device):
+    opts = AgentOptions(net=NetConfig(hidden=(32, 32)), device=device)
+    with pytest.raises(LcrlError, match="CUDA is not available"):
+        SAC(problem(False), opts, vector_embed)
+
+
+def test_unknown_device_fusion_and_goal_kind():
+    with pytest.raises(LcrlError, match="unknown device"):
+        SAC(problem(False), AgentOptions(device="quantum"), vector_embed)
+    with pytest.raises(LcrlError, match="unknown fusion"):
+        SAC(problem(False), options(fusion="sum"), vector_embed)
+    with pytest.raises(LcrlError, match="unknown fusion"):
+        FusedMLP(3, 2, 1, (4,), "attention")
+    with pytest.raises(LcrlError, match="hidden layer"):
+        FusedMLP(3, 2, 1, (), "concat")
+    with pytest.raises(LcrlError, match="unknown goal kind"):
+        SAC(Problem({"state": (3,)}, "audio", (4,), 2), options(), vector_embed)
+    with pytest.raises(LcrlError, match="expected"):
+        SAC(Problem({"state": (3, 4)}, "vector", (2,), 2), options(), vector_embed)
+
+
+# --- 8. RunningNorm ---------------------------------------------------------------------------
+def test_running_norm_matches_numpy_and_round_trips():
+    rng = np.random.default_rng(0)
+    chunks = [
+        (rng.normal(size=(n, 3)) * [1.0, 5.0, 0.1] + [3.0, -2.0, 0.5]).astype(np.float32)
+        for n in (1, 7, 50, 0, 200, 13)
+    ]
+    norm = RunningNorm(3, clip=5.0, eps=1e-2)
+    seen = []
+    for chunk in chunks:
+        norm.update(torch.as_tensor(chunk))
+        seen.append(chunk)
+        data = np.concatenate(seen).astype(np.float64)
+        np.testing.assert_allclose(norm.mean.numpy(), data.mean(0), rtol=1e-5, atol=1e-5)
+        np.testing.assert_allclose(norm.var.numpy(), data.var(0), rtol=1e-5, atol=1e-5)
+        assert float(norm.count) == len(data)
+
+    x = torch.as_tensor(rng.normal(size=(20, 3)).astype(np.float32)) * 10
+    std = norm.var.sqrt().clamp_min(1e-2)
+    torch.testing.assert_close(norm(x), ((x - norm.mean) / std).clamp(-5.0, 5.0))
+    assert float(norm(x).abs().max()) <= 5.0
+
+    state = copy.deepcopy(norm.state_dict())
+    assert set(state) == {"mean", "var", "count"}
+    restored = RunningNorm(3)
+    restored.load_state_dict(state)
+    for key in ("mean", "var", "count"):
+        assert torch.equal(getattr(restored, key), getattr(norm, key))
+    assert torch.equal(restored(x), norm(x))
+    extra = torch.as_tensor(chunks[2])
+    norm.update(extra)
+    restored.update(extra)
+    assert torch.equal(restored.mean, norm.mean) and torch.equal(restored.var, norm.var)
+
+
+def test_agent_observe_feeds_normalisers():
+    prob = problem(False)
+    agent = make_agent("sac", 0, prob)
+    data = batches(prob, 1, size=32)[0]
+    agent.observe(data.obs, data.goal)
+    np.testing.assert_allclose(
+        agent.norms["obs_state"].mean.numpy(), data.obs["state"].mean(0), atol=1e-6
+    )
+    np.testing.assert_allclose(agent.norms["goal"].var.numpy(), data.goal.var(0), rtol=1e-5)
+    # Already-embedded goals skip the embedder but are still normalised.
+    g = torch.as_tensor(data.goal)
+    assert torch.equal(agent.goal_tensor(g, embedded=True), agent.goal_tensor(data.goal))
+
+
+# --- 9. states round trip -----------------------------------------------------------------------
+@pytest.mark.parametrize("done", [3, 4], ids=["odd", "even"])
+@pytest.mark.parametrize("algo", ["sac", "td3", "dqn"])
+def test_restored_agent_continues_identically(algo, done):
+    prob = problem(algo == "dqn")
+    data = batches(prob, 8)
+    act_obs, act_goal = data[0].obs, data[0].goal
+    agent = make_agent(algo, 0, prob)
+    agent.observe(data[0].obs, data[0].goal)
+    for b in data[:done]:
+        agent.update(b)
+    agent.act(act_obs, act_goal)
+
+    # What a checkpoint holds, copied (as writing it to disk would).
+    weights = {name: copy.deepcopy(m.state_dict()) for name, m in agent.modules().items()}
+    states = copy.deepcopy(agent.states())
+    fresh = make_agent(algo, 7, prob)  # another seed: everything must come from the copy
+    assert not torch.equal(
+        next(iter(fresh.modules()["critic" if algo != "dqn" else "q"].parameters())),
+        next(iter(agent.modules()["critic" if algo != "dqn" else "q"].parameters())),
+    )
+    for name, module in fresh.modules().items():
+        module.load_state_dict(weights[name])
+    fresh.load_states(states)
+    fresh.after_load()
+    assert_identical(snapshot(fresh), snapshot(agent))
+    assert (fresh.updates, fresh.acts) == (agent.updates, agent.acts)
+
+    for i, b in enumerate(data[done:]):
+        expected, got = agent.update(b), fresh.update(b)
+        assert got == expected, i
+        np.testing.assert_array_equal(fresh.act(act_obs, act_goal), agent.act(act_obs, act_goal))
+    assert_identical(snapshot(fresh), snapshot(agent))
+    for a, f in zip(agent.modules().values(), fresh.modules().values(), strict=True):
+        for p, q in zip(a.parameters(), f.parameters(), strict=True):
+            assert torch.equal(p, q)
+    assert fresh.updates == agent.updates == 8

@@ -1,0 +1,228 @@
+"""Training configuration (typed dataclasses, one docstring per field) and named presets.
+
+``lcrl train PRESET [--field value ...]`` starts from a preset and overrides any field;
+``lcrl train PRESET --help`` lists every field with its documentation and default.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import dataclass, field
+from typing import Any
+
+from lcrl.algos import AgentOptions, DQNConfig, SACConfig, TD3Config
+from lcrl.errors import LcrlError
+from lcrl.goals import STRATEGIES
+from lcrl.nets import NetConfig
+from lcrl.text_encoder import TextEncoderConfig
+from train.tasks import EnvConfig
+
+
+@dataclass
+class BufferConfig:
+    """Replay buffer and hindsight relabelling."""
+
+    capacity: int = 1_000_000
+    """Observation slots (an episode of T steps takes T + 1)."""
+    strategy: str = "future"
+    """Relabelling strategy: ``future``, ``final`` or ``episode``."""
+    k: int = 4
+    """Relabelled goals per original goal: a fraction k / (k + 1) of sampled transitions is
+    relabelled. 0 turns hindsight relabelling off."""
+
+
+@dataclass
+class TrainConfig:
+    """One training run: environment, learner, schedule, evaluation and outputs."""
+
+    out: str = "runs/train"
+    """Run folder: config.json, progress.csv, eval.csv, TensorBoard events, checkpoints."""
+    env: EnvConfig = field(default_factory=EnvConfig)
+    """The environment."""
+    algo: str = "auto"
+    """``sac``, ``td3``, ``dqn``, or ``auto`` (SAC for continuous, DQN for discrete actions)."""
+    sac: SACConfig = field(default_factory=SACConfig)
+    """SAC hyper-parameters."""
+    td3: TD3Config = field(default_factory=TD3Config)
+    """TD3 hyper-parameters."""
+    dqn: DQNConfig = field(default_factory=DQNConfig)
+    """Double-DQN hyper-parameters."""
+    agent: AgentOptions = field(default_factory=AgentOptions)
+    """Networks, normalisation, device and seed of the learner."""
+    buffer: BufferConfig = field(default_factory=BufferConfig)
+    """Replay buffer and relabelling."""
+    text_encoder: TextEncoderConfig = field(default_factory=TextEncoderConfig)
+    """Frozen text encoder for language goals."""
+    total_steps: int = 100_000
+    """Environment steps to train for."""
+    learning_starts: int = 1_000
+    """Steps of uniformly random actions before learning starts."""
+    batch_size: int = 256
+    """Transitions per update."""
+    updates_per_step: float = 1.0
+    """Gradient updates per environment step (fractions update every few steps)."""
+    eval_every: int = 10_000
+    """Evaluate every this many steps (0: only at the end)."""
+    eval_episodes: int = 50
+    """Episodes per evaluation set (seen instructions, held-out combinations ...)."""
+    checkpoint_every: int = 25_000
+    """Checkpoint every this many steps (0: only at the end and on Ctrl-C)."""
+    keep_checkpoints: int = 2
+    """How many of the latest checkpoints to keep."""
+    save_buffer: bool = True
+    """Save the replay buffer with checkpoints so that ``--resume`` continues exactly."""
+    resume: bool = False
+    """Continue the run in ``out`` from its latest checkpoint, with its saved config (only
+    ``total_steps`` is taken from the command line)."""
+    seed: int = 0
+    """Seed of the environment resets and the buffer (the learner has ``agent.seed``)."""
+    log_every: int = 1_000
+    """Write a progress.csv row every this many steps."""
+    progress: bool = True
+    """Show a progress bar."""
+    tensorboard: bool = True
+    """Write TensorBoard event files (needs the ``tensorboard`` package)."""
+
+    def resolved_algo(self, discrete: bool) -> str:
+        """The algorithm after resolving ``auto``."""
+        if self.algo == "auto":
+            return "dqn" if discrete else "sac"
+        return self.algo
+
+    def validate(self) -> None:
+        """Raise :class:`LcrlError` for inconsistent settings."""
+        if self.algo not in ("auto", "sac", "td3", "dqn"):
+            raise LcrlError(f"unknown algo {self.algo!r}; choose auto, sac, td3 or dqn")
+        if self.buffer.strategy not in STRATEGIES:
+            raise LcrlError(
+                f"unknown relabelling strategy {self.buffer.strategy!r}; choose one of {STRATEGIES}"
+            )
+        for name in ("total_steps", "batch_size", "eval_episodes", "log_every"):
+            if getattr(self, name) <= 0:
+                raise LcrlError(f"{name} must be positive, got {getattr(self, name)}")
+        for name in ("learning_starts", "eval_every", "checkpoint_every"):
+            if getattr(self, name) < 0:
+                raise LcrlError(f"{name} must be >= 0, got {getattr(self, name)}")
+        if self.updates_per_step < 0:
+            raise LcrlError("updates_per_step must be >= 0")
+        if self.buffer.k < 0:
+            raise LcrlError("buffer.k must be >= 0")
+        if self.keep_checkpoints < 1:
+            raise LcrlError("keep_checkpoints must be at least 1")
+
+
+def config_to_dict(cfg: Any) -> dict[str, Any]:
+    """A dataclass config as a JSON-able dict."""
+    return dataclasses.asdict(cfg)
+
+
+def config_from_dict(d: dict[str, Any]) -> TrainConfig:
+    """Rebuild a :class:`TrainConfig` from :func:`config_to_dict` output (unknown keys are
+    an error, missing keys take their defaults)."""
+
+    def build(cls: type, values: dict[str, Any]) -> Any:
+        fields = {f.name: f for f in dataclasses.fields(cls)}
+        unknown = sorted(set(values) - set(fields))
+        if unknown:
+            raise LcrlError(f"unknown {cls.__name__} fields in a saved config: {unknown}")
+        kwargs = {}
+        for name, value in values.items():
+            ftype = fields[name].type
+            sub = _NESTED.get((cls.__name__, name))
+            if sub is not None and isinstance(value, dict):
+                kwargs[name] = build(sub, value)
+            elif isinstance(value, list) and "tuple" in str(ftype):
+                kwargs[name] = tuple(value)
+            else:
+                kwargs[name] = value
+        return cls(**kwargs)
+
+    return build(TrainConfig, d)
+
+
+_NESTED: dict[tuple[str, str], type] = {
+    ("TrainConfig", "env"): EnvConfig,
+    ("TrainConfig", "sac"): SACConfig,
+    ("TrainConfig", "td3"): TD3Config,
+    ("TrainConfig", "dqn"): DQNConfig,
+    ("TrainConfig", "agent"): AgentOptions,
+    ("TrainConfig", "buffer"): BufferConfig,
+    ("TrainConfig", "text_encoder"): TextEncoderConfig,
+    ("AgentOptions", "net"): NetConfig,
+}
+
+
+def _lang2d(**overrides: Any) -> TrainConfig:
+    cfg = TrainConfig(
+        out="runs/lang2d",
+        env=EnvConfig(kind="lang2d", families=("reach", "push")),
+        total_steps=100_000,
+        eval_every=10_000,
+        eval_episodes=100,
+    )
+    return dataclasses.replace(cfg, **overrides)
+
+
+PRESETS: dict[str, tuple[str, TrainConfig]] = {
+    "lang2d": (
+        "2D tabletop, language goals (reach, push), SAC + language HER, 100k steps",
+        _lang2d(),
+    ),
+    "lang2d-noher": (
+        "the lang2d run without hindsight relabelling (the baseline it must beat)",
+        _lang2d(out="runs/lang2d-noher", buffer=BufferConfig(k=0)),
+    ),
+    "lang2d-quick": (
+        "a small lang2d run (reach, 2 objects, 8k steps, small networks): a few minutes on a CPU",
+        _lang2d(
+            out="runs/lang2d-quick",
+            env=EnvConfig(
+                kind="lang2d",
+                families=("reach",),
+                min_objects=2,
+                max_objects=2,
+                max_episode_steps=30,
+            ),
+            agent=AgentOptions(net=NetConfig(hidden=(128, 128), text_dim=32)),
+            total_steps=8_000,
+            learning_starts=500,
+            batch_size=128,
+            eval_every=4_000,
+            eval_episodes=50,
+            checkpoint_every=0,
+        ),
+    ),
+    "lang2d-dqn": (
+        "2D tabletop, language goals, 8 discrete moves, double DQN + language HER",
+        _lang2d(
+            out="runs/lang2d-dqn",
+            env=EnvConfig(kind="lang2d", families=("reach", "push"), discrete=True),
+        ),
+    ),
+    "lang2d-td3": (
+        "2D tabletop, language goals (reach, push), TD3 + language hindsight relabelling",
+        _lang2d(out="runs/lang2d-td3", algo="td3"),
+    ),
+    "state2d": (
+        "2D tabletop with state goals (pusher position), SAC + HER",
+        TrainConfig(
+            out="runs/state2d",
+            env=EnvConfig(kind="state2d", goal="pusher"),
+            total_steps=20_000,
+            eval_every=5_000,
+        ),
+    ),
+    "fetch-reach": (
+        "gymnasium-robotics FetchReach-v4 (state goals), SAC + HER, 10k steps",
+        TrainConfig(
+            out="runs/fetch-reach",
+            env=EnvConfig(kind="gym", gym_id="FetchReach-v4"),
+            sac=SACConfig(gamma=0.95),
+            total_steps=10_000,
+            learning_starts=1_000,
+            eval_every=2_000,
+            eval_episodes=50,
+            checkpoint_every=0,
+        ),
+    ),
+}

@@ -1,0 +1,201 @@
+"""Building learners and tasks, evaluating policies, and loading them from checkpoints.
+
+``evaluate`` runs deterministic episodes on every instruction set of a task (seen
+instructions ``train``, held-out word combinations ``heldout``, unseen phrasings
+``paraphrase``; state-goal tasks have one set) and reports success overall and per family.
+Evaluation episodes use fixed reset seeds, so two checkpoints are compared on the same
+layouts and instructions.
+"""
+
+from __future__ import annotations
+
+from collections import defaultdict
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import gymnasium as gym
+import numpy as np
+
+from lcrl.algos import ALGOS, DQN, SAC, TD3, Agent, Problem
+from lcrl.checkpoint import Checkpoint, find_latest, load_checkpoint
+from lcrl.errors import LcrlError
+from train.config import TrainConfig, config_from_dict
+from train.tasks import LanguageTask, Task, make_env, make_task
+
+EVAL_SEED_OFFSET = 7_777_777
+
+
+def build_task(cfg: TrainConfig, env: gym.Env, ckpt: Checkpoint | None = None) -> Task:
+    """The task adapter; language tasks load the frozen text encoder (and the checkpoint's
+    instruction table, when given)."""
+    if cfg.env.kind != "lang2d":
+        return make_task(cfg.env, env)
+    from lcrl.text_encoder import FrozenTextEncoder
+
+    encoder = FrozenTextEncoder(cfg.text_encoder)
+    kwargs: dict[str, Any] = {}
+    if ckpt is not None:
+        table = ckpt.json("instructions")
+        kwargs = {"table": table["texts"], "num_train": table["num_train"]}
+    task = make_task(cfg.env, env, encoder.encode, **kwargs)
+    task.encoder = encoder  # type: ignore[attr-defined]
+    return task
+
+
+def build_agent(algo: str, problem: Problem, cfg: TrainConfig, goal_embed: Any) -> Agent:
+    """The learner named ``algo`` for ``problem``."""
+    if algo not in ALGOS:
+        raise LcrlError(f"unknown algo {algo!r}; choose one of {sorted(ALGOS)}")
+    if problem.discrete and algo != "dqn":
+        raise LcrlError(f"{algo} needs continuous actions; this env has discrete actions: use dqn")
+    if not problem.discrete and algo == "dqn":
+        raise LcrlError("dqn needs discrete actions; this env has continuous actions: use sac")
+    if algo == "sac":
+        return SAC(problem, cfg.agent, goal_embed, cfg.sac)
+    if algo == "td3":
+        return TD3(problem, cfg.agent, goal_embed, cfg.td3)
+    return DQN(problem, cfg.agent, goal_embed, cfg.dqn)
+
+
+def run_episode(
+    agent: Agent,
+    task: Task,
+    env: gym.Env,
+    seed: int,
+    options: dict[str, Any] | None = None,
+    goal_vector: np.ndarray | None = None,
+    deterministic: bool = True,
+) -> dict[str, Any]:
+    """One episode with the policy; returns success, length, return and the instruction.
+
+    ``goal_vector`` replaces the task's goal by an already embedded goal (e.g. the text
+    encoder's vector of a free-text instruction).
+    """
+    obs, info = env.reset(seed=seed, options=options)
+    first = obs
+    goal = None if goal_vector is not None else np.asarray([task.goal(obs, env)])
+    steps, ret, success = 0, 0.0, False
+    while True:
+        o = {k: v[None] for k, v in task.storage_obs(obs, first).items()}
+        if goal_vector is not None:
+            a = agent.act(o, goal_vector[None], deterministic=deterministic, embedded=True)[0]
+        else:
+            a = agent.act(o, goal, deterministic=deterministic)[0]
+        obs, reward, terminated, truncated, info = env.step(task.scale_action(a))
+        steps += 1
+        ret += float(reward)
+        success = success or bool(info.get("is_success", False))
+        if terminated or truncated:
+            break
+    out = {"success": bool(info.get("is_success", False)), "steps": steps, "return": ret}
+    if isinstance(task, LanguageTask):
+        out["instruction"] = task.wrapper.instruction
+        out["family"] = task.wrapper.meaning.family if task.wrapper.meaning else "free"
+    else:
+        out["family"] = "all"
+    return out
+
+
+def evaluate(
+    agent: Agent,
+    task: Task,
+    cfg: TrainConfig,
+    episodes: int,
+    seed: int = 0,
+    sets: tuple[str, ...] | None = None,
+) -> dict[str, Any]:
+    """Success rates per instruction set (and family) over ``episodes`` episodes per set."""
+    results: dict[str, Any] = {}
+    for name in sets or task.sets:
+        env = make_env(cfg.env, name) if name != "train" or isinstance(task, LanguageTask) else None
+        if env is None:
+            env = make_env(cfg.env, "train")
+        fam: dict[str, list[float]] = defaultdict(list)
+        successes = []
+        for i in range(episodes):
+            r = run_episode(agent, task, env, seed=EVAL_SEED_OFFSET + seed * 10_007 + i)
+            successes.append(float(r["success"]))
+            fam[r["family"]].append(float(r["success"]))
+        env.close()
+        results[name if isinstance(task, LanguageTask) else "all"] = {
+            "success": float(np.mean(successes)),
+            "episodes": episodes,
+            "families": {f: float(np.mean(v)) for f, v in sorted(fam.items())},
+        }
+    return results
+
+
+def format_results(results: dict[str, Any]) -> str:
+    """One line per set: overall and per-family success."""
+    lines = []
+    for name, res in results.items():
+        fams = " ".join(f"{f} {v:.2f}" for f, v in res["families"].items())
+        lines.append(f"{name}: success {res['success']:.2f} ({fams}; {res['episodes']} episodes)")
+    return "\n".join(lines)
+
+
+@dataclass
+class LoadedPolicy:
+    """A trained agent with its task and environment, ready to run episodes."""
+
+    cfg: TrainConfig
+    agent: Agent
+    task: Task
+    env: gym.Env
+    checkpoint: Checkpoint
+
+
+def resolve_checkpoint(path: str | Path) -> Path:
+    """A checkpoint folder, or a run folder (its latest checkpoint)."""
+    p = Path(path)
+    if not p.exists():
+        raise LcrlError(f"no checkpoint or run folder at {p}")
+    if (p / "meta.json").exists():
+        return p
+    latest = find_latest(p)
+    if latest is None:
+        raise LcrlError(f"{p} is neither a checkpoint (no meta.json) nor a run with latest.json")
+    return latest
+
+
+def load_policy(
+    path: str | Path, env_overrides: dict[str, Any] | None = None, device: str | None = None
+) -> LoadedPolicy:
+    """Load a checkpoint and rebuild its env, task and agent.
+
+    Args:
+        path: a checkpoint folder or a run folder.
+        env_overrides: env config fields to change (e.g. ``families``); the resulting
+            env must match the checkpoint's observation and action shapes.
+
+    Raises:
+        LcrlError: the checkpoint is missing or does not match the environment.
+    """
+    ckpt = load_checkpoint(resolve_checkpoint(path))
+    cfg = config_from_dict(ckpt.meta["config"])
+    for key, value in (env_overrides or {}).items():
+        if not hasattr(cfg.env, key):
+            raise LcrlError(f"unknown env option {key!r}")
+        setattr(cfg.env, key, value)
+    if device is not None:
+        cfg.agent.device = device
+    env = make_env(cfg.env, "train")
+    task = build_task(cfg, env, ckpt)
+    problem = task.problem()
+    saved = Problem.from_dict(ckpt.meta["problem"])
+    if problem != saved:
+        raise LcrlError(
+            f"checkpoint {ckpt.path} does not match the environment: it was trained with "
+            f"{_describe(saved)}, the environment gives {_describe(problem)}"
+        )
+    agent = build_agent(ckpt.meta["algo"], problem, cfg, task.goal_space.embed)
+    for name, module in agent.modules().items():
+        ckpt.load_module(name, module)
+    return LoadedPolicy(cfg, agent, task, env, ckpt)
+
+
+def _describe(p: Problem) -> str:
+    obs = ", ".join(f"{k} {tuple(v)}" for k, v in p.obs_shapes.items())
+    kind = f"{p.action_dim} discrete actions" if p.discrete else f"{p.action_dim}-d actions"
+    return f"observations [{obs}], {p.goal_kind} goals {tuple(p.goal_shape)}, {kind}"

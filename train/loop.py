@@ -1,0 +1,354 @@
+"""The training loop: collect an episode, label it, store it, update, evaluate, checkpoint.
+
+Reads top to bottom in :meth:`Trainer.run`. One environment steps at a time; after
+``learning_starts`` steps of random actions every step is followed by
+``updates_per_step`` gradient updates on relabelled batches. Every ``eval_every`` steps
+the policy is evaluated (deterministically) on each instruction set; every
+``checkpoint_every`` steps, at the end, and on Ctrl-C the run is checkpointed (the
+unfinished episode of an interrupted run is discarded and collected again on resume).
+"""
+
+from __future__ import annotations
+
+import csv
+import json
+import math
+import shutil
+import time
+from collections import deque
+from collections.abc import Mapping
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from lcrl.algos import Agent
+from lcrl.buffer import HindsightReplayBuffer
+from lcrl.checkpoint import find_latest, load_checkpoint, save_checkpoint, write_latest
+from lcrl.errors import LcrlError
+from train.config import TrainConfig, config_from_dict, config_to_dict
+from train.evaluate import build_agent, build_task, evaluate, format_results
+from train.tasks import make_env
+
+
+class CsvLog:
+    """Append rows to a CSV file; the header is fixed by the first row (or the file)."""
+
+    def __init__(self, path: Path) -> None:
+        self.path = path
+        self.fields: list[str] | None = None
+        if path.exists():
+            with path.open() as f:
+                header = f.readline().strip()
+            self.fields = header.split(",") if header else None
+
+    def write(self, row: Mapping[str, Any]) -> None:
+        """Write one row (keys outside the header are dropped)."""
+        new = self.fields is None
+        if new:
+            self.fields = list(row)
+        with self.path.open("a", newline="") as f:
+            w = csv.DictWriter(f, fieldnames=self.fields, extrasaction="ignore")
+            if new:
+                w.writeheader()
+            w.writerow({k: _fmt(v) for k, v in row.items()})
+
+
+def _fmt(v: Any) -> Any:
+    return f"{v:.6g}" if isinstance(v, float) else v
+
+
+class Trainer:
+    """Builds everything a run needs from a :class:`TrainConfig` and runs it.
+
+    Args:
+        cfg: the run's configuration. With ``cfg.resume`` the latest checkpoint in
+            ``cfg.out`` is loaded, with the config saved there (and ``cfg.total_steps``).
+    """
+
+    def __init__(self, cfg: TrainConfig) -> None:
+        cfg.validate()
+        self.out = Path(cfg.out)
+        ckpt = None
+        if cfg.resume:
+            latest = find_latest(self.out)
+            if latest is None:
+                raise LcrlError(f"--resume: no checkpoint in {self.out} (no latest.json)")
+            ckpt = load_checkpoint(latest)
+            saved = config_from_dict(ckpt.meta["config"])
+            saved.total_steps = cfg.total_steps
+            saved.resume = True
+            saved.out = cfg.out
+            cfg = saved
+        elif (self.out / "latest.json").exists():
+            raise LcrlError(
+                f"{self.out} already holds a run; pass --resume to continue it or choose "
+                "another --out"
+            )
+        self.cfg = cfg
+        self.env = make_env(cfg.env, "train")
+        self.task = build_task(cfg, self.env, ckpt)
+        self.problem = self.task.problem()
+        self.algo = cfg.resolved_algo(self.problem.discrete)
+        self.agent: Agent = build_agent(self.algo, self.problem, cfg, self.task.goal_space.embed)
+        p = self.problem
+        self.buffer = HindsightReplayBuffer(
+            cfg.buffer.capacity,
+            {k: (shape, np.float32) for k, shape in p.obs_shapes.items()},
+            () if p.discrete else (p.action_dim,),
+            np.int64 if p.discrete else np.float32,
+            self.task.goal_space,
+            strategy=cfg.buffer.strategy,
+            k=cfg.buffer.k,
+            seed=cfg.seed,
+        )
+        self.rng = np.random.default_rng(cfg.seed)
+        self.step = 0
+        self.episodes = 0
+        self.recent: deque[float] = deque(maxlen=100)
+        self._credit = 0.0
+        self._metrics: dict[str, float] = {}
+        self._metric_count = 0
+        self.last_eval: dict[str, Any] | None = None
+        if ckpt is not None:
+            self._restore(ckpt)
+
+    # --- the loop --------------------------------------------------------------------
+    def run(self) -> dict[str, Any]:
+        """Train to ``total_steps``; returns the final evaluation."""
+        cfg = self.cfg
+        self.out.mkdir(parents=True, exist_ok=True)
+        (self.out / "config.json").write_text(
+            json.dumps({**config_to_dict(cfg), "resolved_algo": self.algo}, indent=1)
+        )
+        self.progress_log = CsvLog(self.out / "progress.csv")
+        self.eval_log = CsvLog(self.out / "eval.csv")
+        self.tb = _tensorboard(self.out / "tb") if cfg.tensorboard else None
+        bar = _progress(cfg.total_steps, self.step, cfg.progress)
+        self._t0, self._step0 = time.perf_counter(), self.step
+        next_eval = _next(self.step, cfg.eval_every)
+        next_ckpt = _next(self.step, cfg.checkpoint_every)
+        next_log = _next(self.step, cfg.log_every)
+        try:
+            while self.step < cfg.total_steps:
+                before = self.step
+                self.collect_episode()
+                bar.update(self.step - before)
+                if self.step >= next_log:
+                    self._log()
+                    next_log = _next(self.step, cfg.log_every)
+                if cfg.eval_every and self.step >= next_eval and self.step < cfg.total_steps:
+                    self.evaluate()
+                    next_eval = _next(self.step, cfg.eval_every)
+                if cfg.checkpoint_every and self.step >= next_ckpt and self.step < cfg.total_steps:
+                    self.save()
+                    next_ckpt = _next(self.step, cfg.checkpoint_every)
+                bar.set_postfix_str(self._postfix(), refresh=False)
+        except KeyboardInterrupt:
+            bar.close()
+            path = self.save()
+            print(f"interrupted at step {self.step}: saved {path}; continue with --resume")
+            raise
+        bar.close()
+        results = self.evaluate()
+        path = self.save()
+        print(f"final checkpoint: {path}")
+        if self.tb is not None:
+            self.tb.close()
+        return results
+
+    def collect_episode(self) -> None:
+        """Run one episode (acting, stepping, updating) and store it in the buffer."""
+        cfg, task, env = self.cfg, self.task, self.env
+        obs, info = env.reset(seed=int(cfg.seed * 1_000_003 + self.episodes))
+        first = obs
+        goal = task.goal(obs, env)
+        goal_batch = np.asarray([goal])
+        stored = [task.storage_obs(obs, first)]
+        records = [task.step_record(obs, env)]
+        actions, rewards, terms = [], [], []
+        start_step = self.step
+        while True:
+            if self.step < cfg.learning_starts:
+                a = task.random_action(self.rng)
+            else:
+                batch_obs = {k: v[None] for k, v in stored[-1].items()}
+                a = self.agent.act(batch_obs, goal_batch)[0]
+            obs, reward, terminated, truncated, info = env.step(task.scale_action(a))
+            self.step += 1
+            stored.append(task.storage_obs(obs, first))
+            records.append(task.step_record(obs, env))
+            actions.append(a)
+            rewards.append(reward)
+            terms.append(terminated)
+            self._learn()
+            if terminated or truncated:
+                break
+            if self.step >= cfg.total_steps and self.step - start_step >= 1:
+                break  # the budget ends mid-episode: store what was collected
+        episode_obs = {k: np.stack([s[k] for s in stored]) for k in stored[0]}
+        episode = {
+            "obs": episode_obs,
+            "action": np.asarray(actions),
+            "reward": np.asarray(rewards, np.float32),
+            "terminated": np.asarray(terms, bool),
+            **task.episode_fields(records, goal, env),
+        }
+        self.buffer.add_episode(episode)
+        self.agent.observe(episode_obs, episode.get("achieved_goal"))
+        self.episodes += 1
+        self.recent.append(float(bool(info.get("is_success", False))))
+
+    def _learn(self) -> None:
+        cfg = self.cfg
+        if self.step < cfg.learning_starts or self.buffer.size == 0:
+            return
+        self._credit += cfg.updates_per_step
+        while self._credit >= 1.0:
+            self._credit -= 1.0
+            metrics = self.agent.update(self.buffer.sample(cfg.batch_size))
+            for k, v in metrics.items():
+                self._metrics[k] = self._metrics.get(k, 0.0) + v
+            self._metric_count += 1
+
+    # --- evaluation, logging ---------------------------------------------------------
+    def evaluate(self) -> dict[str, Any]:
+        """Evaluate on every instruction set; log and return the results."""
+        cfg = self.cfg
+        results = evaluate(self.agent, self.task, cfg, episodes=cfg.eval_episodes, seed=cfg.seed)
+        self.last_eval = results
+        row: dict[str, Any] = {"step": self.step, "episodes": self.episodes}
+        for name, res in results.items():
+            row[f"{name}/success"] = res["success"]
+            for fam, rate in res["families"].items():
+                row[f"{name}/{fam}"] = rate
+        self.eval_log.write(row)
+        if self.tb is not None:
+            for k, v in row.items():
+                if k not in ("step", "episodes"):
+                    self.tb.add_scalar(f"eval/{k}", v, self.step)
+        print(f"[step {self.step}] " + format_results(results).replace("\n", " | "))
+        return results
+
+    def _postfix(self) -> str:
+        sr = np.mean(self.recent) if self.recent else 0.0
+        text = f"ep {self.episodes} success {sr:.2f}"
+        if self.last_eval:
+            text += " eval " + " ".join(
+                f"{k} {v['success']:.2f}" for k, v in self.last_eval.items()
+            )
+        return text
+
+    def _log(self) -> None:
+        elapsed = time.perf_counter() - self._t0
+        row: dict[str, Any] = {
+            "step": self.step,
+            "episodes": self.episodes,
+            "success": float(np.mean(self.recent)) if self.recent else 0.0,
+            "steps_per_s": (self.step - self._step0) / max(elapsed, 1e-9),
+            "updates": self.agent.updates,
+            "buffer": self.buffer.size,
+        }
+        n = max(self._metric_count, 1)
+        row.update({k: v / n for k, v in sorted(self._metrics.items())})
+        self._metrics, self._metric_count = {}, 0
+        self.progress_log.write(row)
+        if self.tb is not None:
+            for k, v in row.items():
+                if k != "step":
+                    self.tb.add_scalar(f"train/{k}", v, self.step)
+
+    # --- checkpoints -----------------------------------------------------------------
+    def save(self) -> Path:
+        """Checkpoint the run (weights, optimiser and RNG state, buffer, tables)."""
+        cfg = self.cfg
+        directory = self.out / "checkpoints" / f"step_{self.step:09d}"
+        json_files: dict[str, Any] = {}
+        meta = {
+            "config": config_to_dict(cfg),
+            "algo": self.algo,
+            "problem": self.problem.to_dict(),
+            "step": self.step,
+            "episodes": self.episodes,
+            "env": {
+                "kind": cfg.env.kind,
+                "observation_space": str(self.env.observation_space),
+                "action_space": str(self.env.action_space),
+            },
+        }
+        table = getattr(self.task, "table", None)
+        if table is not None:
+            json_files["instructions"] = {"texts": table, "num_train": self.task.num_train}
+            json_files["split"] = self.task.split.to_dict()
+            meta["text_encoder"] = {
+                "model": cfg.text_encoder.model,
+                "dim": int(self.task.embeddings.shape[1]),
+            }
+        states = {
+            **self.agent.states(),
+            "buffer_rng": self.buffer.rng.bit_generator.state,
+            "trainer_rng": self.rng.bit_generator.state,
+            "trainer": {
+                "step": self.step,
+                "episodes": self.episodes,
+                "recent": list(self.recent),
+                "credit": self._credit,
+            },
+        }
+        arrays = self.buffer.arrays() if cfg.save_buffer else None
+        path = save_checkpoint(
+            directory,
+            modules=self.agent.modules(),
+            states=states,
+            meta=meta,
+            json_files=json_files,
+            arrays=arrays,
+        )
+        write_latest(self.out, path)
+        kept = sorted((self.out / "checkpoints").glob("step_*"))
+        for old in kept[: -cfg.keep_checkpoints]:
+            shutil.rmtree(old, ignore_errors=True)
+        return path
+
+    def _restore(self, ckpt: Any) -> None:
+        for name, module in self.agent.modules().items():
+            ckpt.load_module(name, module)
+        states = {name: ckpt.state(name) for name in self.agent.states()}
+        self.agent.load_states(states)
+        self.buffer.rng.bit_generator.state = ckpt.state("buffer_rng")
+        self.rng.bit_generator.state = ckpt.state("trainer_rng")
+        trainer = ckpt.state("trainer")
+        self.step, self.episodes = int(trainer["step"]), int(trainer["episodes"])
+        self.recent.extend(trainer["recent"])
+        self._credit = float(trainer["credit"])
+        if ckpt.has_arrays():
+            self.buffer.load_arrays(ckpt.arrays())
+        print(f"resumed {self.out} at step {self.step} ({self.episodes} episodes)")
+
+
+def _next(step: int, every: int) -> float:
+    if every <= 0:
+        return math.inf
+    return (step // every + 1) * every
+
+
+def _progress(total: int, initial: int, enabled: bool) -> Any:
+    from tqdm.auto import tqdm
+
+    return tqdm(
+        total=total,
+        initial=initial,
+        disable=not enabled,
+        unit="step",
+        dynamic_ncols=True,
+        smoothing=0.05,
+    )
+
+
+def _tensorboard(path: Path) -> Any:
+    try:
+        from torch.utils.tensorboard import SummaryWriter
+    except ImportError:
+        print("tensorboard is not installed: no TensorBoard logs (pip install tensorboard)")
+        return None
+    return SummaryWriter(str(path))

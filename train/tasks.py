@@ -1,0 +1,321 @@
+"""Environments as training tasks: what is stored, what the goal is, how episodes are labelled.
+
+A :class:`Task` turns an environment's observation dictionaries into the three things the
+learning core needs: the stored observation arrays, the goal (a state vector or an
+instruction id), and, at the end of an episode, the goal-space fields the replay buffer
+writes (achieved goals, or the captioner's labels of what every step achieved).
+
+* :class:`StateTask`: goal environments with ``observation`` / ``achieved_goal`` /
+  ``desired_goal`` (gymnasium-robotics Fetch, the 2D tabletop with state goals). Rewards
+  are recomputed with the env's own ``compute_reward``.
+* :class:`LanguageTask`: environments wrapped by
+  :class:`captioner.lang_env.LanguageGoalWrapper`. The policy sees the observation and the
+  episode's first observation (push and put are judged relative to the start), the goal is
+  an id into the instruction table, and each step is labelled with the training
+  instructions the rule captioner says it satisfies.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+from dataclasses import dataclass, field
+from typing import Any
+
+import gymnasium as gym
+import numpy as np
+
+from lcrl.algos import Problem
+from lcrl.errors import LcrlError
+from lcrl.goals import LabelGoals, StateGoals
+
+ENV_KINDS = ("lang2d", "state2d", "gym")
+
+
+@dataclass
+class EnvConfig:
+    """Which environment to train on."""
+
+    kind: str = "lang2d"
+    """``lang2d`` (2D tabletop, language goals), ``state2d`` (2D tabletop, state goals) or
+    ``gym`` (any registered goal env, e.g. gymnasium-robotics ``FetchReach-v4``)."""
+    gym_id: str = "FetchReach-v4"
+    """Environment id for ``kind=gym``."""
+    families: tuple[str, ...] = ("reach", "push")
+    """Instruction families to train and evaluate (``lang2d``)."""
+    split_seed: int = 0
+    """Seed of the compositional instruction split (``lang2d``)."""
+    min_objects: int = 2
+    """Fewest objects on the 2D table."""
+    max_objects: int = 3
+    """Most objects on the 2D table."""
+    discrete: bool = False
+    """Discrete pusher moves (8 directions) instead of continuous ones (2D tabletop)."""
+    max_episode_steps: int = 50
+    """Time limit of an episode (a truncation: the value bootstraps through it)."""
+    goal: str = "object"
+    """State goal of ``state2d``: ``object`` (all object positions) or ``pusher``."""
+    extra: dict[str, Any] = field(default_factory=dict)
+    """Extra keyword arguments for the environment constructor."""
+
+
+def _register_gym_robotics() -> None:
+    try:
+        import gymnasium_robotics
+    except ImportError:
+        return
+    gym.register_envs(gymnasium_robotics)
+
+
+def make_env(cfg: EnvConfig, split_set: str = "train") -> gym.Env:
+    """Build the environment of a config (``split_set`` picks the instruction set)."""
+    if cfg.kind not in ENV_KINDS:
+        raise LcrlError(f"unknown env kind {cfg.kind!r}; choose one of {ENV_KINDS}")
+    if cfg.min_objects > cfg.max_objects:
+        raise LcrlError(
+            f"min_objects ({cfg.min_objects}) is larger than max_objects ({cfg.max_objects})"
+        )
+    if cfg.kind == "gym":
+        _register_gym_robotics()
+        try:
+            env = gym.make(
+                cfg.gym_id,
+                max_episode_steps=cfg.max_episode_steps,
+                disable_env_checker=True,
+                **cfg.extra,
+            )
+        except gym.error.Error as e:
+            hint = ""
+            if "Fetch" in cfg.gym_id:
+                hint = " (install gymnasium-robotics and mujoco: pip install -e '.[bench]')"
+            raise LcrlError(f"cannot make {cfg.gym_id!r}: {e}{hint}") from None
+        return env
+    from envs.tabletop2d import Tabletop2DEnv
+
+    kwargs: dict[str, Any] = {
+        "num_objects": (cfg.min_objects, cfg.max_objects),
+        "action_type": "discrete" if cfg.discrete else "continuous",
+        **cfg.extra,
+    }
+    if cfg.discrete:
+        kwargs.setdefault("num_directions", 8)
+    if cfg.kind == "state2d":
+        kwargs["goal"] = cfg.goal
+        base: gym.Env = Tabletop2DEnv(**kwargs)
+        return gym.wrappers.TimeLimit(base, cfg.max_episode_steps)
+    from captioner.grammar import FAMILIES_2D
+    from captioner.lang_env import LanguageGoalWrapper
+    from captioner.splits import make_split
+
+    bad = [f for f in cfg.families if f not in FAMILIES_2D]
+    if bad:
+        raise LcrlError(f"the 2D tabletop supports the families {FAMILIES_2D}, not {bad}")
+    env = LanguageGoalWrapper(
+        Tabletop2DEnv(**kwargs),
+        split=make_split(cfg.split_seed, FAMILIES_2D),
+        split_set=split_set,
+        families=tuple(cfg.families),
+    )
+    return gym.wrappers.TimeLimit(env, cfg.max_episode_steps)
+
+
+def _action_spec(env: gym.Env) -> tuple[int, bool]:
+    space = env.action_space
+    if isinstance(space, gym.spaces.Discrete):
+        return int(space.n), True
+    if isinstance(space, gym.spaces.Box) and len(space.shape) == 1:
+        return int(space.shape[0]), False
+    raise LcrlError(f"unsupported action space {space}: need Discrete or a 1-D Box")
+
+
+class Task:
+    """Base class: storage layout, goals and episode fields for one environment."""
+
+    goal_kind = "vector"
+    sets: tuple[str, ...] = ("train",)
+
+    def __init__(self, env: gym.Env) -> None:
+        self.action_dim, self.discrete = _action_spec(env)
+        space = env.action_space
+        if not self.discrete:
+            self.low = np.asarray(space.low, np.float32)
+            self.high = np.asarray(space.high, np.float32)
+            if not (np.all(np.isfinite(self.low)) and np.all(np.isfinite(self.high))):
+                raise LcrlError("continuous actions need a bounded Box action space")
+
+    def scale_action(self, a: np.ndarray) -> np.ndarray:
+        """Map a policy action in ``[-1, 1]`` to the env's action bounds."""
+        if self.discrete:
+            return a
+        return self.low + (np.clip(a, -1.0, 1.0) + 1.0) * 0.5 * (self.high - self.low)
+
+    def random_action(self, rng: np.random.Generator) -> np.ndarray:
+        """A uniformly random policy-space action."""
+        if self.discrete:
+            return np.asarray(rng.integers(self.action_dim))
+        return rng.uniform(-1.0, 1.0, self.action_dim).astype(np.float32)
+
+    def problem(self) -> Problem:
+        """Shapes and goal encoding for the learner."""
+        return Problem(
+            obs_shapes=dict(self.obs_shapes),
+            goal_kind=self.goal_kind,
+            goal_shape=(self.goal_space.embed_dim,),
+            action_dim=self.action_dim,
+            discrete=self.discrete,
+        )
+
+
+class StateTask(Task):
+    """Goal envs with ``observation``, ``achieved_goal`` and ``desired_goal`` vectors."""
+
+    goal_kind = "vector"
+
+    def __init__(self, env: gym.Env) -> None:
+        super().__init__(env)
+        space = env.observation_space
+        keys = ("observation", "achieved_goal", "desired_goal")
+        if not isinstance(space, gym.spaces.Dict) or any(k not in space.spaces for k in keys):
+            raise LcrlError(f"a state-goal env needs a Dict observation with {keys}; got {space}")
+        self.obs_shapes = {"observation": tuple(space["observation"].shape)}
+        dim = int(space["desired_goal"].shape[0])
+        unwrapped = env.unwrapped
+        if not callable(getattr(unwrapped, "compute_reward", None)):
+            raise LcrlError(
+                f"{type(unwrapped).__name__} has no compute_reward(achieved, desired, info)"
+            )
+
+        def reward_fn(achieved: np.ndarray, desired: np.ndarray) -> np.ndarray:
+            return unwrapped.compute_reward(achieved, desired, None)
+
+        probe = np.zeros((1, dim), np.float32)
+        success = float(np.asarray(reward_fn(probe, probe)).reshape(-1)[0])
+        self.goal_space = StateGoals(dim, reward_fn, success_reward=success)
+
+    def storage_obs(
+        self, obs: Mapping[str, Any], first: Mapping[str, Any]
+    ) -> dict[str, np.ndarray]:
+        """Observation arrays to store."""
+        return {"observation": np.asarray(obs["observation"], np.float32)}
+
+    def goal(self, obs: Mapping[str, Any], env: gym.Env) -> np.ndarray:
+        """The goal the policy is given."""
+        return np.asarray(obs["desired_goal"], np.float32)
+
+    def step_record(self, obs: Mapping[str, Any], env: gym.Env) -> Any:
+        """What to remember of each observation for the episode fields."""
+        return np.asarray(obs["achieved_goal"], np.float32)
+
+    def episode_fields(self, records: list[Any], goal: Any, env: gym.Env) -> dict[str, Any]:
+        """Goal-space fields of a finished episode."""
+        return {"achieved_goal": np.stack(records), "desired_goal": goal}
+
+    def embed_goals(self, goals: np.ndarray) -> np.ndarray:
+        """Goals in the learner's input space (vectors stay vectors)."""
+        return goals
+
+
+class LanguageTask(Task):
+    """Language-goal envs (:class:`captioner.lang_env.LanguageGoalWrapper`).
+
+    Args:
+        env: the wrapped training env (its split and families define the table).
+        embed: ``texts -> (N, d)`` float32 embeddings (the frozen text encoder).
+        table: the instruction table to use (e.g. from a checkpoint); default: the
+            split's training instructions of the env's families first, then held-out and
+            paraphrase ones.
+    """
+
+    goal_kind = "text"
+    sets = ("train", "heldout", "paraphrase")
+
+    def __init__(
+        self, env: gym.Env, embed: Any, table: list[str] | None = None, num_train: int | None = None
+    ) -> None:
+        super().__init__(env)
+        wrapper = _find_wrapper(env)
+        self.wrapper = wrapper
+        self.split = wrapper.split
+        self.families = wrapper.families
+        self.captioner = wrapper.captioner
+        if table is None:
+            train = [
+                t
+                for t, m in zip(self.split.train, self.split.instructions("train"), strict=True)
+                if m.family in self.families
+            ]
+            rest = [
+                t
+                for name in ("heldout", "paraphrase")
+                for t, m in zip(self.split.texts(name), self.split.instructions(name), strict=True)
+                if m.family in self.families
+            ]
+            table = train + [t for t in dict.fromkeys(rest) if t not in set(train)]
+            num_train = len(train)
+        if num_train is None:
+            raise LcrlError("num_train is required with an explicit instruction table")
+        self.table = list(table)
+        self.num_train = int(num_train)
+        self.ids = {t: i for i, t in enumerate(self.table)}
+        self.train_ids = {t: i for t, i in self.ids.items() if i < self.num_train}
+        self.embed_fn = embed
+        self.embeddings = np.asarray(embed(self.table), np.float32)
+        space = env.observation_space
+        shape = tuple(space["observation"].shape)
+        self.obs_shapes = {"observation": shape, "initial": shape}
+        self.goal_space = LabelGoals(
+            len(self.table), self.embeddings, num_relabel=self.num_train, terminate_on_success=True
+        )
+
+    def storage_obs(
+        self, obs: Mapping[str, Any], first: Mapping[str, Any]
+    ) -> dict[str, np.ndarray]:
+        """The observation and the episode's first observation."""
+        return {
+            "observation": np.asarray(obs["observation"], np.float32),
+            "initial": np.asarray(first["observation"], np.float32),
+        }
+
+    def goal(self, obs: Mapping[str, Any], env: gym.Env) -> int:
+        """The id of the episode's instruction (added to the table if new)."""
+        text = obs["instruction"]
+        if text not in self.ids:
+            raise LcrlError(f"instruction {text!r} is not in the instruction table")
+        return self.ids[text]
+
+    def step_record(self, obs: Mapping[str, Any], env: gym.Env) -> Any:
+        """The scene after each step (captioned at the end of the episode)."""
+        return self.wrapper.env.unwrapped.scene()
+
+    def episode_fields(self, records: list[Any], goal: Any, env: gym.Env) -> dict[str, Any]:
+        """The episode's instruction id and the training instructions each step satisfies."""
+        s0 = records[0]
+        labels: list[list[int]] = [[]]
+        for s in records[1:]:
+            texts = (ins.text for ins in self.captioner.caption(s0, s))
+            labels.append([self.train_ids[t] for t in texts if t in self.train_ids])
+        return {"goal_id": int(goal), "labels": labels}
+
+    def embed_goals(self, goals: np.ndarray) -> np.ndarray:
+        """Instruction ids as text embeddings."""
+        return self.embeddings[np.asarray(goals, np.int64)]
+
+
+def _find_wrapper(env: gym.Env) -> Any:
+    from captioner.lang_env import LanguageGoalWrapper
+
+    e = env
+    while True:
+        if isinstance(e, LanguageGoalWrapper):
+            return e
+        if not hasattr(e, "env"):
+            raise LcrlError("a language task needs an env wrapped by LanguageGoalWrapper")
+        e = e.env
+
+
+def make_task(cfg: EnvConfig, env: gym.Env, embed: Any = None, **kwargs: Any) -> Task:
+    """The task adapter for an env config."""
+    if cfg.kind == "lang2d":
+        if embed is None:
+            raise LcrlError("language tasks need a text encoder")
+        return LanguageTask(env, embed, **kwargs)
+    return StateTask(env)
