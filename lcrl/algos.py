@@ -25,8 +25,8 @@ from torch import nn
 from lcrl.buffer import Batch
 from lcrl.errors import LcrlError
 from lcrl.nets import (
-    Ensemble,
     FlatAdam,
+    GoalConditionedEnsemble,
     GoalConditionedNet,
     NetConfig,
     RunningNorm,
@@ -156,7 +156,8 @@ class AgentOptions:
     normalize_obs: bool = True
     """Normalise vector observations with running statistics."""
     normalize_goal: bool = True
-    """Normalise vector goals with running statistics (state goals only)."""
+    """Standardise goals: state goals with running statistics of achieved goals, text goals
+    with the statistics of the training instructions' embeddings."""
     device: str = "cpu"
     """``cpu``, ``cuda`` or ``cuda:N``."""
     seed: int = 0
@@ -193,20 +194,30 @@ class Agent:
             for key, shape in problem.obs_shapes.items():
                 if len(shape) == 1:
                     self.norms[f"obs_{key}"] = RunningNorm(shape[0])
-        if options.normalize_goal and problem.goal_kind == "vector":
-            self.norms["goal"] = RunningNorm(problem.goal_shape[0])
+        if options.normalize_goal and problem.goal_kind in ("vector", "text"):
+            # Frozen sentence embeddings of instructions are close to each other (cosine
+            # 0.98 between "push the red cube left" and "... right"); standardising each
+            # dimension over the instruction table spreads them apart.
+            eps = 1e-3 if problem.goal_kind == "text" else 1e-2
+            self.norms["goal"] = RunningNorm(problem.goal_shape[0], eps=eps)
         self.norms.to(self.device)
         self.updates = 0
         self.acts = 0
 
     # --- inputs ----------------------------------------------------------------------
     def observe(self, obs: Mapping[str, np.ndarray], goals: np.ndarray | None = None) -> None:
-        """Update the running normalisers with collected observations (and state goals)."""
+        """Update the running normalisers with observations and goal vectors (achieved state
+        goals, or the embeddings of the training instructions)."""
         for key, arr in obs.items():
             if f"obs_{key}" in self.norms:
                 self.norms[f"obs_{key}"].update(torch.as_tensor(np.asarray(arr, np.float32)))
         if goals is not None and "goal" in self.norms:
-            self.norms["goal"].update(torch.as_tensor(np.asarray(goals, np.float32)))
+            g = np.asarray(goals)
+            if g.dtype.kind in "iu":  # ids: embed them first
+                t = self.goal_embed(g, self.device)
+            else:
+                t = torch.as_tensor(g, dtype=torch.float32)
+            self.norms["goal"].update(t)
 
     def obs_tensors(self, obs: Mapping[str, np.ndarray]) -> dict[str, torch.Tensor]:
         """Observation arrays as (normalised) tensors on the device."""
@@ -241,6 +252,12 @@ class Agent:
         rew = torch.as_tensor(batch.reward, device=self.device, dtype=torch.float32)
         term = torch.as_tensor(batch.terminated, device=self.device, dtype=torch.float32)
         return obs, nobs, goal, act, rew, term
+
+    def _critics(self, action_dim: int, n: int = 2) -> GoalConditionedEnsemble:
+        p = self.problem
+        return GoalConditionedEnsemble(
+            n, p.obs_shapes, p.goal_kind, p.goal_shape, 1, self.options.net, action_dim
+        ).to(self.device)
 
     def _net(self, out_dim: int, action_dim: int = 0) -> GoalConditionedNet:
         p = self.problem
@@ -309,7 +326,7 @@ class SAC(Agent):
         self.cfg = cfg = config or SACConfig()
         n = problem.action_dim
         self.actor = self._net(2 * n)
-        self.critic = Ensemble([self._net(1, n), self._net(1, n)])
+        self.critic = self._critics(n)
         self.critic_target, self._target_flat = _flat_target(self.critic)
         self.actor_opt = FlatAdam(
             self.actor.parameters(), cfg.actor_lr, max_grad_norm=cfg.max_grad_norm
@@ -436,7 +453,7 @@ class TD3(Agent):
         self.cfg = cfg = config or TD3Config()
         n = problem.action_dim
         self.actor = self._net(n)
-        self.critic = Ensemble([self._net(1, n), self._net(1, n)])
+        self.critic = self._critics(n)
         self.actor_target, self._actor_target_flat = _flat_target(self.actor)
         self.critic_target, self._critic_target_flat = _flat_target(self.critic)
         self.actor_opt = FlatAdam(
@@ -482,7 +499,7 @@ class TD3(Agent):
         self.updates += 1
         if self.updates % cfg.policy_delay == 0:
             self.critic.requires_grad_(False)
-            q_pi = self.critic.members[0](obs, goal, torch.tanh(self.actor(obs, goal)))
+            q_pi = self.critic(obs, goal, torch.tanh(self.actor(obs, goal)))[0]
             actor_loss = -q_pi.mean()
             self.actor_opt.zero_grad()
             actor_loss.backward()

@@ -8,10 +8,16 @@ written whole; one that does not fit before the end of the storage starts again 
 0, and every episode it overlaps is dropped at once, so a partly overwritten episode can
 never be sampled.
 
-Sampling draws transitions uniformly, then replaces the goal of a fraction
-``relabel_ratio`` of them (``k / (k + 1)``: 0.8 for ``k = 4``) by a goal the same episode
-achieved (``future``, ``final`` or ``episode``; see :mod:`lcrl.goals`), and recomputes the
-reward of every sampled transition with the goal space's reward function, vectorised.
+Sampling decides for each batch row, with probability ``relabel_ratio`` (``k / (k + 1)``:
+0.8 for ``k = 4``), whether it is relabelled. Rows that are not relabelled are transitions
+drawn uniformly with their original goals. Rows that are relabelled are transitions drawn
+uniformly among those that *can* be relabelled under the strategy, and get a goal the same
+episode achieved (``future``, ``final`` or ``episode``; see :mod:`lcrl.goals`). For state
+goals every transition can be relabelled, so this is classic HER; for language goals only
+transitions followed by a captioned achievement can, and drawing the relabelled rows among
+them keeps the relabelled fraction at ``k / (k + 1)`` when achievements are rare (with a
+random policy on the 2D tabletop about 1.6% of steps achieve anything). The reward of
+every row is recomputed with the goal space's reward function, vectorised.
 
 What fraction of relabelled transitions become successes? Not ``k / (k + 1)``: that is the
 relabelled fraction. With sparse rewards and an episode whose achieved goals are all
@@ -77,6 +83,9 @@ class HindsightReplayBuffer:
         k: relabelled goals per original goal; the relabel ratio is ``k / (k + 1)``.
             ``k = 0`` turns hindsight relabelling off.
         seed: seed of the sampling generator.
+        only_relabelable: draw the transitions to relabel among those that have an
+            achieved goal for the strategy (see the module docstring); ``False`` draws
+            them among all transitions and leaves those without one unrelabelled.
     """
 
     def __init__(
@@ -89,6 +98,7 @@ class HindsightReplayBuffer:
         strategy: str = "future",
         k: int = 4,
         seed: int = 0,
+        only_relabelable: bool = True,
     ) -> None:
         if capacity < 2:
             raise LcrlError(f"buffer capacity must be at least 2 slots, got {capacity}")
@@ -122,6 +132,8 @@ class HindsightReplayBuffer:
         self.episodes_added = 0
         self.steps_added = 0
         self._valid_idx: np.ndarray | None = None
+        self._relabel_idx: np.ndarray | None = None
+        self.only_relabelable = only_relabelable
 
     # --- writing ---------------------------------------------------------------------
     def add_episode(self, episode: Mapping[str, Any]) -> None:
@@ -202,10 +214,22 @@ class HindsightReplayBuffer:
     def _valid_indices(self) -> np.ndarray:
         if self._valid_idx is None:
             self._valid_idx = np.flatnonzero(self.valid)
+            self._relabel_idx = None
         return self._valid_idx
 
+    def _relabelable_indices(self) -> np.ndarray:
+        """Valid transitions for which the strategy has an achieved goal to relabel with."""
+        valid = self._valid_indices()
+        if self._relabel_idx is None:
+            mask = self.goal_space.relabelable(
+                valid, self.ep_start[valid], self.ep_end[valid], self.strategy
+            )
+            self._relabel_idx = valid[mask]
+        return self._relabel_idx
+
     def sample(self, batch_size: int, relabel: bool = True) -> Batch:
-        """Sample transitions uniformly and relabel a ``k / (k + 1)`` fraction of goals.
+        """Sample transitions and relabel a ``k / (k + 1)`` fraction of goals (see the module
+        docstring).
 
         Args:
             batch_size: transitions to draw (with replacement).
@@ -216,17 +240,21 @@ class HindsightReplayBuffer:
         if valid.size == 0:
             raise LcrlError("the replay buffer is empty: add an episode before sampling")
         idx = valid[self.rng.integers(0, valid.size, batch_size)]
-        goals = self.goal_space.desired(idx)
         relabelled = np.zeros(batch_size, bool)
+        which = np.zeros(0, np.int64)
         if relabel and self.k > 0:
             which = np.flatnonzero(self.rng.random(batch_size) < self.relabel_ratio)
-            if which.size:
-                sub = idx[which]
-                new, ok = self.goal_space.relabel(
-                    sub, self.ep_start[sub], self.ep_end[sub], self.strategy, self.rng
-                )
-                goals[which] = new
-                relabelled[which] = ok
+            pool = self._relabelable_indices() if self.only_relabelable else valid
+            if which.size and pool.size:
+                idx[which] = pool[self.rng.integers(0, pool.size, which.size)]
+        goals = self.goal_space.desired(idx)
+        if which.size:
+            sub = idx[which]
+            new, ok = self.goal_space.relabel(
+                sub, self.ep_start[sub], self.ep_end[sub], self.strategy, self.rng
+            )
+            goals[which] = new
+            relabelled[which] = ok
         reward = self.goal_space.reward(idx, goals)
         terminated = self.terminated[idx].astype(np.float32)
         if self.goal_space.terminate_on_success:

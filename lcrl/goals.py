@@ -14,6 +14,8 @@ relabel; a goal space owns everything goal-specific behind one small interface:
     goals achieved in the same episode at or after each transition (``future``), at its
     end (``final``) or anywhere in it (``episode``), plus a mask of the transitions for
     which such a goal exists.
+``relabelable(idx, ep_start, ep_end, strategy)``
+    which transitions have such a goal (all of them for state goals).
 ``reward(idx, goals)``
     the sparse reward of the transitions at ``idx`` under ``goals``, from what they
     achieved (vectorised).
@@ -74,6 +76,10 @@ class GoalSpace(Protocol):
         strategy: str,
         rng: np.random.Generator,
     ) -> tuple[np.ndarray, np.ndarray]: ...
+
+    def relabelable(
+        self, idx: np.ndarray, ep_start: np.ndarray, ep_end: np.ndarray, strategy: str
+    ) -> np.ndarray: ...
 
     def reward(self, idx: np.ndarray, goals: np.ndarray) -> np.ndarray: ...
 
@@ -182,6 +188,12 @@ class StateGoals:
         step = pick_step(first, last, strategy, rng)
         return self._achieved[step + 1], np.ones(idx.shape, bool)
 
+    def relabelable(
+        self, idx: np.ndarray, ep_start: np.ndarray, ep_end: np.ndarray, strategy: str
+    ) -> np.ndarray:
+        """Every transition has an achieved goal after it."""
+        return np.ones(idx.shape, bool)
+
     def reward(self, idx: np.ndarray, goals: np.ndarray) -> np.ndarray:
         """``reward_fn`` of the achieved goal after each transition and ``goals``."""
         return np.asarray(self.reward_fn(self._achieved[idx + 1], goals), np.float32)
@@ -227,9 +239,10 @@ class LabelGoals:
       transition's next observation;
     * ``episode``: a label of any labelled observation of the episode.
 
-    A transition with no such labelled observation keeps its original goal (so the
-    relabelled fraction can be below the buffer's ``k / (k + 1)`` on episodes that
-    achieve little).
+    A transition with no such labelled observation cannot be relabelled
+    (:meth:`relabelable`); the buffer draws the transitions it relabels among those that
+    can be, so the relabelled fraction stays ``k / (k + 1)`` even when most steps achieve
+    nothing (a random arm rarely touches anything).
 
     Args:
         num_goals: size of the id table.
@@ -357,6 +370,16 @@ class LabelGoals:
         goals = self._labels[slot, k].astype(np.int64)
         goals = np.where(ok, goals, self.desired(idx))
         return goals, ok
+
+    def relabelable(
+        self, idx: np.ndarray, ep_start: np.ndarray, ep_end: np.ndarray, strategy: str
+    ) -> np.ndarray:
+        """Transitions with a labelled observation for the strategy (see :meth:`relabel`)."""
+        _check_strategy(strategy)
+        total = self._total[idx]
+        if strategy == "episode":
+            return total > 0
+        return self._rank[idx + 1] < total
 
     def achieved(self, slots: np.ndarray, goals: np.ndarray) -> np.ndarray:
         """Whether the observations at ``slots`` carry the labels ``goals``."""

@@ -243,6 +243,115 @@ class Ensemble(nn.Module):
         return torch.stack([m(*args) for m in self.members])
 
 
+class BatchedLinear(nn.Module):
+    """``n`` independent linear layers applied at once: ``(n, B, in) -> (n, B, out)``.
+
+    Each member is initialised like :class:`torch.nn.Linear`.
+    """
+
+    def __init__(self, n: int, in_dim: int, out_dim: int) -> None:
+        super().__init__()
+        self.weight = nn.Parameter(torch.empty(n, in_dim, out_dim))
+        self.bias = nn.Parameter(torch.empty(n, 1, out_dim))
+        bound = 1.0 / math.sqrt(in_dim)
+        with torch.no_grad():
+            for i in range(n):
+                w = torch.empty(out_dim, in_dim)
+                nn.init.kaiming_uniform_(w, a=math.sqrt(5))
+                self.weight[i].copy_(w.T)
+            self.bias.uniform_(-bound, bound)
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        if x.dim() == 2:
+            x = x.expand(self.weight.shape[0], *x.shape)
+        return torch.baddbmm(self.bias, x, self.weight)
+
+
+class GoalConditionedEnsemble(nn.Module):
+    """``n`` independent :class:`GoalConditionedNet` s evaluated together: ``(n, B, out)``.
+
+    With concatenation fusion the members' MLPs run as batched matrix products (one call
+    per layer for all members), and members whose encoders have no parameters (vector
+    inputs) share the encoding work; FiLM heads and learned encoders run per member.
+
+    Args:
+        n: number of members (2 for twin critics).
+        obs_shapes, goal_kind, goal_shape, out_dim, cfg, action_dim: as for
+            :class:`GoalConditionedNet`.
+    """
+
+    def __init__(
+        self,
+        n: int,
+        obs_shapes: Mapping[str, Sequence[int]],
+        goal_kind: str,
+        goal_shape: Sequence[int],
+        out_dim: int,
+        cfg: NetConfig,
+        action_dim: int = 0,
+    ) -> None:
+        super().__init__()
+        self.n = n
+        self.obs_encoders = nn.ModuleList(ObsEncoder(obs_shapes, cfg) for _ in range(n))
+        self.goal_encoders = nn.ModuleList(
+            GoalEncoder(goal_kind, goal_shape, cfg) for _ in range(n)
+        )
+        self.shared = not any(
+            p.numel()
+            for enc in (self.obs_encoders[0], self.goal_encoders[0])
+            for p in enc.parameters()
+        )
+        in_dim = self.obs_encoders[0].out_dim + action_dim
+        goal_dim = self.goal_encoders[0].out_dim
+        self.batched = cfg.fusion == "concat"
+        if self.batched:
+            sizes = [in_dim + goal_dim, *cfg.hidden, out_dim]
+            self.layers = nn.ModuleList(
+                BatchedLinear(n, a, b) for a, b in itertools.pairwise(sizes)
+            )
+        else:
+            self.heads = nn.ModuleList(
+                FusedMLP(in_dim, goal_dim, out_dim, cfg.hidden, cfg.fusion) for _ in range(n)
+            )
+
+    def _features(
+        self,
+        i: int,
+        obs: Mapping[str, torch.Tensor],
+        goal: torch.Tensor,
+        action: torch.Tensor | None,
+    ) -> tuple[torch.Tensor, torch.Tensor]:
+        x = self.obs_encoders[i](obs)
+        if action is not None:
+            x = torch.cat([x, action], -1)
+        return x, self.goal_encoders[i](goal)
+
+    def forward(
+        self,
+        obs: Mapping[str, torch.Tensor],
+        goal: torch.Tensor,
+        action: torch.Tensor | None = None,
+    ) -> torch.Tensor:
+        if not self.batched:
+            outs = []
+            for i in range(self.n):
+                x, g = self._features(i, obs, goal, action)
+                outs.append(self.heads[i](x, g))
+            return torch.stack(outs)
+        if self.shared:
+            h = torch.cat(self._features(0, obs, goal, action), -1)
+        else:
+            h = torch.stack(
+                [torch.cat(self._features(i, obs, goal, action), -1) for i in range(self.n)]
+            )
+        last = len(self.layers) - 1
+        for k, layer in enumerate(self.layers):
+            h = layer(h)
+            if k < last:
+                h = F.relu(h)
+        return h
+
+
 class RunningNorm(nn.Module):
     """Running mean / std normaliser with clipping; statistics are saved as buffers.
 
@@ -259,6 +368,7 @@ class RunningNorm(nn.Module):
         self.register_buffer("mean", torch.zeros(dim))
         self.register_buffer("var", torch.ones(dim))
         self.register_buffer("count", torch.zeros((), dtype=torch.float64))
+        self._inv_std: torch.Tensor | None = None
 
     @torch.no_grad()
     def update(self, x: torch.Tensor) -> None:
@@ -275,10 +385,19 @@ class RunningNorm(nn.Module):
         self.mean.copy_(new_mean)
         self.var.copy_((m2 / total).float())
         self.count.fill_(total)
+        self._inv_std = None
+
+    def _scale(self) -> torch.Tensor:
+        if self._inv_std is None:
+            self._inv_std = self.var.sqrt().clamp_min(self.eps).reciprocal()
+        return self._inv_std
+
+    def _load_from_state_dict(self, *args: object, **kwargs: object) -> None:
+        self._inv_std = None
+        super()._load_from_state_dict(*args, **kwargs)  # type: ignore[arg-type]
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
-        std = self.var.sqrt().clamp_min(self.eps)
-        return ((x - self.mean) / std).clamp(-self.clip, self.clip)
+        return ((x - self.mean) * self._scale()).clamp_(-self.clip, self.clip)
 
 
 # --- flat parameters and a fast Adam ---------------------------------------------------

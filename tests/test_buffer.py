@@ -504,14 +504,24 @@ def test_label_relabelling_rewards_and_fallback(strategy: str) -> None:
     # relabelled goals come from the allowed observations, never held-out ids
     assert source[ep[rel], t[rel], batch.goal[rel]].all()
     assert (batch.goal[rel] < num_relabel).all()
-    # no source: original goal kept, not flagged; a source: relabelled 80 % of the time
-    # (binomial standard error 0.002 over the 40k to 48k transitions with a source)
+    # Rows are relabelled with probability 0.8, always drawn among transitions with a
+    # source; the other rows keep their original goal.
     src = has_source[ep, t]
-    assert not rel[~src].any()
+    assert src[rel].all()
+    assert abs(rel.mean() - 0.8) < 0.01
     np.testing.assert_array_equal(batch.goal[~rel], desired[ep[~rel]])
     assert (~src).any() and src.any()
-    assert abs(rel[src].mean() - 0.8) < 0.01
     assert not rel[ep <= 1].any()
+
+    # only_relabelable=False: rows are drawn uniformly; those without a source keep their
+    # goal, those with one are relabelled 80 % of the time (standard error 0.002).
+    buf.only_relabelable = False
+    batch = buf.sample(60_000)
+    ep, t = decode(batch)
+    rel, src = batch.relabelled, has_source[ep, t]
+    assert not rel[~src].any()
+    assert abs(rel[src].mean() - 0.8) < 0.01
+    np.testing.assert_array_equal(batch.goal[~rel], desired[ep[~rel]])
 
     # The goal space itself reports exactly which transitions have a source.
     idx = np.flatnonzero(buf.valid)

@@ -206,7 +206,8 @@ def _train(argv: Sequence[str]) -> None:
     trainer = Trainer(cfg)
     results = trainer.run()
     out = trainer.out
-    print(f"outputs in {out}/: config.json, progress.csv, eval.csv, tb/, checkpoints/")
+    tb = ", tb/ (TensorBoard)" if trainer.cfg.tensorboard else ""
+    print(f"outputs in {out}/: config.json, progress.csv, eval.csv{tb}, checkpoints/")
     print(f"evaluate again with: lcrl eval {out}")
     del results
 

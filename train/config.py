@@ -57,6 +57,10 @@ class TrainConfig:
     """Environment steps to train for."""
     learning_starts: int = 1_000
     """Steps of uniformly random actions before learning starts."""
+    random_action_repeat: int = 1
+    """Hold each random action of the first ``learning_starts`` steps for this many steps
+    (1: a fresh action every step). Held actions travel further, so a random pusher
+    touches and pushes more objects and the captioner has more to label."""
     batch_size: int = 256
     """Transitions per update."""
     updates_per_step: float = 1.0
@@ -97,7 +101,13 @@ class TrainConfig:
             raise LcrlError(
                 f"unknown relabelling strategy {self.buffer.strategy!r}; choose one of {STRATEGIES}"
             )
-        for name in ("total_steps", "batch_size", "eval_episodes", "log_every"):
+        for name in (
+            "total_steps",
+            "batch_size",
+            "eval_episodes",
+            "log_every",
+            "random_action_repeat",
+        ):
             if getattr(self, name) <= 0:
                 raise LcrlError(f"{name} must be positive, got {getattr(self, name)}")
         for name in ("learning_starts", "eval_every", "checkpoint_every"):

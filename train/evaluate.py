@@ -21,7 +21,7 @@ from lcrl.algos import ALGOS, DQN, SAC, TD3, Agent, Problem
 from lcrl.checkpoint import Checkpoint, find_latest, load_checkpoint
 from lcrl.errors import LcrlError
 from train.config import TrainConfig, config_from_dict
-from train.tasks import LanguageTask, Task, make_env, make_task
+from train.tasks import LanguageTask, Task, find_language_wrapper, make_env, make_task
 
 EVAL_SEED_OFFSET = 7_777_777
 
@@ -90,8 +90,9 @@ def run_episode(
             break
     out = {"success": bool(info.get("is_success", False)), "steps": steps, "return": ret}
     if isinstance(task, LanguageTask):
-        out["instruction"] = task.wrapper.instruction
-        out["family"] = task.wrapper.meaning.family if task.wrapper.meaning else "free"
+        wrapper = find_language_wrapper(env)
+        out["instruction"] = wrapper.instruction
+        out["family"] = wrapper.meaning.family if wrapper.meaning else "free"
     else:
         out["family"] = "all"
     return out

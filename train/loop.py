@@ -110,8 +110,11 @@ class Trainer:
         self._metrics: dict[str, float] = {}
         self._metric_count = 0
         self.last_eval: dict[str, Any] | None = None
+        self._last_logged = -1
         if ckpt is not None:
             self._restore(ckpt)
+        elif self.problem.goal_kind == "text":
+            self.agent.observe({}, self.task.embeddings[: self.task.num_train])
 
     # --- the loop --------------------------------------------------------------------
     def run(self) -> dict[str, Any]:
@@ -148,14 +151,22 @@ class Trainer:
             bar.close()
             path = self.save()
             print(f"interrupted at step {self.step}: saved {path}; continue with --resume")
+            self.close()
             raise
         bar.close()
+        if self._last_logged != self.step:
+            self._log()
         results = self.evaluate()
         path = self.save()
         print(f"final checkpoint: {path}")
-        if self.tb is not None:
-            self.tb.close()
+        self.close()
         return results
+
+    def close(self) -> None:
+        """Close the TensorBoard writer."""
+        if getattr(self, "tb", None) is not None:
+            self.tb.close()
+            self.tb = None
 
     def collect_episode(self) -> None:
         """Run one episode (acting, stepping, updating) and store it in the buffer."""
@@ -168,24 +179,30 @@ class Trainer:
         records = [task.step_record(obs, env)]
         actions, rewards, terms = [], [], []
         start_step = self.step
-        while True:
-            if self.step < cfg.learning_starts:
-                a = task.random_action(self.rng)
-            else:
-                batch_obs = {k: v[None] for k, v in stored[-1].items()}
-                a = self.agent.act(batch_obs, goal_batch)[0]
-            obs, reward, terminated, truncated, info = env.step(task.scale_action(a))
-            self.step += 1
-            stored.append(task.storage_obs(obs, first))
-            records.append(task.step_record(obs, env))
-            actions.append(a)
-            rewards.append(reward)
-            terms.append(terminated)
-            self._learn()
-            if terminated or truncated:
-                break
-            if self.step >= cfg.total_steps and self.step - start_step >= 1:
-                break  # the budget ends mid-episode: store what was collected
+        try:
+            while True:
+                if self.step < cfg.learning_starts:
+                    if (self.step - start_step) % cfg.random_action_repeat == 0:
+                        random_a = task.random_action(self.rng)
+                    a = random_a
+                else:
+                    batch_obs = {k: v[None] for k, v in stored[-1].items()}
+                    a = self.agent.act(batch_obs, goal_batch)[0]
+                obs, reward, terminated, truncated, info = env.step(task.scale_action(a))
+                self.step += 1
+                stored.append(task.storage_obs(obs, first))
+                records.append(task.step_record(obs, env))
+                actions.append(a)
+                rewards.append(reward)
+                terms.append(terminated)
+                self._update(self._updates_due())
+                if terminated or truncated:
+                    break
+                if self.step >= cfg.total_steps and self.step - start_step >= 1:
+                    break  # the budget ends mid-episode: store what was collected
+        except BaseException:
+            self.step = start_step  # the unfinished episode is dropped: count it again
+            raise
         episode_obs = {k: np.stack([s[k] for s in stored]) for k in stored[0]}
         episode = {
             "obs": episode_obs,
@@ -199,14 +216,19 @@ class Trainer:
         self.episodes += 1
         self.recent.append(float(bool(info.get("is_success", False))))
 
-    def _learn(self) -> None:
+    def _updates_due(self) -> int:
+        """Gradient updates due after this env step."""
         cfg = self.cfg
         if self.step < cfg.learning_starts or self.buffer.size == 0:
-            return
+            return 0
         self._credit += cfg.updates_per_step
-        while self._credit >= 1.0:
-            self._credit -= 1.0
-            metrics = self.agent.update(self.buffer.sample(cfg.batch_size))
+        n = int(self._credit)
+        self._credit -= n
+        return n
+
+    def _update(self, n: int) -> None:
+        for _ in range(n):
+            metrics = self.agent.update(self.buffer.sample(self.cfg.batch_size))
             for k, v in metrics.items():
                 self._metrics[k] = self._metrics.get(k, 0.0) + v
             self._metric_count += 1
@@ -253,6 +275,7 @@ class Trainer:
         row.update({k: v / n for k, v in sorted(self._metrics.items())})
         self._metrics, self._metric_count = {}, 0
         self.progress_log.write(row)
+        self._last_logged = self.step
         if self.tb is not None:
             for k, v in row.items():
                 if k != "step":

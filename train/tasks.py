@@ -232,7 +232,7 @@ class LanguageTask(Task):
         self, env: gym.Env, embed: Any, table: list[str] | None = None, num_train: int | None = None
     ) -> None:
         super().__init__(env)
-        wrapper = _find_wrapper(env)
+        wrapper = find_language_wrapper(env)
         self.wrapper = wrapper
         self.split = wrapper.split
         self.families = wrapper.families
@@ -300,7 +300,8 @@ class LanguageTask(Task):
         return self.embeddings[np.asarray(goals, np.int64)]
 
 
-def _find_wrapper(env: gym.Env) -> Any:
+def find_language_wrapper(env: gym.Env) -> Any:
+    """The :class:`~captioner.lang_env.LanguageGoalWrapper` inside ``env``."""
     from captioner.lang_env import LanguageGoalWrapper
 
     e = env
