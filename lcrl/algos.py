@@ -337,7 +337,7 @@ class SAC(Agent):
         self.log_alpha = torch.tensor(
             float(np.log(cfg.init_alpha)), device=self.device, requires_grad=True
         )
-        self.alpha_opt = torch.optim.Adam([self.log_alpha], lr=cfg.alpha_lr)
+        self.alpha_opt = FlatAdam([self.log_alpha], cfg.alpha_lr)
         self.target_entropy = float(-n if cfg.target_entropy is None else cfg.target_entropy)
 
     def _policy(
@@ -392,7 +392,7 @@ class SAC(Agent):
 
         if cfg.autotune_alpha:
             alpha_loss = -(self.log_alpha * (logp.detach() + self.target_entropy)).mean()
-            self.alpha_opt.zero_grad(set_to_none=True)
+            self.alpha_opt.zero_grad()
             alpha_loss.backward()
             self.alpha_opt.step()
         with torch.no_grad():

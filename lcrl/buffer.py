@@ -86,6 +86,11 @@ class HindsightReplayBuffer:
         only_relabelable: draw the transitions to relabel among those that have an
             achieved goal for the strategy (see the module docstring); ``False`` draws
             them among all transitions and leaves those without one unrelabelled.
+        random_fraction: fraction of batch rows (taken from those not relabelled in
+            hindsight) whose goal is replaced by a goal achieved anywhere in the buffer
+            (HER's ``random`` strategy). Such goals are rarely reached, so they teach the
+            critic what a goal is *not* worth; language goals need them (see
+            :class:`lcrl.goals.LabelGoals`). At most ``1 / (k + 1)``.
     """
 
     def __init__(
@@ -99,6 +104,7 @@ class HindsightReplayBuffer:
         k: int = 4,
         seed: int = 0,
         only_relabelable: bool = True,
+        random_fraction: float = 0.0,
     ) -> None:
         if capacity < 2:
             raise LcrlError(f"buffer capacity must be at least 2 slots, got {capacity}")
@@ -108,6 +114,11 @@ class HindsightReplayBuffer:
             )
         if k < 0:
             raise LcrlError(f"k must be >= 0, got {k}")
+        if not 0.0 <= random_fraction <= 1.0 / (k + 1) + 1e-9:
+            raise LcrlError(
+                f"random_fraction must be in [0, 1 / (k + 1)] = [0, {1 / (k + 1):.3f}], got "
+                f"{random_fraction}"
+            )
         self.capacity = int(capacity)
         self.obs_spec = {key: (tuple(shape), np.dtype(dt)) for key, (shape, dt) in obs_spec.items()}
         self.action_shape = tuple(action_shape)
@@ -116,6 +127,7 @@ class HindsightReplayBuffer:
         self.strategy = strategy
         self.k = int(k)
         self.relabel_ratio = self.k / (self.k + 1)
+        self.random_fraction = float(random_fraction)
         self.rng = np.random.default_rng(seed)
 
         self.obs = {
@@ -242,12 +254,20 @@ class HindsightReplayBuffer:
         idx = valid[self.rng.integers(0, valid.size, batch_size)]
         relabelled = np.zeros(batch_size, bool)
         which = np.zeros(0, np.int64)
-        if relabel and self.k > 0:
-            which = np.flatnonzero(self.rng.random(batch_size) < self.relabel_ratio)
+        other = np.zeros(0, np.int64)
+        if relabel and (self.k > 0 or self.random_fraction > 0):
+            u = self.rng.random(batch_size)
+            which = np.flatnonzero(u < self.relabel_ratio)
+            other = np.flatnonzero(
+                (u >= self.relabel_ratio) & (u < self.relabel_ratio + self.random_fraction)
+            )
             pool = self._relabelable_indices() if self.only_relabelable else valid
             if which.size and pool.size:
                 idx[which] = pool[self.rng.integers(0, pool.size, which.size)]
         goals = self.goal_space.desired(idx)
+        if other.size:
+            slots = valid[self.rng.integers(0, valid.size, other.size)]
+            goals[other] = self.goal_space.random_goals(slots, self.rng)
         if which.size:
             sub = idx[which]
             new, ok = self.goal_space.relabel(

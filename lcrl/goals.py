@@ -16,6 +16,8 @@ relabel; a goal space owns everything goal-specific behind one small interface:
     which such a goal exists.
 ``relabelable(idx, ep_start, ep_end, strategy)``
     which transitions have such a goal (all of them for state goals).
+``random_goals(slots, rng)``
+    goals achieved anywhere in the buffer (HER's ``random`` strategy), given random slots.
 ``reward(idx, goals)``
     the sparse reward of the transitions at ``idx`` under ``goals``, from what they
     achieved (vectorised).
@@ -80,6 +82,8 @@ class GoalSpace(Protocol):
     def relabelable(
         self, idx: np.ndarray, ep_start: np.ndarray, ep_end: np.ndarray, strategy: str
     ) -> np.ndarray: ...
+
+    def random_goals(self, slots: np.ndarray, rng: np.random.Generator) -> np.ndarray: ...
 
     def reward(self, idx: np.ndarray, goals: np.ndarray) -> np.ndarray: ...
 
@@ -193,6 +197,10 @@ class StateGoals:
     ) -> np.ndarray:
         """Every transition has an achieved goal after it."""
         return np.ones(idx.shape, bool)
+
+    def random_goals(self, slots: np.ndarray, rng: np.random.Generator) -> np.ndarray:
+        """The goals achieved after the transitions at ``slots``."""
+        return self._achieved[slots + 1]
 
     def reward(self, idx: np.ndarray, goals: np.ndarray) -> np.ndarray:
         """``reward_fn`` of the achieved goal after each transition and ``goals``."""
@@ -380,6 +388,10 @@ class LabelGoals:
         if strategy == "episode":
             return total > 0
         return self._rank[idx + 1] < total
+
+    def random_goals(self, slots: np.ndarray, rng: np.random.Generator) -> np.ndarray:
+        """Uniformly random relabelling ids (``< num_relabel``); ``slots`` is unused."""
+        return rng.integers(0, self.num_relabel, slots.shape[0]).astype(np.int64)
 
     def achieved(self, slots: np.ndarray, goals: np.ndarray) -> np.ndarray:
         """Whether the observations at ``slots`` carry the labels ``goals``."""

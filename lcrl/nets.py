@@ -435,7 +435,8 @@ class FlatAdam:
         lr: learning rate.
         betas: Adam's moment decay rates.
         eps: Adam's epsilon.
-        max_grad_norm: clip the global gradient norm to this; ``None`` for no clipping.
+        max_grad_norm: clip the global gradient norm to this (the gradient buffer is
+            scaled in place); ``None`` for no clipping.
     """
 
     def __init__(
@@ -455,6 +456,9 @@ class FlatAdam:
         self.step_count = 0
         self.exp_avg = torch.zeros_like(self.flat)
         self.exp_avg_sq = torch.zeros_like(self.flat)
+        # torch's fused Adam kernel updates the flat buffer in one pass.
+        self._fused = hasattr(torch, "_fused_adam_")
+        self._step_t = torch.zeros((), dtype=torch.float32, device=self.flat.device)
 
     def zero_grad(self) -> None:
         """Zero the flat gradient buffer (in place, keeping the views)."""
@@ -466,12 +470,32 @@ class FlatAdam:
         norm = 0.0
         g = self.grad
         if self.max_grad_norm is not None:
-            n = torch.linalg.vector_norm(g)
-            norm = float(n)
+            norm = float(torch.linalg.vector_norm(g))
             if norm > self.max_grad_norm:
-                g = g * (self.max_grad_norm / (norm + 1e-6))
+                g.mul_(self.max_grad_norm / (norm + 1e-6))
         self.step_count += 1
         b1, b2 = self.betas
+        if self._fused:
+            self._step_t.fill_(self.step_count)
+            try:
+                torch._fused_adam_(
+                    [self.flat],
+                    [g],
+                    [self.exp_avg],
+                    [self.exp_avg_sq],
+                    [],
+                    [self._step_t],
+                    lr=self.lr,
+                    beta1=b1,
+                    beta2=b2,
+                    weight_decay=0.0,
+                    eps=self.eps,
+                    amsgrad=False,
+                    maximize=False,
+                )
+                return norm
+            except (RuntimeError, NotImplementedError):
+                self._fused = False  # no fused kernel for this device: vectorised ops
         self.exp_avg.lerp_(g, 1 - b1)
         self.exp_avg_sq.mul_(b2).addcmul_(g, g, value=1 - b2)
         bc1 = 1 - b1**self.step_count

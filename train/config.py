@@ -29,6 +29,10 @@ class BufferConfig:
     k: int = 4
     """Relabelled goals per original goal: a fraction k / (k + 1) of sampled transitions is
     relabelled. 0 turns hindsight relabelling off."""
+    random_fraction: float = 0.0
+    """Fraction of sampled transitions given a random goal achieved anywhere (at most
+    1 / (k + 1)): the negatives that teach a language-goal critic which object a goal is
+    about."""
 
 
 @dataclass
@@ -166,6 +170,7 @@ def _lang2d(**overrides: Any) -> TrainConfig:
     cfg = TrainConfig(
         out="runs/lang2d",
         env=EnvConfig(kind="lang2d", families=("reach", "push")),
+        buffer=BufferConfig(k=4, random_fraction=0.1),
         total_steps=100_000,
         eval_every=10_000,
         eval_episodes=100,

@@ -101,6 +101,7 @@ class Trainer:
             strategy=cfg.buffer.strategy,
             k=cfg.buffer.k,
             seed=cfg.seed,
+            random_fraction=cfg.buffer.random_fraction,
         )
         self.rng = np.random.default_rng(cfg.seed)
         self.step = 0
