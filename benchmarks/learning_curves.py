@@ -3,7 +3,7 @@
 Run from the repository root (needs ``pip install -e '.[bench]'`` for Fetch)::
 
     python benchmarks/learning_curves.py fetch-reach   # SAC + HER, FetchReach-v4, 10k steps
-    python benchmarks/learning_curves.py lang2d        # language HER vs no relabelling, 100k
+    python benchmarks/learning_curves.py lang2d --parallel  # language HER vs none, 100k
 
 ``fetch-reach``: SAC + HER (future, k=4) on gymnasium-robotics ``FetchReach-v4``; target:
 at least 90% success over 50 evaluation episodes within 10,000 environment steps.
@@ -22,9 +22,11 @@ from __future__ import annotations
 import argparse
 import csv
 import dataclasses
+import multiprocessing
 import shutil
 import sys
 import time
+from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
 from typing import Any
 
@@ -58,6 +60,12 @@ SUITES: dict[str, dict[str, Any]] = {
         "target": ("her", "train", 0.80, 100_000),
     },
 }
+
+
+def _one_thread() -> None:
+    import torch
+
+    torch.set_num_threads(1)
 
 
 def run_one(
@@ -102,14 +110,41 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("suite", choices=sorted(SUITES))
     parser.add_argument("--steps", type=int, default=None, help="override the step budget")
     parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument(
+        "--parallel",
+        action="store_true",
+        help="train the runs side by side, one process and one thread each",
+    )
+    parser.add_argument(
+        "--eval-episodes", type=int, default=None, help="override the episodes per evaluation set"
+    )
     args = parser.parse_args(argv)
-    suite = SUITES[args.suite]
+    suite = dict(SUITES[args.suite])
+    if args.eval_episodes:
+        suite["eval_episodes"] = args.eval_episodes
     info = machine()
     results: dict[str, Any] = {}
-    for name, (preset, overrides) in suite["runs"].items():
-        out = Path("runs/bench") / f"{args.suite}-{name}"
-        print(f"== {name}: preset {preset} {overrides or ''}", flush=True)
-        results[name] = run_one(preset, overrides, out, suite, args.steps, args.seed)
+    jobs = {
+        name: (
+            preset,
+            overrides,
+            Path("runs/bench") / f"{args.suite}-{name}",
+            suite,
+            args.steps,
+            args.seed,
+        )
+        for name, (preset, overrides) in suite["runs"].items()
+    }
+    if args.parallel and len(jobs) > 1:
+        # One process per run, one torch thread each, so that the runs share the machine.
+        ctx = multiprocessing.get_context("spawn")
+        with ProcessPoolExecutor(len(jobs), mp_context=ctx, initializer=_one_thread) as pool:
+            futures = {name: pool.submit(run_one, *job) for name, job in jobs.items()}
+            results = {name: f.result() for name, f in futures.items()}
+    else:
+        for name, job in jobs.items():
+            print(f"== {name}: preset {job[0]} {job[1] or ''}", flush=True)
+            results[name] = run_one(*job)
     run_name, set_name, threshold, budget = suite["target"]
     curve = results[run_name]["curve"]
     key = f"{set_name}/success"

@@ -810,3 +810,44 @@ def test_oversized_goal_fields_do_not_corrupt_the_next_episode() -> None:
     ep, _ = decode(buf.sample(2_000, relabel=False))
     assert set(ep.tolist()) == {1, 2}
     np.testing.assert_array_equal(buf.goal_space.arrays()["achieved"][5:8, 1], [1.0, 2.0, 3.0])
+
+
+# --- random goals (HER's "random" strategy) ----------------------------------------------
+@pytest.mark.parametrize("kind", ["state", "label"])
+def test_random_goals_fraction_and_rewards(kind: str) -> None:
+    rng = np.random.default_rng(31)
+    if kind == "state":
+        buf = state_buffer(400, k=3, seed=32)
+        episodes = [state_episode(e, int(rng.integers(3, 12)), rng) for e in range(10)]
+    else:
+        gs = LabelGoals(20, num_relabel=12, terminate_on_success=False)
+        buf = label_buffer(400, gs, k=3, seed=32)
+        episodes = [
+            label_episode(e, random_labels(int(rng.integers(3, 12)), rng, 20), 15, rng)
+            for e in range(10)
+        ]
+    for x in episodes:
+        buf.add_episode(x)
+    buf.random_fraction = 0.2
+    batch = buf.sample(100_000)
+    ep, _t = decode(batch)
+    rel = batch.relabelled
+    if kind == "state":
+        desired = np.stack([x["desired_goal"] for x in episodes])[ep]
+        changed = np.any(batch.goal != desired, axis=1)
+        achieved_anywhere = {tuple(g) for x in episodes for g in x["achieved_goal"][1:]}
+        assert all(tuple(g) in achieved_anywhere for g in batch.goal[changed & ~rel])
+    else:
+        changed = batch.goal != 15
+        assert (batch.goal[changed & ~rel] < 12).all()  # random ids are relabelling ids
+    # 0.75 hindsight, 0.2 random, 0.05 original (standard errors about 0.0015)
+    assert abs(rel.mean() - 0.75) < 0.01
+    assert abs((changed & ~rel).mean() - 0.2) < 0.01
+    # rewards are recomputed for every goal
+    np.testing.assert_array_equal(batch.reward, buf.goal_space.reward(batch.index, batch.goal))
+
+
+def test_random_fraction_is_bounded() -> None:
+    gs = LabelGoals(5)
+    with pytest.raises(LcrlError, match="random_fraction"):
+        HindsightReplayBuffer(10, OBS_SPEC, (ACT_DIM,), np.float32, gs, k=4, random_fraction=0.3)

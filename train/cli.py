@@ -207,7 +207,10 @@ def _train(argv: Sequence[str]) -> None:
     results = trainer.run()
     out = trainer.out
     tb = ", tb/ (TensorBoard)" if trainer.cfg.tensorboard else ""
-    print(f"outputs in {out}/: config.json, progress.csv, eval.csv{tb}, checkpoints/")
+    print(
+        f"outputs in {out}/: report.md, curves.png, config.json, progress.csv, eval.csv{tb}, "
+        "checkpoints/"
+    )
     print(f"evaluate again with: lcrl eval {out}")
     del results
 

@@ -82,6 +82,8 @@ class TrainConfig:
     resume: bool = False
     """Continue the run in ``out`` from its latest checkpoint, with its saved config (only
     ``total_steps`` is taken from the command line)."""
+    overwrite: bool = False
+    """Replace a previous run in ``out`` (its checkpoints and logs) instead of refusing."""
     seed: int = 0
     """Seed of the environment resets and the buffer (the learner has ``agent.seed``)."""
     log_every: int = 1_000

@@ -28,6 +28,7 @@ from lcrl.checkpoint import find_latest, load_checkpoint, save_checkpoint, write
 from lcrl.errors import LcrlError
 from train.config import TrainConfig, config_from_dict, config_to_dict
 from train.evaluate import build_agent, build_task, evaluate, format_results
+from train.report import write_report
 from train.tasks import make_env
 
 
@@ -81,10 +82,15 @@ class Trainer:
             saved.out = cfg.out
             cfg = saved
         elif (self.out / "latest.json").exists():
-            raise LcrlError(
-                f"{self.out} already holds a run; pass --resume to continue it or choose "
-                "another --out"
-            )
+            if not cfg.overwrite:
+                raise LcrlError(
+                    f"{self.out} already holds a run; pass --resume to continue it, "
+                    "--overwrite to replace it, or choose another --out"
+                )
+            for name in ("checkpoints", "tb"):
+                shutil.rmtree(self.out / name, ignore_errors=True)
+            for name in ("latest.json", "progress.csv", "eval.csv", "report.md", "curves.png"):
+                (self.out / name).unlink(missing_ok=True)
         self.cfg = cfg
         self.env = make_env(cfg.env, "train")
         self.task = build_task(cfg, self.env, ckpt)
@@ -159,7 +165,9 @@ class Trainer:
             self._log()
         results = self.evaluate()
         path = self.save()
+        report = write_report(self.out, results)
         print(f"final checkpoint: {path}")
+        print(f"report: {report}")
         self.close()
         return results
 
