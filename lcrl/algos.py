@@ -158,6 +158,11 @@ class AgentOptions:
     normalize_goal: bool = True
     """Standardise goals: state goals with running statistics of achieved goals, text goals
     with the statistics of the training instructions' embeddings."""
+    reward_shift: float = 0.0
+    """Added to every reward the learner sees. -1 turns 0/1 success rewards into -1/0 ones
+    (as in gymnasium-robotics): every step that does not reach the goal then costs
+    something, which pins down the value of goals the policy does not reach far faster
+    than discounting alone."""
     device: str = "cpu"
     """``cpu``, ``cuda`` or ``cuda:N``."""
     seed: int = 0
@@ -250,6 +255,8 @@ class Agent:
         act = torch.as_tensor(batch.action, device=self.device)
         act = act.long() if self.problem.discrete else act.float()
         rew = torch.as_tensor(batch.reward, device=self.device, dtype=torch.float32)
+        if self.options.reward_shift:
+            rew = rew + self.options.reward_shift
         term = torch.as_tensor(batch.terminated, device=self.device, dtype=torch.float32)
         return obs, nobs, goal, act, rew, term
 

@@ -49,6 +49,17 @@ class NetConfig:
     """Channels of the image encoder's 3x3 convolutions (the first has stride 2)."""
     cnn_features: int = 50
     """Output width of the image encoder (linear + layer norm after the convolutions)."""
+    slots: tuple[int, ...] = ()
+    """``(start, count, width)`` of per-object slots inside vector observations (e.g.
+    ``(2, 8, 3)`` for the 2D tabletop: after the pusher's x, y, 8 object kinds of x, y,
+    present). When set, those observations are read by goal-conditioned attention over
+    objects: a shared MLP encodes each slot (plus a learned embedding of which slot it
+    is), the goal picks slots by attention, and the picked features go to the fused MLP.
+    Empty: plain concatenation."""
+    slot_dim: int = 64
+    """Width of the per-slot features of the object attention."""
+    slot_heads: int = 2
+    """Attention heads over objects (put and stack name two objects)."""
 
 
 def mlp(sizes: Sequence[int], out_act: bool = False) -> nn.Sequential:
@@ -82,21 +93,103 @@ class ConvEncoder(nn.Module):
         return self.head(self.convs(x).flatten(1))
 
 
+class SlotAttention(nn.Module):
+    """Goal-conditioned attention over object slots of vector observations.
+
+    Every key's vector is ``[global (start values), count slots of width values,
+    rest]``. Slot ``i`` is encoded by a shared MLP from its values in every key, the
+    global and rest values, and a learned embedding of ``i`` (which object kind the slot
+    holds); each head's query comes from the goal features. Output: the attended slot
+    features of every head, then the global and rest values.
+
+    Args:
+        dims: vector width of each key (all keys share the slot layout).
+        layout: ``(start, count, width)``.
+        goal_dim: width of the goal features.
+        cfg: network config (``slot_dim``, ``slot_heads``).
+    """
+
+    def __init__(
+        self, dims: Sequence[int], layout: Sequence[int], goal_dim: int, cfg: NetConfig
+    ) -> None:
+        super().__init__()
+        start, count, width = (int(v) for v in layout)
+        self.start, self.count, self.width = start, count, width
+        self.end = start + count * width
+        self.extra = sum(d - count * width for d in dims)  # global + rest values, all keys
+        d, heads = cfg.slot_dim, cfg.slot_heads
+        self.identity = nn.Parameter(torch.randn(count, d) * 0.1)
+        self.slot_mlp = mlp([len(dims) * width + self.extra + d, d, d], out_act=True)
+        self.query = nn.Linear(goal_dim, heads * d)
+        self.key = nn.Linear(d, heads * d)
+        self.heads, self.d = heads, d
+        self.out_dim = heads * d + self.extra
+
+    def forward(self, xs: Sequence[torch.Tensor], goal: torch.Tensor) -> torch.Tensor:
+        b = xs[0].shape[0]
+        slots = torch.cat(
+            [x[:, self.start : self.end].reshape(b, self.count, self.width) for x in xs], -1
+        )
+        extra = torch.cat([torch.cat([x[:, : self.start], x[:, self.end :]], -1) for x in xs], -1)
+        per_slot = torch.cat(
+            [
+                slots,
+                extra.unsqueeze(1).expand(b, self.count, self.extra),
+                self.identity.expand(b, -1, -1),
+            ],
+            -1,
+        )
+        h = self.slot_mlp(per_slot)  # (B, count, d)
+        q = self.query(goal).view(b, self.heads, 1, self.d)
+        k = self.key(h).view(b, self.count, self.heads, self.d).transpose(1, 2)
+        w = torch.softmax((q * k).sum(-1) / math.sqrt(self.d), -1)  # (B, heads, count)
+        picked = torch.einsum("bhc,bcd->bhd", w, h).reshape(b, self.heads * self.d)
+        return torch.cat([picked, extra], -1)
+
+
 class ObsEncoder(nn.Module):
     """One encoder per observation key, outputs concatenated (keys in sorted order).
+
+    With ``cfg.slots`` set, the vector keys that hold that slot layout are read together by
+    :class:`SlotAttention` (which needs the goal features).
 
     Args:
         obs_shapes: ``{key: shape}``; 1-D shapes are vectors, 3-D ``(H, W, C)`` images.
         cfg: network config.
+        goal_dim: width of the goal features (for object attention).
     """
 
-    def __init__(self, obs_shapes: Mapping[str, Sequence[int]], cfg: NetConfig) -> None:
+    def __init__(
+        self, obs_shapes: Mapping[str, Sequence[int]], cfg: NetConfig, goal_dim: int = 0
+    ) -> None:
         super().__init__()
         self.keys = sorted(obs_shapes)
         self.encoders = nn.ModuleDict()
+        self.slot_keys: list[str] = []
+        self.slots: SlotAttention | None = None
         dim = 0
+        if cfg.slots:
+            if len(cfg.slots) != 3:
+                raise LcrlError(f"slots must be (start, count, width), got {cfg.slots}")
+            start, count, width = cfg.slots
+            self.slot_keys = [
+                k
+                for k in self.keys
+                if len(obs_shapes[k]) == 1 and obs_shapes[k][0] >= start + count * width
+            ]
+            if not self.slot_keys:
+                raise LcrlError(
+                    f"no vector observation holds the slot layout {tuple(cfg.slots)}: "
+                    f"shapes {dict(obs_shapes)}"
+                )
+            self.slots = SlotAttention(
+                [obs_shapes[k][0] for k in self.slot_keys], cfg.slots, goal_dim, cfg
+            )
+            dim += self.slots.out_dim
         for key in self.keys:
             shape = tuple(obs_shapes[key])
+            if key in self.slot_keys:
+                continue
             if len(shape) == 1:
                 if cfg.state_layers:
                     enc: nn.Module = mlp([shape[0], *cfg.state_layers], out_act=True)
@@ -114,8 +207,14 @@ class ObsEncoder(nn.Module):
             self.encoders[key] = enc
         self.out_dim = dim
 
-    def forward(self, obs: Mapping[str, torch.Tensor]) -> torch.Tensor:
-        feats = [self.encoders[k](obs[k]) for k in self.keys]
+    def forward(
+        self, obs: Mapping[str, torch.Tensor], goal: torch.Tensor | None = None
+    ) -> torch.Tensor:
+        feats = [self.encoders[k](obs[k]) for k in self.keys if k in self.encoders]
+        if self.slots is not None:
+            if goal is None:
+                raise LcrlError("object attention needs the goal features")
+            feats.insert(0, self.slots([obs[k] for k in self.slot_keys], goal))
         return feats[0] if len(feats) == 1 else torch.cat(feats, -1)
 
 
@@ -210,8 +309,8 @@ class GoalConditionedNet(nn.Module):
         action_dim: int = 0,
     ) -> None:
         super().__init__()
-        self.obs_encoder = ObsEncoder(obs_shapes, cfg)
         self.goal_encoder = GoalEncoder(goal_kind, goal_shape, cfg)
+        self.obs_encoder = ObsEncoder(obs_shapes, cfg, self.goal_encoder.out_dim)
         self.head = FusedMLP(
             self.obs_encoder.out_dim + action_dim,
             self.goal_encoder.out_dim,
@@ -226,10 +325,11 @@ class GoalConditionedNet(nn.Module):
         goal: torch.Tensor,
         action: torch.Tensor | None = None,
     ) -> torch.Tensor:
-        x = self.obs_encoder(obs)
+        g = self.goal_encoder(goal)
+        x = self.obs_encoder(obs, g)
         if action is not None:
             x = torch.cat([x, action], -1)
-        return self.head(x, self.goal_encoder(goal))
+        return self.head(x, g)
 
 
 class Ensemble(nn.Module):
@@ -292,10 +392,11 @@ class GoalConditionedEnsemble(nn.Module):
     ) -> None:
         super().__init__()
         self.n = n
-        self.obs_encoders = nn.ModuleList(ObsEncoder(obs_shapes, cfg) for _ in range(n))
         self.goal_encoders = nn.ModuleList(
             GoalEncoder(goal_kind, goal_shape, cfg) for _ in range(n)
         )
+        goal_dim = self.goal_encoders[0].out_dim
+        self.obs_encoders = nn.ModuleList(ObsEncoder(obs_shapes, cfg, goal_dim) for _ in range(n))
         self.shared = not any(
             p.numel()
             for enc in (self.obs_encoders[0], self.goal_encoders[0])
@@ -321,10 +422,11 @@ class GoalConditionedEnsemble(nn.Module):
         goal: torch.Tensor,
         action: torch.Tensor | None,
     ) -> tuple[torch.Tensor, torch.Tensor]:
-        x = self.obs_encoders[i](obs)
+        g = self.goal_encoders[i](goal)
+        x = self.obs_encoders[i](obs, g)
         if action is not None:
             x = torch.cat([x, action], -1)
-        return x, self.goal_encoders[i](goal)
+        return x, g
 
     def forward(
         self,
