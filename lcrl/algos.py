@@ -303,9 +303,6 @@ class Agent:
         self.updates = int(states["counters"]["updates"])
         self.acts = int(states["counters"]["acts"])
 
-    def after_load(self) -> None:
-        """Called after weights are loaded (refresh target copies kept elsewhere)."""
-
 
 def _flat_target(module: nn.Module) -> tuple[nn.Module, torch.Tensor]:
     target = copy.deepcopy(module)

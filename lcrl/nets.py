@@ -332,17 +332,6 @@ class GoalConditionedNet(nn.Module):
         return self.head(x, g)
 
 
-class Ensemble(nn.Module):
-    """``n`` independent copies of a network; ``forward`` stacks their outputs: ``(n, ...)``."""
-
-    def __init__(self, members: Iterable[nn.Module]) -> None:
-        super().__init__()
-        self.members = nn.ModuleList(members)
-
-    def forward(self, *args: torch.Tensor | Mapping[str, torch.Tensor] | None) -> torch.Tensor:
-        return torch.stack([m(*args) for m in self.members])
-
-
 class BatchedLinear(nn.Module):
     """``n`` independent linear layers applied at once: ``(n, B, in) -> (n, B, out)``.
 

@@ -429,9 +429,16 @@ def _default_folder() -> str:
 
 def _load_from(source: str, local_files_only: bool) -> tuple[Any, Any]:
     from transformers import AutoModel, AutoTokenizer
+    from transformers.utils import logging as hf_logging
 
     tokenizer = AutoTokenizer.from_pretrained(source, local_files_only=local_files_only)
-    model = AutoModel.from_pretrained(source, local_files_only=local_files_only)
+    shown = hf_logging.is_progress_bar_enabled()
+    hf_logging.disable_progress_bar()  # no "Loading weights" bar on every run
+    try:
+        model = AutoModel.from_pretrained(source, local_files_only=local_files_only)
+    finally:
+        if shown:
+            hf_logging.enable_progress_bar()
     return tokenizer, model
 
 

@@ -700,7 +700,6 @@ def test_restored_agent_continues_identically(algo, done):
     for name, module in fresh.modules().items():
         module.load_state_dict(weights[name])
     fresh.load_states(states)
-    fresh.after_load()
     assert_identical(snapshot(fresh), snapshot(agent))
     assert (fresh.updates, fresh.acts) == (agent.updates, agent.acts)
 

@@ -249,10 +249,12 @@ class Trainer:
         results = evaluate(self.agent, self.task, cfg, episodes=cfg.eval_episodes, seed=cfg.seed)
         self.last_eval = results
         row: dict[str, Any] = {"step": self.step, "episodes": self.episodes}
+        families = tuple(getattr(self.task, "families", ()))
         for name, res in results.items():
             row[f"{name}/success"] = res["success"]
-            for fam, rate in res["families"].items():
-                row[f"{name}/{fam}"] = rate
+            # every family gets a column, even one that no episode of this round drew
+            for fam in dict.fromkeys((*families, *res["families"])):
+                row[f"{name}/{fam}"] = res["families"].get(fam, float("nan"))
         self.eval_log.write(row)
         if self.tb is not None:
             for k, v in row.items():
