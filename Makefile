@@ -33,7 +33,7 @@ test: $(STAMP)
 	$(BIN)/pytest -q -m "not slow and not benchmark"
 
 test-slow: $(STAMP)
-	$(BIN)/pytest -q -m "slow"
+	$(BIN)/pytest -q -m "slow" || [ $$? -eq 5 ]  # 5: no test carries the marker
 
 bench: $(STAMP)
 	$(BIN)/python -m pip install --quiet -e ".[bench]"
