@@ -248,17 +248,29 @@ class Agent:
         return g
 
     def batch_tensors(self, batch: Batch) -> tuple[Any, ...]:
-        """``obs, next_obs, goal, action, reward, terminated`` tensors of a batch."""
+        """``obs, next_obs, goal, action, reward, bootstrap`` tensors of a batch.
+
+        ``bootstrap`` multiplies the next state's value in the target: the discount
+        (``gamma``, or :attr:`Batch.discount` for multi-step rows) where the row did not
+        terminate, 0 where it did.
+        """
         obs = self.obs_tensors(batch.obs)
         nobs = self.obs_tensors(batch.next_obs)
         goal = self.goal_tensor(batch.goal)
         act = torch.as_tensor(batch.action, device=self.device)
         act = act.long() if self.problem.discrete else act.float()
         rew = torch.as_tensor(batch.reward, device=self.device, dtype=torch.float32)
+        gamma = float(self.cfg.gamma)
+        if batch.discount is None:
+            disc = torch.full_like(rew, gamma)
+        else:
+            disc = torch.as_tensor(batch.discount, device=self.device, dtype=torch.float32)
         if self.options.reward_shift:
-            rew = rew + self.options.reward_shift
+            # a shift per step: sum_j gamma**j over the row's m rewards, gamma**m = disc
+            per_row = 1.0 if batch.discount is None else (1.0 - disc) / (1.0 - gamma)
+            rew = rew + self.options.reward_shift * per_row
         term = torch.as_tensor(batch.terminated, device=self.device, dtype=torch.float32)
-        return obs, nobs, goal, act, rew, term
+        return obs, nobs, goal, act, rew, (1.0 - term) * disc
 
     def _critics(self, action_dim: int, n: int = 2) -> GoalConditionedEnsemble:
         p = self.problem
@@ -372,13 +384,13 @@ class SAC(Agent):
 
     def update(self, batch: Batch) -> dict[str, float]:
         """One critic, actor and temperature step; returns losses and diagnostics."""
-        obs, nobs, goal, act, rew, term = self.batch_tensors(batch)
+        obs, nobs, goal, act, rew, boot = self.batch_tensors(batch)
         cfg = self.cfg
         alpha = self.log_alpha.detach().exp()
         with torch.no_grad():
             next_a, next_logp = self._policy(nobs, goal)
             target_q = self.critic_target(nobs, goal, next_a).min(0).values.squeeze(-1)
-            y = rew + cfg.gamma * (1.0 - term) * (target_q - alpha * next_logp)
+            y = rew + boot * (target_q - alpha * next_logp)
         q = self.critic(obs, goal, act).squeeze(-1)
         critic_loss = 0.5 * (q - y).pow(2).mean(-1).sum()
         self.critic_opt.zero_grad()
@@ -487,14 +499,14 @@ class TD3(Agent):
 
     def update(self, batch: Batch) -> dict[str, float]:
         """One critic step, and an actor and target step every ``policy_delay`` calls."""
-        obs, nobs, goal, act, rew, term = self.batch_tensors(batch)
+        obs, nobs, goal, act, rew, boot = self.batch_tensors(batch)
         cfg = self.cfg
         with torch.no_grad():
             noise = torch.randn(act.shape, generator=self.gen, device=self.device)
             noise = (cfg.policy_noise * noise).clamp(-cfg.noise_clip, cfg.noise_clip)
             next_a = (torch.tanh(self.actor_target(nobs, goal)) + noise).clamp(-1.0, 1.0)
             target_q = self.critic_target(nobs, goal, next_a).min(0).values.squeeze(-1)
-            y = rew + cfg.gamma * (1.0 - term) * target_q
+            y = rew + boot * target_q
         q = self.critic(obs, goal, act).squeeze(-1)
         critic_loss = 0.5 * (q - y).pow(2).mean(-1).sum()
         self.critic_opt.zero_grad()
@@ -592,12 +604,12 @@ class DQN(Agent):
 
     def update(self, batch: Batch) -> dict[str, float]:
         """One double-DQN step (Huber loss) and a target update."""
-        obs, nobs, goal, act, rew, term = self.batch_tensors(batch)
+        obs, nobs, goal, act, rew, boot = self.batch_tensors(batch)
         cfg = self.cfg
         with torch.no_grad():
             best = self.q(nobs, goal).argmax(-1, keepdim=True)
             target_q = self.q_target(nobs, goal).gather(-1, best).squeeze(-1)
-            y = rew + cfg.gamma * (1.0 - term) * target_q
+            y = rew + boot * target_q
         q = self.q(obs, goal).gather(-1, act.reshape(-1, 1)).squeeze(-1)
         loss = F.smooth_l1_loss(q, y)
         self.opt.zero_grad()

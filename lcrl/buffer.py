@@ -57,6 +57,9 @@ class Batch(NamedTuple):
         goal: ``(B, ...)`` goals in the goal space's representation.
         relabelled: ``(B,)`` bool, which goals were relabelled.
         index: ``(B,)`` slots of the sampled transitions.
+        discount: ``(B,)`` float32 factor of the bootstrapped value, ``gamma ** m`` for a
+            row summing ``m`` rewards (``n_step > 1``); ``None`` for one-step returns,
+            where learners use their own ``gamma``.
     """
 
     obs: dict[str, np.ndarray]
@@ -67,6 +70,7 @@ class Batch(NamedTuple):
     goal: np.ndarray
     relabelled: np.ndarray
     index: np.ndarray
+    discount: np.ndarray | None = None
 
 
 class HindsightReplayBuffer:
@@ -91,6 +95,15 @@ class HindsightReplayBuffer:
             (HER's ``random`` strategy). Such goals are rarely reached, so they teach the
             critic what a goal is *not* worth; language goals need them (see
             :class:`lcrl.goals.LabelGoals`). At most ``1 / (k + 1)``.
+        n_step: rewards summed per sampled row. With ``n_step = n > 1`` a row starting at
+            ``t`` carries ``sum_j gamma**j r_{t+j}`` over ``j < m``, where ``m <= n`` stops
+            at the episode's end or at the first terminal step (for the row's own goal,
+            relabelled or not), ``next_obs`` is the observation at ``t + m`` and
+            :attr:`Batch.discount` is ``gamma ** m``. Rewards are recomputed for the row's
+            goal at every step. Multi-step returns carry value back along sparse-reward
+            paths ``n`` times faster, at the cost of a bias from the behaviour policy's
+            later actions (small for small ``n``).
+        gamma: the learner's discount, needed when ``n_step > 1``.
     """
 
     def __init__(
@@ -105,6 +118,8 @@ class HindsightReplayBuffer:
         seed: int = 0,
         only_relabelable: bool = True,
         random_fraction: float = 0.0,
+        n_step: int = 1,
+        gamma: float = 0.98,
     ) -> None:
         if capacity < 2:
             raise LcrlError(f"buffer capacity must be at least 2 slots, got {capacity}")
@@ -119,6 +134,12 @@ class HindsightReplayBuffer:
                 f"random_fraction must be in [0, 1 / (k + 1)] = [0, {1 / (k + 1):.3f}], got "
                 f"{random_fraction}"
             )
+        if isinstance(n_step, bool) or int(n_step) != n_step or n_step < 1:
+            raise LcrlError(f"n_step must be an integer >= 1, got {n_step!r}")
+        if not 0.0 < gamma <= 1.0:
+            raise LcrlError(f"gamma must be in (0, 1], got {gamma}")
+        self.n_step = int(n_step)
+        self.gamma = float(gamma)
         self.capacity = int(capacity)
         self.obs_spec = {key: (tuple(shape), np.dtype(dt)) for key, (shape, dt) in obs_spec.items()}
         self.action_shape = tuple(action_shape)
@@ -275,14 +296,13 @@ class HindsightReplayBuffer:
             )
             goals[which] = new
             relabelled[which] = ok
-        reward = self.goal_space.reward(idx, goals)
-        terminated = self.terminated[idx].astype(np.float32)
-        if self.goal_space.terminate_on_success:
-            # Reaching the (relabelled) goal ends the episode; the original goal's
-            # termination is replaced by the relabelled goal's.
-            success = self.goal_space.success(reward)
-            terminated = np.where(relabelled, success, terminated).astype(np.float32)
+        reward, terminated = self._step_reward(idx, goals, relabelled)
         nxt = idx + 1
+        discount = None
+        if self.n_step > 1:
+            reward, terminated, nxt, discount = self._n_step_return(
+                idx, goals, relabelled, reward, terminated
+            )
         return Batch(
             obs={key: arr[idx] for key, arr in self.obs.items()},
             action=self.action[idx],
@@ -292,7 +312,46 @@ class HindsightReplayBuffer:
             goal=goals,
             relabelled=relabelled,
             index=idx,
+            discount=discount,
         )
+
+    def _step_reward(
+        self, idx: np.ndarray, goals: np.ndarray, relabelled: np.ndarray
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """Reward and terminal flag (float32) of the transitions at ``idx`` for ``goals``."""
+        reward = self.goal_space.reward(idx, goals)
+        terminated = self.terminated[idx].astype(np.float32)
+        if self.goal_space.terminate_on_success:
+            # Reaching the (relabelled) goal ends the episode; the original goal's
+            # termination is replaced by the relabelled goal's.
+            success = self.goal_space.success(reward)
+            terminated = np.where(relabelled, success, terminated).astype(np.float32)
+        return reward, terminated
+
+    def _n_step_return(
+        self,
+        idx: np.ndarray,
+        goals: np.ndarray,
+        relabelled: np.ndarray,
+        reward: np.ndarray,
+        terminated: np.ndarray,
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """Discounted reward sums over up to ``n_step`` steps (see the class docstring)."""
+        last = self.ep_end[idx] - 1  # the episode's last transition slot
+        ret = reward.astype(np.float64)
+        steps = np.ones(idx.size, np.int64)
+        done = terminated > 0
+        for j in range(1, self.n_step):
+            alive = ~done & (idx + j <= last)
+            if not alive.any():
+                break
+            p = np.minimum(idx + j, last)
+            r, term = self._step_reward(p, goals, relabelled)
+            ret += np.where(alive, self.gamma**j * r, 0.0)
+            steps += alive
+            done |= alive & (term > 0)
+        discount = (self.gamma**steps).astype(np.float32)
+        return ret.astype(np.float32), done.astype(np.float32), idx + steps, discount
 
     # --- saving ----------------------------------------------------------------------
     def arrays(self) -> dict[str, np.ndarray]:

@@ -755,3 +755,30 @@ def test_object_slot_attention_reads_slots_and_learns() -> None:
     assert all(np.isfinite(v) for v in metrics.values())
     changed = [k for k, v in agent.critic.state_dict().items() if not torch.equal(v, before[k])]
     assert any(".slots." in k for k in changed)
+
+
+@pytest.mark.parametrize("algo", ["sac", "td3", "dqn"])
+def test_multi_step_batches_bootstrap_with_their_discount(algo: str) -> None:
+    """A row's ``discount`` replaces gamma in the bootstrap; a reward shift counts once per
+    summed step (sum of gamma**j over the row's m steps)."""
+    prob = problem(algo == "dqn")
+    agent = make_agent(algo)
+    gamma = agent.cfg.gamma
+    base = make_batch(prob, np.random.default_rng(3), size=6)
+    term = np.array([0, 0, 1, 0, 0, 1], np.float32)
+    one = base._replace(terminated=term)
+    _, _, _, _, rew1, boot1 = agent.batch_tensors(one)
+    np.testing.assert_allclose(boot1.numpy(), (1 - term) * gamma, rtol=1e-6)
+    disc = np.array([gamma, gamma**2, gamma**3, gamma**3, 1.0, gamma], np.float32)
+    multi = one._replace(discount=disc)
+    _, _, _, _, rew, boot = agent.batch_tensors(multi)
+    np.testing.assert_allclose(boot.numpy(), (1 - term) * disc, rtol=1e-6)
+    np.testing.assert_allclose(rew.numpy(), rew1.numpy())
+
+    agent.options.reward_shift = -1.0
+    _, _, _, _, shifted, _ = agent.batch_tensors(multi)
+    steps = np.round(np.log(disc) / np.log(gamma)).astype(int)
+    per_row = np.array([sum(gamma**j for j in range(m)) for m in steps])
+    np.testing.assert_allclose(shifted.numpy(), base.reward - per_row, rtol=1e-5, atol=1e-6)
+    metrics = agent.update(multi)
+    assert all(np.isfinite(v) for v in metrics.values())

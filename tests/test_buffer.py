@@ -851,3 +851,87 @@ def test_random_fraction_is_bounded() -> None:
     gs = LabelGoals(5)
     with pytest.raises(LcrlError, match="random_fraction"):
         HindsightReplayBuffer(10, OBS_SPEC, (ACT_DIM,), np.float32, gs, k=4, random_fraction=0.3)
+
+
+# --- multi-step returns -------------------------------------------------------------------
+def test_one_step_batches_carry_no_discount() -> None:
+    rng = np.random.default_rng(40)
+    buf = state_buffer(100)
+    buf.add_episode(state_episode(0, 10, rng))
+    assert buf.sample(8).discount is None
+
+
+@pytest.mark.parametrize("n", [2, 3, 5])
+def test_n_step_returns_match_a_per_row_reference(n: int) -> None:
+    """Dense rewards, no termination: each row sums min(n, steps left) rewards of its goal."""
+    rng = np.random.default_rng(41)
+    gamma = 0.9
+    gs = StateGoals(GOAL_DIM, dense_reward)
+    buf = HindsightReplayBuffer(
+        200, OBS_SPEC, (ACT_DIM,), np.float32, gs, "future", 4, 42, n_step=n, gamma=gamma
+    )
+    episodes = [state_episode(e, int(rng.integers(2, 9)), rng) for e in range(6)]
+    for e in episodes:
+        buf.add_episode(e)
+    batch = buf.sample(3000)
+    ep = batch.obs["state"][:, 0].astype(np.int64)
+    t = batch.obs["state"][:, 1].astype(np.int64)
+    for i in range(batch.reward.size):
+        e = episodes[ep[i]]
+        steps = e["action"].shape[0]
+        m = min(n, steps - t[i])
+        rewards = dense_reward(e["achieved_goal"][t[i] + 1 : t[i] + 1 + m], batch.goal[i])
+        expected = sum(gamma**j * r for j, r in enumerate(rewards))
+        assert batch.reward[i] == pytest.approx(expected, rel=1e-5, abs=1e-6)
+        assert batch.discount[i] == pytest.approx(gamma**m, rel=1e-6)
+        assert batch.next_obs["state"][i, 0] == ep[i]
+        assert batch.next_obs["state"][i, 1] == t[i] + m
+    assert not batch.terminated.any()
+    assert {round(float(d), 6) for d in batch.discount} > {round(gamma**n, 6)}
+
+
+def test_n_step_stops_at_the_first_success_of_the_rows_goal() -> None:
+    """Label goals ending on success: a relabelled row's sum stops at the first step whose
+    labels hold its goal; an original goal ends where the stored episode terminated (never
+    here)."""
+    rng = np.random.default_rng(43)
+    gamma = 0.5
+    gs = LabelGoals(6, terminate_on_success=True)
+    buf = HindsightReplayBuffer(
+        300, OBS_SPEC, (ACT_DIM,), np.float32, gs, "future", 4, 44, n_step=4, gamma=gamma
+    )
+    episodes = []
+    for e in range(8):
+        steps = int(rng.integers(3, 10))
+        labels = random_labels(steps, rng, 6, p_empty=0.6)
+        episodes.append(labels)
+        buf.add_episode(label_episode(e, labels, int(rng.integers(6)), rng))
+    batch = buf.sample(4000)
+    ep = batch.obs["state"][:, 0].astype(np.int64)
+    t = batch.obs["state"][:, 1].astype(np.int64)
+    for i in range(batch.reward.size):
+        labels = episodes[ep[i]]
+        steps = len(labels) - 1
+        g = int(batch.goal[i])
+        ret, m, done = 0.0, 0, False
+        while m < 4 and t[i] + m < steps and not done:
+            r = float(g in labels[t[i] + m + 1])
+            ret += gamma**m * r
+            done = r > 0 and bool(batch.relabelled[i])
+            m += 1
+        assert batch.reward[i] == pytest.approx(ret)
+        assert batch.terminated[i] == float(done)
+        assert batch.discount[i] == pytest.approx(gamma**m)
+        assert batch.next_obs["state"][i, 1] == t[i] + m
+    assert batch.terminated.any() and not batch.terminated.all()
+    assert (batch.reward[batch.terminated > 0] > 0).all()
+    assert not batch.terminated[~batch.relabelled].any()
+
+
+def test_n_step_arguments_are_checked() -> None:
+    gs = StateGoals(GOAL_DIM, dense_reward)
+    for bad in (0, -1, 1.5, True):
+        with pytest.raises(LcrlError, match="n_step"):
+            HindsightReplayBuffer(10, OBS_SPEC, (ACT_DIM,), np.float32, gs, n_step=bad)
+    with pytest.raises(LcrlError, match="gamma"):
+        HindsightReplayBuffer(10, OBS_SPEC, (ACT_DIM,), np.float32, gs, n_step=3, gamma=1.5)

@@ -33,6 +33,9 @@ class BufferConfig:
     """Fraction of sampled transitions given a random goal achieved anywhere (at most
     1 / (k + 1)): the negatives that teach a language-goal critic which object a goal is
     about."""
+    n_step: int = 1
+    """Rewards summed per sampled transition (multi-step returns, recomputed for relabelled
+    goals): values travel back along sparse-reward paths n times faster."""
 
 
 @dataclass

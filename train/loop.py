@@ -108,6 +108,8 @@ class Trainer:
             k=cfg.buffer.k,
             seed=cfg.seed,
             random_fraction=cfg.buffer.random_fraction,
+            n_step=cfg.buffer.n_step,
+            gamma=self.agent.cfg.gamma,
         )
         self.rng = np.random.default_rng(cfg.seed)
         self.step = 0
