@@ -32,6 +32,7 @@ from lcrl.nets import (
     RunningNorm,
     flatten_parameters,
     gaussian_log_prob_tanh,
+    random_shift,
 )
 
 GoalEmbedder = Callable[[np.ndarray, torch.device], torch.Tensor]
@@ -163,6 +164,10 @@ class AgentOptions:
     (as in gymnasium-robotics): every step that does not reach the goal then costs
     something, which pins down the value of goals the policy does not reach far faster
     than discounting alone."""
+    augment_pad: int = 0
+    """Random-shift augmentation of image inputs in updates (DrQ): each image (observation,
+    next observation, image goal) is padded by this many edge pixels and cropped back at a
+    random offset. 0 turns it off; 4 is DrQ's value for 84x84 images."""
     device: str = "cpu"
     """``cpu``, ``cuda`` or ``cuda:N``."""
     seed: int = 0
@@ -257,6 +262,14 @@ class Agent:
         obs = self.obs_tensors(batch.obs)
         nobs = self.obs_tensors(batch.next_obs)
         goal = self.goal_tensor(batch.goal)
+        pad = self.options.augment_pad
+        if pad:
+            for d in (obs, nobs):
+                for key, t in d.items():
+                    if t.dim() == 4:
+                        d[key] = random_shift(t, pad, self.gen)
+            if goal.dim() == 4:
+                goal = random_shift(goal, pad, self.gen)
         act = torch.as_tensor(batch.action, device=self.device)
         act = act.long() if self.problem.discrete else act.float()
         rew = torch.as_tensor(batch.reward, device=self.device, dtype=torch.float32)

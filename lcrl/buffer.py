@@ -161,6 +161,9 @@ class HindsightReplayBuffer:
         self.ep_end = np.zeros(self.capacity, np.int64)  # slot of the episode's last observation
         self.valid = np.zeros(self.capacity, bool)  # sampleable transition slots
         goal_space.allocate(self.capacity)
+        attach = getattr(goal_space, "attach", None)
+        if callable(attach):
+            attach(self.obs)
         self.ptr = 0
         self.episodes_added = 0
         self.steps_added = 0

@@ -60,6 +60,9 @@ class NetConfig:
     """Width of the per-slot features of the object attention."""
     slot_heads: int = 2
     """Attention heads over objects (put and stack name two objects)."""
+    share_cnn: bool = False
+    """Image goals are read by the same CNN as the image observation of the same shape
+    (one encoder per network instead of two)."""
 
 
 def mlp(sizes: Sequence[int], out_act: bool = False) -> nn.Sequential:
@@ -147,6 +150,22 @@ class SlotAttention(nn.Module):
         return torch.cat([picked, extra], -1)
 
 
+def random_shift(images: torch.Tensor, pad: int, generator: torch.Generator) -> torch.Tensor:
+    """DrQ's random shift: pad ``(B, H, W, C)`` images by ``pad`` edge pixels and crop each
+    back to ``(H, W)`` at a random offset; returns float images on the same 0-255 scale."""
+    b, h, w, _ = images.shape
+    x = F.pad(images.permute(0, 3, 1, 2).float(), (pad, pad, pad, pad), mode="replicate")
+    dev = images.device
+    oy = torch.randint(0, 2 * pad + 1, (b, 1), generator=generator, device=dev)
+    ox = torch.randint(0, 2 * pad + 1, (b, 1), generator=generator, device=dev)
+    rows = (oy + torch.arange(h, device=dev))[:, None, :, None].expand(
+        -1, x.shape[1], -1, x.shape[3]
+    )
+    x = x.gather(2, rows)
+    cols = (ox + torch.arange(w, device=dev))[:, None, None, :].expand(-1, x.shape[1], h, -1)
+    return x.gather(3, cols).permute(0, 2, 3, 1)
+
+
 class ObsEncoder(nn.Module):
     """One encoder per observation key, outputs concatenated (keys in sorted order).
 
@@ -227,14 +246,22 @@ class GoalEncoder(nn.Module):
         cfg: network config.
     """
 
-    def __init__(self, kind: str, shape: Sequence[int], cfg: NetConfig) -> None:
+    def __init__(
+        self, kind: str, shape: Sequence[int], cfg: NetConfig, shared: nn.Module | None = None
+    ) -> None:
         super().__init__()
         if kind not in GOAL_KINDS:
             raise LcrlError(f"unknown goal kind {kind!r}; choose one of {GOAL_KINDS}")
         self.kind = kind
         shape = tuple(shape)
-        if kind == "image":
-            self.net: nn.Module = ConvEncoder(shape, cfg.cnn_channels, cfg.cnn_features)
+        # A shared CNN belongs to the observation encoder: kept out of this module's
+        # parameters so that it is saved and optimised once.
+        self._shared = [shared] if shared is not None else []
+        if kind == "image" and shared is not None:
+            self.net = nn.Identity()
+            self.out_dim = cfg.cnn_features
+        elif kind == "image":
+            self.net = ConvEncoder(shape, cfg.cnn_channels, cfg.cnn_features)
             self.out_dim = cfg.cnn_features
         elif kind in ("text", "onehot"):
             self.net = nn.Sequential(nn.Linear(shape[0], cfg.text_dim), nn.LayerNorm(cfg.text_dim))
@@ -247,7 +274,31 @@ class GoalEncoder(nn.Module):
             self.out_dim = shape[0]
 
     def forward(self, goal: torch.Tensor) -> torch.Tensor:
+        if self._shared:
+            return self._shared[0](goal)
         return self.net(goal)
+
+
+def build_encoders(
+    obs_shapes: Mapping[str, Sequence[int]],
+    goal_kind: str,
+    goal_shape: Sequence[int],
+    cfg: NetConfig,
+) -> tuple[ObsEncoder, GoalEncoder]:
+    """The observation and goal encoders of one network (sharing a CNN if configured)."""
+    if cfg.share_cnn and goal_kind == "image":
+        matches = sorted(k for k, v in obs_shapes.items() if tuple(v) == tuple(goal_shape))
+        if not matches:
+            raise LcrlError(
+                f"share_cnn needs an image observation of the goal's shape {tuple(goal_shape)}; "
+                f"observations are {dict(obs_shapes)}"
+            )
+        obs_encoder = ObsEncoder(obs_shapes, cfg, cfg.cnn_features)
+        return obs_encoder, GoalEncoder(
+            goal_kind, goal_shape, cfg, shared=obs_encoder.encoders[matches[0]]
+        )
+    goal_encoder = GoalEncoder(goal_kind, goal_shape, cfg)
+    return ObsEncoder(obs_shapes, cfg, goal_encoder.out_dim), goal_encoder
 
 
 class FusedMLP(nn.Module):
@@ -309,8 +360,9 @@ class GoalConditionedNet(nn.Module):
         action_dim: int = 0,
     ) -> None:
         super().__init__()
-        self.goal_encoder = GoalEncoder(goal_kind, goal_shape, cfg)
-        self.obs_encoder = ObsEncoder(obs_shapes, cfg, self.goal_encoder.out_dim)
+        obs_encoder, goal_encoder = build_encoders(obs_shapes, goal_kind, goal_shape, cfg)
+        self.goal_encoder = goal_encoder  # registered first: parameter order as before
+        self.obs_encoder = obs_encoder
         self.head = FusedMLP(
             self.obs_encoder.out_dim + action_dim,
             self.goal_encoder.out_dim,
@@ -381,11 +433,9 @@ class GoalConditionedEnsemble(nn.Module):
     ) -> None:
         super().__init__()
         self.n = n
-        self.goal_encoders = nn.ModuleList(
-            GoalEncoder(goal_kind, goal_shape, cfg) for _ in range(n)
-        )
-        goal_dim = self.goal_encoders[0].out_dim
-        self.obs_encoders = nn.ModuleList(ObsEncoder(obs_shapes, cfg, goal_dim) for _ in range(n))
+        pairs = [build_encoders(obs_shapes, goal_kind, goal_shape, cfg) for _ in range(n)]
+        self.goal_encoders = nn.ModuleList(goal for _, goal in pairs)
+        self.obs_encoders = nn.ModuleList(obs for obs, _ in pairs)
         self.shared = not any(
             p.numel()
             for enc in (self.obs_encoders[0], self.goal_encoders[0])

@@ -26,7 +26,7 @@ from lcrl.algos import (
 )
 from lcrl.buffer import Batch
 from lcrl.errors import LcrlError
-from lcrl.nets import FlatAdam, FusedMLP, NetConfig, RunningNorm
+from lcrl.nets import ConvEncoder, FlatAdam, FusedMLP, NetConfig, RunningNorm
 
 
 @pytest.fixture(scope="module", autouse=True)
@@ -782,3 +782,69 @@ def test_multi_step_batches_bootstrap_with_their_discount(algo: str) -> None:
     np.testing.assert_allclose(shifted.numpy(), base.reward - per_row, rtol=1e-5, atol=1e-6)
     metrics = agent.update(multi)
     assert all(np.isfinite(v) for v in metrics.values())
+
+
+def test_random_shift_moves_images_by_at_most_pad_pixels() -> None:
+    from lcrl.nets import random_shift
+
+    gen = torch.Generator().manual_seed(0)
+    img = torch.zeros(64, 12, 12, 3, dtype=torch.uint8)
+    img[:, 5, 7, :] = 255  # one bright pixel
+    out = random_shift(img, 2, gen)
+    assert out.shape == (64, 12, 12, 3) and out.dtype == torch.float32
+    pos = [divmod(int(o[..., 0].argmax()), 12) for o in out]
+    dy = {r - 5 for r, _ in pos}
+    dx = {c - 7 for _, c in pos}
+    assert dy <= set(range(-2, 3)) and dx <= set(range(-2, 3))
+    assert len(dy) > 1 and len(dx) > 1  # offsets vary across the batch
+    assert all(float(o.max()) == 255.0 for o in out)  # a shift, not a blur
+    # edge pixels replicate: a constant image stays constant
+    const = torch.full((4, 6, 6, 3), 9, dtype=torch.uint8)
+    assert torch.equal(random_shift(const, 3, gen), const.float())
+
+
+def image_problem() -> Problem:
+    return Problem({"image": (16, 16, 3), "state": (4,)}, "image", (16, 16, 3), 2, False)
+
+
+def test_shared_cnn_reads_image_goals_once_per_network() -> None:
+    prob = image_problem()
+    cfg = dict(hidden=(32,), cnn_channels=(8, 8), cnn_features=16)
+    separate = SAC(prob, options(**cfg), image_embed)
+    shared = SAC(prob, options(share_cnn=True, **cfg), image_embed)
+
+    def count(module: nn.Module) -> int:
+        return sum(p.numel() for p in module.parameters())
+
+    cnn = count(ConvEncoder((16, 16, 3), (8, 8), 16))
+    assert count(separate.actor) - count(shared.actor) == cnn
+    assert count(separate.critic) - count(shared.critic) == 2 * cnn
+    # the goal goes through the observation's CNN: same weights, same features
+    net = shared.actor
+    img = torch.randint(0, 256, (3, 16, 16, 3), dtype=torch.uint8)
+    assert torch.equal(net.goal_encoder(img), net.obs_encoder.encoders["image"](img))
+    # a state dict holds each weight once (safetensors refuses shared storage)
+    names = list(net.state_dict())
+    assert not any(n.startswith("goal_encoder.") for n in names)
+    with pytest.raises(LcrlError, match="share_cnn"):
+        SAC(
+            Problem({"state": (4,)}, "image", (16, 16, 3), 2, False),
+            options(share_cnn=True, **cfg),
+            image_embed,
+        )
+
+
+def test_image_goal_updates_with_augmentation_are_deterministic() -> None:
+    prob = image_problem()
+
+    def run() -> dict[str, torch.Tensor]:
+        opts = options(share_cnn=True, hidden=(32,), cnn_channels=(8, 8), cnn_features=16)
+        opts.augment_pad = 2
+        agent = SAC(prob, opts, image_embed)
+        for b in batches(prob, 3, seed=5, size=8):
+            metrics = agent.update(b)
+            assert all(np.isfinite(v) for v in metrics.values())
+        return snapshot(agent)
+
+    first, second = run(), run()
+    assert_identical(first, second)

@@ -935,3 +935,102 @@ def test_n_step_arguments_are_checked() -> None:
             HindsightReplayBuffer(10, OBS_SPEC, (ACT_DIM,), np.float32, gs, n_step=bad)
     with pytest.raises(LcrlError, match="gamma"):
         HindsightReplayBuffer(10, OBS_SPEC, (ACT_DIM,), np.float32, gs, n_step=3, gamma=1.5)
+
+
+# --- image goals ----------------------------------------------------------------------------
+IMG = (4, 5, 3)
+
+
+def image_episode(ep: int, steps: int, rng: np.random.Generator) -> dict[str, Any]:
+    """Frames encode (episode, step) in their first two pixels; desired frame is 200 + ep."""
+    out = state_episode(ep, steps, rng)
+    frames = np.zeros((steps + 1, *IMG), np.uint8)
+    frames[:, 0, 0, 0] = ep
+    frames[:, 0, 1, 0] = np.arange(steps + 1)
+    out["obs"]["image"] = frames
+    out["desired_image"] = np.full(IMG, 200 + ep, np.uint8)
+    return out
+
+
+def image_buffer(capacity: int, min_episode_steps: int = 20, **kw: Any) -> HindsightReplayBuffer:
+    from lcrl.goals import ImageGoals
+
+    gs = ImageGoals(GOAL_DIM, dense_reward, IMG, min_episode_steps=min_episode_steps)
+    spec = {**OBS_SPEC, "image": (IMG, np.uint8)}
+    return HindsightReplayBuffer(capacity, spec, (ACT_DIM,), np.float32, gs, **kw)
+
+
+def test_image_goals_are_later_frames_of_the_episode_and_rewards_use_their_states() -> None:
+    rng = np.random.default_rng(50)
+    buf = image_buffer(200, k=4, seed=51)
+    episodes = [image_episode(e, int(rng.integers(3, 10)), rng) for e in range(8)]
+    for e in episodes:
+        buf.add_episode(e)
+    batch = buf.sample(4000)
+    ep, t = decode(batch)
+    frames = buf.goal_space.frames(batch.goal)
+    rel = batch.relabelled
+    assert 0.75 < rel.mean() < 0.85
+    # relabelled: a frame of the same episode at index >= t + 1, stored once in the buffer
+    np.testing.assert_array_equal(frames[rel, 0, 0, 0], ep[rel])
+    assert (frames[rel, 0, 1, 0] >= t[rel] + 1).all()
+    # original goals: the episode's desired frame
+    np.testing.assert_array_equal(
+        frames[~rel], np.full(((~rel).sum(), *IMG), 0) + 200 + ep[~rel, None, None, None]
+    )
+    # rewards: the state reward of what the step achieved against the frame's state
+    for i in np.flatnonzero(rel)[:200]:
+        e = episodes[ep[i]]
+        goal_state = e["achieved_goal"][frames[i, 0, 1, 0]]
+        expected = dense_reward(e["achieved_goal"][t[i] + 1][None], goal_state[None])[0]
+        assert batch.reward[i] == pytest.approx(expected)
+    for i in np.flatnonzero(~rel)[:50]:
+        e = episodes[ep[i]]
+        expected = dense_reward(e["achieved_goal"][t[i] + 1][None], e["desired_goal"][None])[0]
+        assert batch.reward[i] == pytest.approx(expected)
+    # embed: codes become uint8 frames; frames pass through unchanged
+    emb = buf.goal_space.embed(batch.goal[:7], "cpu")
+    assert emb.dtype == torch.uint8 and tuple(emb.shape) == (7, *IMG)
+    np.testing.assert_array_equal(emb.numpy(), frames[:7])
+    assert torch.equal(buf.goal_space.embed(frames[:7], "cpu"), emb)
+
+
+def test_image_goals_fall_back_to_the_final_frame_when_the_ring_wrapped() -> None:
+    rng = np.random.default_rng(52)
+    # ring of 200 // 21 + 1 = 10 desired frames; 2-step episodes (3 slots) fill it first
+    buf = image_buffer(200, min_episode_steps=20, k=0, seed=53)
+    for e in range(30):
+        buf.add_episode(image_episode(e, 2, rng))
+    batch = buf.sample(3000)
+    ep, _ = decode(batch)
+    frames = buf.goal_space.frames(batch.goal)
+    recent = ep >= 20
+    np.testing.assert_array_equal(frames[recent, 0, 0, 0], 200 + ep[recent])
+    old = ~recent
+    assert old.any()
+    np.testing.assert_array_equal(frames[old, 0, 0, 0], ep[old])  # the episode's own frame
+    np.testing.assert_array_equal(frames[old, 0, 1, 0], 2)  # ... its final one
+
+
+def test_image_goals_round_trip_and_checks() -> None:
+    from lcrl.goals import ImageGoals
+
+    rng = np.random.default_rng(54)
+    buf = image_buffer(120, seed=55)
+    for e in range(6):
+        buf.add_episode(image_episode(e, 5, rng))
+    other = image_buffer(120, seed=55)
+    other.load_arrays(buf.arrays())
+    a, b = buf.sample(64), other.sample(64)
+    assert_same_batch(a, b)
+    np.testing.assert_array_equal(buf.goal_space.frames(a.goal), other.goal_space.frames(b.goal))
+    with pytest.raises(LcrlError, match="desired_image"):
+        bad = image_episode(9, 3, rng)
+        bad["desired_image"] = np.zeros((2, 2, 3), np.uint8)
+        buf.add_episode(bad)
+    gs = ImageGoals(GOAL_DIM, dense_reward, IMG)
+    with pytest.raises(LcrlError, match="does not store"):
+        HindsightReplayBuffer(50, OBS_SPEC, (ACT_DIM,), np.float32, gs)
+    with pytest.raises(LcrlError, match="uint8"):
+        spec = {"image": ((4, 5, 3), np.float32)}
+        HindsightReplayBuffer(50, spec, (ACT_DIM,), np.float32, ImageGoals(3, dense_reward, IMG))
