@@ -341,6 +341,9 @@ class RobosuiteTabletopEnv(gym.Env):
 
     #: Instruction families this env can achieve.
     instruction_families: tuple[str, ...] = ("reach", "push", "put", "lift", "stack")
+    #: The first values of ``"observation"`` that describe the robot itself (gripper
+    #: x, y, z and opening).
+    proprio_dim: int = 4
 
     def __init__(
         self,
@@ -694,6 +697,42 @@ class RobosuiteTabletopEnv(gym.Env):
         if success.ndim == 0:
             return 1.0 if success else 0.0
         return success.astype(np.float32)
+
+    def goal_image(self, camera: str = "agentview") -> np.ndarray:
+        """The camera frame of the desired goal: objects at their goal positions (upright),
+        the arm where it is now. The simulation state is restored afterwards.
+
+        Raises:
+            LcrlError: with ``goal="gripper"`` (moving the arm to a point needs a plan) or
+                before the first reset.
+        """
+        if not self._object_goal:
+            raise LcrlError(
+                "goal images need goal='object'; a gripper goal cannot be drawn without "
+                "moving the arm"
+            )
+        if not self._has_reset:
+            raise LcrlError("call reset() before goal_image()")
+        if camera not in ("agentview", "eye_in_hand"):
+            raise RobosuiteTabletopConfigError(
+                f"unknown camera {camera!r}; choose 'agentview' or 'eye_in_hand'"
+            )
+        mj, m, d = self._mujoco, self.model, self.data
+        qpos, qvel = d.qpos.copy(), d.qvel.copy()
+        try:
+            for k in self._slots:
+                x, y, z = (float(v) for v in self._desired[3 * k : 3 * k + 3])
+                a = self._qpos_adr[k]
+                d.qpos[a : a + 7] = (-y, x, z, 1.0, 0.0, 0.0, 0.0)  # viewer -> world
+            mj.mj_forward(m, d)
+            cam = self._agentview if camera == "agentview" else self._eye_camera
+            if self._renderer is None:
+                self._setup_renderer()
+            return self._render(cam).copy()
+        finally:
+            d.qpos[:] = qpos
+            d.qvel[:] = qvel
+            mj.mj_forward(m, d)
 
     def render(self) -> np.ndarray | None:
         """The agentview image ``(image_size, image_size, 3)`` for ``render_mode="rgb_array"``.

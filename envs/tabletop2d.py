@@ -290,6 +290,8 @@ class Tabletop2DEnv(gym.Env):
 
     #: Instruction families this env can achieve (a pusher cannot lift or stack).
     instruction_families: tuple[str, ...] = ("reach", "push", "put")
+    #: The first values of ``"observation"`` that describe the agent itself (pusher x, y).
+    proprio_dim: int = 2
 
     def __init__(
         self,

@@ -325,10 +325,12 @@ class HindsightReplayBuffer:
         reward = self.goal_space.reward(idx, goals)
         terminated = self.terminated[idx].astype(np.float32)
         if self.goal_space.terminate_on_success:
-            # Reaching the (relabelled) goal ends the episode; the original goal's
-            # termination is replaced by the relabelled goal's.
+            # Reaching the goal ends the episode. A relabelled goal's termination replaces
+            # the stored one (which belongs to the original goal); an original goal also
+            # ends at its success when the episode went on after it.
             success = self.goal_space.success(reward)
-            terminated = np.where(relabelled, success, terminated).astype(np.float32)
+            terminated = np.where(relabelled, success, success | (terminated > 0))
+            terminated = terminated.astype(np.float32)
         return reward, terminated
 
     def _n_step_return(

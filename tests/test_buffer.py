@@ -451,7 +451,9 @@ def test_state_terminate_on_success_uses_relabelled_success() -> None:
         batch.terminated[rel], (batch.reward[rel] == 0.0).astype(np.float32)
     )
     stored = np.array([flags[e][s] for e, s in zip(ep, t, strict=True)], np.float32)
-    np.testing.assert_array_equal(batch.terminated[~rel], stored[~rel])
+    # an original goal ends where the episode ended, or at its own success
+    expected = np.maximum(stored, (batch.reward == 0.0).astype(np.float32))
+    np.testing.assert_array_equal(batch.terminated[~rel], expected[~rel])
 
 
 # --- 7. LabelGoals -----------------------------------------------------------------------
@@ -631,7 +633,11 @@ def test_label_terminate_on_success() -> None:
     assert rel.any() and batch.reward[rel].any() and not batch.reward[rel].all()
     np.testing.assert_array_equal(batch.terminated[rel], batch.reward[rel])
     stored = np.array([flags[e][s] for e, s in zip(ep, t, strict=True)], np.float32)
-    np.testing.assert_array_equal(batch.terminated[~rel], stored[~rel])
+    # an original goal ends where the episode ended, or at its own success (episodes that
+    # went on after succeeding)
+    expected = np.maximum(stored, batch.reward)
+    np.testing.assert_array_equal(batch.terminated[~rel], expected[~rel])
+    assert ((batch.reward[~rel] > 0) & (stored[~rel] == 0)).any()
 
 
 def test_label_embed() -> None:
@@ -891,9 +897,8 @@ def test_n_step_returns_match_a_per_row_reference(n: int) -> None:
 
 
 def test_n_step_stops_at_the_first_success_of_the_rows_goal() -> None:
-    """Label goals ending on success: a relabelled row's sum stops at the first step whose
-    labels hold its goal; an original goal ends where the stored episode terminated (never
-    here)."""
+    """Label goals ending on success: a row's sum stops at the first step whose labels hold
+    its goal (relabelled or original; the stored episodes never terminated)."""
     rng = np.random.default_rng(43)
     gamma = 0.5
     gs = LabelGoals(6, terminate_on_success=True)
@@ -917,7 +922,7 @@ def test_n_step_stops_at_the_first_success_of_the_rows_goal() -> None:
         while m < 4 and t[i] + m < steps and not done:
             r = float(g in labels[t[i] + m + 1])
             ret += gamma**m * r
-            done = r > 0 and bool(batch.relabelled[i])
+            done = r > 0
             m += 1
         assert batch.reward[i] == pytest.approx(ret)
         assert batch.terminated[i] == float(done)
@@ -925,7 +930,7 @@ def test_n_step_stops_at_the_first_success_of_the_rows_goal() -> None:
         assert batch.next_obs["state"][i, 1] == t[i] + m
     assert batch.terminated.any() and not batch.terminated.all()
     assert (batch.reward[batch.terminated > 0] > 0).all()
-    assert not batch.terminated[~batch.relabelled].any()
+    assert batch.terminated[~batch.relabelled].any()
 
 
 def test_n_step_arguments_are_checked() -> None:

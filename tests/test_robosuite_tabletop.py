@@ -352,3 +352,19 @@ def test_language_wrapper(env: RobosuiteTabletopEnv) -> None:
     assert obs["instruction"] == "lift the red cube"
     _, reward, *_ = wrapped.step(np.zeros(4))
     assert reward == 0.0
+
+
+def test_goal_image_draws_the_goal_layout_and_restores_the_state(
+    env: RobosuiteTabletopEnv, gripper_env: gym.Env
+) -> None:
+    obs, _ = env.reset(seed=11)
+    before = {k: v.copy() for k, v in obs.items()}
+    qpos = env.data.qpos.copy()
+    goal = env.goal_image()
+    assert goal.shape == obs["image"].shape and goal.dtype == np.uint8
+    assert np.abs(goal.astype(int) - obs["image"].astype(int)).sum() > 0  # an object moved
+    np.testing.assert_array_equal(env.data.qpos, qpos)
+    np.testing.assert_array_equal(env._render(env._agentview), before["image"])
+    np.testing.assert_array_equal(env.goal_image(), goal)  # the same frame again
+    with pytest.raises(LcrlError, match="goal='object'"):
+        gripper_env.unwrapped.goal_image()

@@ -183,6 +183,23 @@ def _lang2d(**overrides: Any) -> TrainConfig:
     return dataclasses.replace(cfg, **overrides)
 
 
+def _robosuite(**overrides: Any) -> TrainConfig:
+    env = dict(kind="robosuite", families=("reach", "push"), max_objects=3)
+    env.update(overrides.pop("env", {}))
+    cfg = TrainConfig(
+        out="runs/robosuite",
+        env=EnvConfig(**env),
+        buffer=BufferConfig(k=4, random_fraction=0.1),
+        total_steps=100_000,
+        learning_starts=2_000,
+        eval_every=10_000,
+        eval_episodes=50,
+    )
+    return dataclasses.replace(cfg, **overrides)
+
+
+_IMAGE_AGENT = AgentOptions(net=NetConfig(share_cnn=True), augment_pad=4)
+
 PRESETS: dict[str, tuple[str, TrainConfig]] = {
     "lang2d": (
         "2D tabletop, language goals (reach, push), SAC + language HER, 100k steps",
@@ -230,6 +247,35 @@ PRESETS: dict[str, tuple[str, TrainConfig]] = {
             env=EnvConfig(kind="state2d", goal="pusher"),
             total_steps=20_000,
             eval_every=5_000,
+        ),
+    ),
+    "robosuite": (
+        "robosuite Panda tabletop, language goals (reach, push), privileged state, SAC + "
+        "language HER, 100k steps",
+        _robosuite(),
+    ),
+    "robosuite-state": (
+        "robosuite Panda tabletop, state goals (one object moved), SAC + HER",
+        _robosuite(out="runs/robosuite-state", env={"goal_type": "state"}),
+    ),
+    "robosuite-image-goal": (
+        "robosuite Panda tabletop, image goals and 64x64 camera observations, one CNN for "
+        "both, random-shift augmentation, SAC + HER",
+        _robosuite(
+            out="runs/robosuite-image-goal",
+            env={"goal_type": "image", "image_obs": True},
+            agent=_IMAGE_AGENT,
+            buffer=BufferConfig(capacity=200_000, k=4),
+        ),
+    ),
+    "robosuite-image": (
+        "robosuite Panda tabletop, language goals (reach, push) from 64x64 camera images and "
+        "proprioception, SAC + language HER",
+        _robosuite(
+            out="runs/robosuite-image",
+            env={"image_obs": True},
+            agent=AgentOptions(augment_pad=4),
+            buffer=BufferConfig(capacity=200_000, k=4, random_fraction=0.1),
         ),
     ),
     "fetch-reach": (

@@ -21,7 +21,14 @@ from lcrl.algos import ALGOS, DQN, SAC, TD3, Agent, Problem
 from lcrl.checkpoint import Checkpoint, find_latest, load_checkpoint
 from lcrl.errors import LcrlError
 from train.config import TrainConfig, config_from_dict
-from train.tasks import LanguageTask, Task, find_language_wrapper, make_env, make_task
+from train.tasks import (
+    LanguageTask,
+    Task,
+    find_language_wrapper,
+    is_language,
+    make_env,
+    make_task,
+)
 
 EVAL_SEED_OFFSET = 7_777_777
 
@@ -29,7 +36,7 @@ EVAL_SEED_OFFSET = 7_777_777
 def build_task(cfg: TrainConfig, env: gym.Env, ckpt: Checkpoint | None = None) -> Task:
     """The task adapter; language tasks load the frozen text encoder (and the checkpoint's
     instruction table, when given)."""
-    if cfg.env.kind != "lang2d":
+    if not is_language(cfg.env):
         return make_task(cfg.env, env)
     from lcrl.text_encoder import FrozenTextEncoder
 

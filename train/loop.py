@@ -92,7 +92,7 @@ class Trainer:
             for name in ("latest.json", "progress.csv", "eval.csv", "report.md", "curves.png"):
                 (self.out / name).unlink(missing_ok=True)
         self.cfg = cfg
-        self.env = make_env(cfg.env, "train")
+        self.env = make_env(cfg.env, "train", training=True)
         self.task = build_task(cfg, self.env, ckpt)
         self.problem = self.task.problem()
         self.algo = cfg.resolved_algo(self.problem.discrete)
@@ -100,7 +100,10 @@ class Trainer:
         p = self.problem
         self.buffer = HindsightReplayBuffer(
             cfg.buffer.capacity,
-            {k: (shape, np.float32) for k, shape in p.obs_shapes.items()},
+            {
+                k: (shape, np.uint8 if len(shape) == 3 else np.float32)
+                for k, shape in p.obs_shapes.items()
+            },
             () if p.discrete else (p.action_dim,),
             np.int64 if p.discrete else np.float32,
             self.task.goal_space,
@@ -189,6 +192,7 @@ class Trainer:
         stored = [task.storage_obs(obs, first)]
         records = [task.step_record(obs, env)]
         actions, rewards, terms = [], [], []
+        succeeded = False  # at any step (episodes may go on after success)
         start_step = self.step
         try:
             while True:
@@ -206,6 +210,7 @@ class Trainer:
                 actions.append(a)
                 rewards.append(reward)
                 terms.append(terminated)
+                succeeded = succeeded or bool(info.get("is_success", False))
                 self._update(self._updates_due())
                 if terminated or truncated:
                     break
@@ -225,7 +230,7 @@ class Trainer:
         self.buffer.add_episode(episode)
         self.agent.observe(episode_obs, episode.get("achieved_goal"))
         self.episodes += 1
-        self.recent.append(float(bool(info.get("is_success", False))))
+        self.recent.append(float(succeeded))
 
     def _updates_due(self) -> int:
         """Gradient updates due after this env step."""

@@ -13,6 +13,12 @@ writes (achieved goals, or the captioner's labels of what every step achieved).
   episode's first observation (push and put are judged relative to the start), the goal is
   an id into the instruction table, and each step is labelled with the training
   instructions the rule captioner says it satisfies.
+* :class:`ImageGoalTask`: goal envs that can draw their desired goal (``goal_image()``):
+  the goal is that camera frame, relabelled goals are frames of later steps, and rewards
+  come from the privileged state behind them.
+
+With ``image_obs`` the policy sees the camera image and the robot's proprioception (the
+first ``proprio_dim`` values of ``observation``) instead of the privileged state.
 """
 
 from __future__ import annotations
@@ -26,9 +32,10 @@ import numpy as np
 
 from lcrl.algos import Problem
 from lcrl.errors import LcrlError
-from lcrl.goals import LabelGoals, StateGoals
+from lcrl.goals import ImageGoals, LabelGoals, StateGoals
 
-ENV_KINDS = ("lang2d", "state2d", "gym")
+ENV_KINDS = ("lang2d", "state2d", "gym", "robosuite")
+GOAL_TYPES = ("language", "state", "image")
 
 
 @dataclass
@@ -36,24 +43,39 @@ class EnvConfig:
     """Which environment to train on."""
 
     kind: str = "lang2d"
-    """``lang2d`` (2D tabletop, language goals), ``state2d`` (2D tabletop, state goals) or
-    ``gym`` (any registered goal env, e.g. gymnasium-robotics ``FetchReach-v4``)."""
+    """``lang2d`` (2D tabletop, language goals), ``state2d`` (2D tabletop, state goals),
+    ``robosuite`` (the Panda tabletop; its goals are ``goal_type``) or ``gym`` (any
+    registered goal env, e.g. gymnasium-robotics ``FetchReach-v4``)."""
+    goal_type: str = "language"
+    """Goals on the robosuite tabletop: ``language`` (instructions), ``state`` (object or
+    gripper positions, see ``goal``) or ``image`` (a camera frame of the goal layout)."""
+    image_obs: bool = False
+    """The policy sees the camera image and the robot's proprioception instead of the
+    privileged object state (robosuite and the 2D tabletop)."""
+    image_size: int = 64
+    """Camera image side in pixels (robosuite: 64 or 84)."""
     gym_id: str = "FetchReach-v4"
     """Environment id for ``kind=gym``."""
     families: tuple[str, ...] = ("reach", "push")
-    """Instruction families to train and evaluate (``lang2d``)."""
+    """Instruction families to train and evaluate (language goals)."""
     split_seed: int = 0
-    """Seed of the compositional instruction split (``lang2d``)."""
+    """Seed of the compositional instruction split (language goals)."""
     min_objects: int = 2
-    """Fewest objects on the 2D table."""
+    """Fewest objects on the table."""
     max_objects: int = 3
-    """Most objects on the 2D table."""
+    """Most objects on the table."""
     discrete: bool = False
     """Discrete pusher moves (8 directions) instead of continuous ones (2D tabletop)."""
     max_episode_steps: int = 50
     """Time limit of an episode (a truncation: the value bootstraps through it)."""
     goal: str = "object"
-    """State goal of ``state2d``: ``object`` (all object positions) or ``pusher``."""
+    """State goal of ``state2d`` and robosuite state or image goals: ``object`` (all object
+    positions), ``pusher`` (2D) or ``gripper`` (robosuite)."""
+    train_until_success: bool = True
+    """Language goals: training episodes end when their instruction is achieved. ``False``
+    runs them to the time limit and keeps what happens after the success (an object
+    touched, then pushed), which the relabelled goals learn from; the value target still
+    ends at the success step. Evaluation episodes always end at success."""
     extra: dict[str, Any] = field(default_factory=dict)
     """Extra keyword arguments for the environment constructor."""
 
@@ -66,14 +88,19 @@ def _register_gym_robotics() -> None:
     gym.register_envs(gymnasium_robotics)
 
 
-def make_env(cfg: EnvConfig, split_set: str = "train") -> gym.Env:
-    """Build the environment of a config (``split_set`` picks the instruction set)."""
+def make_env(cfg: EnvConfig, split_set: str = "train", training: bool = False) -> gym.Env:
+    """Build the environment of a config (``split_set`` picks the instruction set;
+    ``training`` applies the training-only options such as ``train_until_success``)."""
     if cfg.kind not in ENV_KINDS:
         raise LcrlError(f"unknown env kind {cfg.kind!r}; choose one of {ENV_KINDS}")
     if cfg.min_objects > cfg.max_objects:
         raise LcrlError(
             f"min_objects ({cfg.min_objects}) is larger than max_objects ({cfg.max_objects})"
         )
+    if cfg.goal_type not in GOAL_TYPES:
+        raise LcrlError(f"unknown goal_type {cfg.goal_type!r}; choose one of {GOAL_TYPES}")
+    if cfg.kind == "robosuite":
+        return _make_robosuite(cfg, split_set, training)
     if cfg.kind == "gym":
         _register_gym_robotics()
         try:
@@ -98,6 +125,8 @@ def make_env(cfg: EnvConfig, split_set: str = "train") -> gym.Env:
     }
     if cfg.discrete:
         kwargs.setdefault("num_directions", 8)
+    if cfg.image_obs:
+        kwargs.update(image=True, image_size=cfg.image_size)
     if cfg.kind == "state2d":
         kwargs["goal"] = cfg.goal
         base: gym.Env = Tabletop2DEnv(**kwargs)
@@ -114,8 +143,62 @@ def make_env(cfg: EnvConfig, split_set: str = "train") -> gym.Env:
         split=make_split(cfg.split_seed, FAMILIES_2D),
         split_set=split_set,
         families=tuple(cfg.families),
+        terminate_on_success=cfg.train_until_success or not training,
     )
     return gym.wrappers.TimeLimit(env, cfg.max_episode_steps)
+
+
+def _make_robosuite(cfg: EnvConfig, split_set: str, training: bool) -> gym.Env:
+    from envs.robosuite_tabletop import RobosuiteTabletopEnv
+
+    kwargs: dict[str, Any] = {"num_objects": (cfg.min_objects, cfg.max_objects), **cfg.extra}
+    if cfg.image_obs or cfg.goal_type == "image":
+        kwargs.update(image=True, image_size=cfg.image_size)
+    if cfg.goal_type != "language":
+        goal = {"pusher": "gripper"}.get(cfg.goal, cfg.goal)
+        if cfg.goal_type == "image" and goal != "object":
+            raise LcrlError("image goals on the robosuite tabletop need goal='object'")
+        kwargs["goal"] = goal
+    base = RobosuiteTabletopEnv(**kwargs)
+    if cfg.goal_type != "language":
+        return gym.wrappers.TimeLimit(base, cfg.max_episode_steps)
+    from captioner.grammar import FAMILIES
+    from captioner.lang_env import LanguageGoalWrapper
+    from captioner.splits import make_split
+
+    bad = [f for f in cfg.families if f not in FAMILIES]
+    if bad:
+        raise LcrlError(f"unknown instruction families {bad}; choose among {FAMILIES}")
+    env = LanguageGoalWrapper(
+        base,
+        split=make_split(cfg.split_seed, FAMILIES),
+        split_set=split_set,
+        families=tuple(cfg.families),
+        terminate_on_success=cfg.train_until_success or not training,
+    )
+    return gym.wrappers.TimeLimit(env, cfg.max_episode_steps)
+
+
+def is_language(cfg: EnvConfig) -> bool:
+    """Whether an env config gives language goals."""
+    return cfg.kind == "lang2d" or (cfg.kind == "robosuite" and cfg.goal_type == "language")
+
+
+def _proprio_dim(env: gym.Env) -> int:
+    dim = getattr(env.unwrapped, "proprio_dim", None)
+    if dim is None:
+        raise LcrlError(
+            f"{type(env.unwrapped).__name__} does not say which observation values are "
+            "proprioception (a proprio_dim attribute); image observations need it"
+        )
+    return int(dim)
+
+
+def _image_shape(env: gym.Env) -> tuple[int, ...]:
+    space = env.observation_space
+    if not isinstance(space, gym.spaces.Dict) or "image" not in space.spaces:
+        raise LcrlError("image observations or goals need an env with an 'image' observation")
+    return tuple(space["image"].shape)
 
 
 def _action_spec(env: gym.Env) -> tuple[int, bool]:
@@ -154,12 +237,25 @@ class Task:
             return np.asarray(rng.integers(self.action_dim))
         return rng.uniform(-1.0, 1.0, self.action_dim).astype(np.float32)
 
+    def _setup_image_obs(self, env: gym.Env, image_obs: bool) -> None:
+        self.image_obs = image_obs
+        if image_obs:
+            self.proprio_dim = _proprio_dim(env)
+            self.obs_shapes = {"image": _image_shape(env), "proprio": (self.proprio_dim,)}
+
+    def _image_storage(self, obs: Mapping[str, Any]) -> dict[str, np.ndarray]:
+        return {
+            "image": np.asarray(obs["image"], np.uint8),
+            "proprio": np.asarray(obs["observation"][: self.proprio_dim], np.float32),
+        }
+
     def problem(self) -> Problem:
         """Shapes and goal encoding for the learner."""
+        goal_shape = getattr(self.goal_space, "goal_shape", None)
         return Problem(
             obs_shapes=dict(self.obs_shapes),
             goal_kind=self.goal_kind,
-            goal_shape=(self.goal_space.embed_dim,),
+            goal_shape=tuple(goal_shape) if goal_shape else (self.goal_space.embed_dim,),
             action_dim=self.action_dim,
             discrete=self.discrete,
         )
@@ -170,7 +266,7 @@ class StateTask(Task):
 
     goal_kind = "vector"
 
-    def __init__(self, env: gym.Env) -> None:
+    def __init__(self, env: gym.Env, image_obs: bool = False) -> None:
         super().__init__(env)
         space = env.observation_space
         keys = ("observation", "achieved_goal", "desired_goal")
@@ -189,12 +285,16 @@ class StateTask(Task):
 
         probe = np.zeros((1, dim), np.float32)
         success = float(np.asarray(reward_fn(probe, probe)).reshape(-1)[0])
-        self.goal_space = StateGoals(dim, reward_fn, success_reward=success)
+        self.reward_fn, self.success_reward, self.goal_dim = reward_fn, success, dim
+        self.goal_space: StateGoals = StateGoals(dim, reward_fn, success_reward=success)
+        self._setup_image_obs(env, image_obs)
 
     def storage_obs(
         self, obs: Mapping[str, Any], first: Mapping[str, Any]
     ) -> dict[str, np.ndarray]:
         """Observation arrays to store."""
+        if self.image_obs:
+            return self._image_storage(obs)
         return {"observation": np.asarray(obs["observation"], np.float32)}
 
     def goal(self, obs: Mapping[str, Any], env: gym.Env) -> np.ndarray:
@@ -214,6 +314,55 @@ class StateTask(Task):
         return goals
 
 
+class ImageGoalTask(StateTask):
+    """Image goals: the desired goal is the env's ``goal_image()`` (drawn once per episode),
+    relabelled goals are later camera frames of the same episode, and rewards come from
+    the env's ``compute_reward`` on the privileged state behind each frame."""
+
+    goal_kind = "image"
+
+    def __init__(self, env: gym.Env, image_obs: bool = False) -> None:
+        super().__init__(env, image_obs)
+        if not callable(getattr(env.unwrapped, "goal_image", None)):
+            raise LcrlError(
+                f"{type(env.unwrapped).__name__} cannot draw its goal (no goal_image()): "
+                "image goals need it"
+            )
+        shape = _image_shape(env)
+        self.goal_space = ImageGoals(
+            self.goal_dim, self.reward_fn, shape, success_reward=self.success_reward
+        )
+        if not image_obs:
+            self.obs_shapes = {**self.obs_shapes, "image": shape}
+
+    def storage_obs(
+        self, obs: Mapping[str, Any], first: Mapping[str, Any]
+    ) -> dict[str, np.ndarray]:
+        """The observation arrays, always with the camera image (goal frames live there)."""
+        out = super().storage_obs(obs, first)
+        out["image"] = np.asarray(obs["image"], np.uint8)
+        return out
+
+    def goal(self, obs: Mapping[str, Any], env: gym.Env) -> np.ndarray:
+        """The frame of the episode's desired goal."""
+        return np.asarray(env.unwrapped.goal_image(), np.uint8)
+
+    def step_record(self, obs: Mapping[str, Any], env: gym.Env) -> Any:
+        """The achieved and desired state goals of each observation."""
+        return (
+            np.asarray(obs["achieved_goal"], np.float32),
+            np.asarray(obs["desired_goal"], np.float32),
+        )
+
+    def episode_fields(self, records: list[Any], goal: Any, env: gym.Env) -> dict[str, Any]:
+        """Achieved states, the desired state and the desired frame."""
+        return {
+            "achieved_goal": np.stack([achieved for achieved, _ in records]),
+            "desired_goal": records[0][1],
+            "desired_image": goal,
+        }
+
+
 class LanguageTask(Task):
     """Language-goal envs (:class:`captioner.lang_env.LanguageGoalWrapper`).
 
@@ -229,7 +378,12 @@ class LanguageTask(Task):
     sets = ("train", "heldout", "paraphrase")
 
     def __init__(
-        self, env: gym.Env, embed: Any, table: list[str] | None = None, num_train: int | None = None
+        self,
+        env: gym.Env,
+        embed: Any,
+        table: list[str] | None = None,
+        num_train: int | None = None,
+        image_obs: bool = False,
     ) -> None:
         super().__init__(env)
         wrapper = find_language_wrapper(env)
@@ -262,6 +416,7 @@ class LanguageTask(Task):
         space = env.observation_space
         shape = tuple(space["observation"].shape)
         self.obs_shapes = {"observation": shape, "initial": shape}
+        self._setup_image_obs(env, image_obs)
         self.goal_space = LabelGoals(
             len(self.table), self.embeddings, num_relabel=self.num_train, terminate_on_success=True
         )
@@ -269,7 +424,10 @@ class LanguageTask(Task):
     def storage_obs(
         self, obs: Mapping[str, Any], first: Mapping[str, Any]
     ) -> dict[str, np.ndarray]:
-        """The observation and the episode's first observation."""
+        """The observation and the episode's first observation (or, with image
+        observations, the image and the proprioception)."""
+        if self.image_obs:
+            return self._image_storage(obs)
         return {
             "observation": np.asarray(obs["observation"], np.float32),
             "initial": np.asarray(first["observation"], np.float32),
@@ -315,8 +473,10 @@ def find_language_wrapper(env: gym.Env) -> Any:
 
 def make_task(cfg: EnvConfig, env: gym.Env, embed: Any = None, **kwargs: Any) -> Task:
     """The task adapter for an env config."""
-    if cfg.kind == "lang2d":
+    if is_language(cfg):
         if embed is None:
             raise LcrlError("language tasks need a text encoder")
-        return LanguageTask(env, embed, **kwargs)
-    return StateTask(env)
+        return LanguageTask(env, embed, image_obs=cfg.image_obs, **kwargs)
+    if cfg.kind == "robosuite" and cfg.goal_type == "image":
+        return ImageGoalTask(env, image_obs=cfg.image_obs)
+    return StateTask(env, image_obs=cfg.image_obs)

@@ -1,0 +1,150 @@
+"""Scripted controllers of the robosuite tabletop (captioner/scripted3d.py), and agreement of
+the rule captioner's ``caption`` and ``satisfied`` on simulated episodes.
+
+One environment is built per module (building takes a second or two); every episode resets
+it with its own seed.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterator
+
+import pytest
+
+import envs.robosuite_tabletop as rt  # imports neither robosuite nor mujoco
+
+with rt._quiet_robosuite():  # robosuite logs warnings about optional extras on import
+    pytest.importorskip("robosuite")
+
+import numpy as np
+
+from captioner.grammar import FAMILIES, Instruction, all_instructions
+from captioner.lang_env import LanguageGoalWrapper
+from captioner.rule import RuleCaptioner
+from captioner.scripted3d import ScriptedController3D
+from envs.robosuite_tabletop import RobosuiteTabletopEnv
+from envs.scene import OBJECT_KINDS, SceneState
+
+SEEDS = range(5)
+MIN_SUCCESSES = 4  # of len(SEEDS)
+MAX_STEPS = 100
+ALL = all_instructions(FAMILIES)
+CAPTIONER = RuleCaptioner(FAMILIES)
+
+
+@pytest.fixture(scope="module")
+def env() -> Iterator[RobosuiteTabletopEnv]:
+    e = RobosuiteTabletopEnv()
+    yield e
+    e.close()
+
+
+def run_scripted(
+    wrapped: LanguageGoalWrapper, seed: int, steps: int = MAX_STEPS
+) -> tuple[bool, int]:
+    """One scripted episode; (success, steps taken)."""
+    controller = ScriptedController3D()
+    wrapped.reset(seed=seed)
+    scene = wrapped.unwrapped.scene
+    for t in range(steps):
+        action = controller.act(wrapped.meaning, wrapped.s0, scene())
+        assert action.shape == (4,) and action.dtype == np.float32
+        assert np.all(np.abs(action) <= 1.0)
+        _, _, _, truncated, info = wrapped.step(action)
+        if info["is_success"]:
+            return True, t + 1
+        assert not truncated, info.get("sim_error")
+    return False, steps
+
+
+@pytest.mark.parametrize("family", FAMILIES)
+def test_scripted_controller_succeeds(env: RobosuiteTabletopEnv, family: str) -> None:
+    wrapped = LanguageGoalWrapper(env, families=(family,))
+    results = {seed: run_scripted(wrapped, seed) for seed in SEEDS}
+    successes = sum(ok for ok, _ in results.values())
+    assert successes >= MIN_SUCCESSES, f"{family}: {results}"
+
+
+def test_accepts_sentences_and_restarts_on_a_new_episode(env: RobosuiteTabletopEnv) -> None:
+    wrapped = LanguageGoalWrapper(env, families=("lift",))
+    controller = ScriptedController3D()
+    wrapped.reset(seed=0)
+    s0 = wrapped.s0
+    text = f"pick up the {s0.colours[0]} {'block' if s0.shapes[0] == 'cube' else 'can'}"
+    for _ in range(12):
+        controller.act(text, s0, env.scene())
+        wrapped.step(controller.act(text, s0, env.scene()))
+    assert controller.phase != "approach"
+    wrapped.reset(seed=1)  # a new s0 restarts the phase machine without reset()
+    controller.act(text, wrapped.s0, env.scene())
+    assert controller.phase == "approach"
+    controller.reset()
+    assert controller.phase == "approach"
+    colour, shape = next(k for k in OBJECT_KINDS if wrapped.s0.index(*k) < 0)
+    action = controller.act(Instruction("reach", colour, shape), wrapped.s0, env.scene())
+    np.testing.assert_array_equal(action, [0.0, 0.0, 0.0, -1.0])
+
+
+# --------------------------------------------------------------------------- caption agreement
+
+
+def check_agreement(s0: SceneState, s: SceneState, instructions: list[Instruction]) -> set:
+    """caption(s0, s) equals the set of the scene's instructions that satisfied() accepts."""
+    caption = CAPTIONER.caption(s0, s)
+    accepted = {i for i in instructions if CAPTIONER.satisfied(i, s0, s)}
+    assert caption == accepted, (caption - accepted, accepted - caption)
+    return caption
+
+
+def scene_instructions(s: SceneState) -> list[Instruction]:
+    """Every instruction of the 5 families over the objects in the scene."""
+    present = set(zip(s.colours, s.shapes, strict=True))
+    return [i for i in ALL if all(obj in present for obj in i.objects)]
+
+
+def wander(rng: np.random.Generator, steps: int) -> Iterator[np.ndarray]:
+    """Random actions held for a few steps each, biased down, so that the gripper meets
+    the objects (and sometimes closes on one)."""
+    while steps > 0:
+        hold = int(rng.integers(2, 7))
+        a = rng.uniform(-1.0, 1.0, 4)
+        a[2] -= 0.3
+        for _ in range(min(hold, steps)):
+            yield np.clip(a, -1.0, 1.0)
+        steps -= hold
+
+
+def test_caption_agrees_with_satisfied_on_random_episodes(env: RobosuiteTabletopEnv) -> None:
+    seen: set[Instruction] = set()
+    for seed in range(3):
+        env.reset(seed=100 + seed)
+        s0 = env.scene()
+        instructions = scene_instructions(s0)
+        assert not check_agreement(s0, s0, instructions)
+        for action in wander(np.random.default_rng(seed), 60):
+            env.step(action)
+            seen |= check_agreement(s0, env.scene(), instructions)
+    assert seen, "the random episodes never satisfied anything: the check checked nothing"
+
+
+@pytest.mark.parametrize("family", FAMILIES)
+def test_caption_agrees_with_satisfied_on_scripted_episodes(
+    env: RobosuiteTabletopEnv, family: str
+) -> None:
+    wrapped = LanguageGoalWrapper(env, families=(family,), terminate_on_success=False)
+    controller = ScriptedController3D()
+    wrapped.reset(seed=200)
+    s0 = wrapped.s0
+    instructions = scene_instructions(s0)
+    seen: set[Instruction] = set()
+    after = None  # steps run since the instruction was first satisfied
+    for _ in range(MAX_STEPS):
+        _, _, _, _, info = wrapped.step(controller.act(wrapped.meaning, s0, env.scene()))
+        seen |= check_agreement(s0, env.scene(), instructions)
+        if info["is_success"] and after is None:
+            after = 0
+        if after is not None:
+            after += 1
+            if after > 10:
+                break
+    assert wrapped.meaning in seen
