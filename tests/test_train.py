@@ -403,6 +403,32 @@ def test_cli_errors_and_help(text_encoder, tmp_path, capsys, monkeypatch):
     assert not out.exists()
 
 
+def test_act_saves_a_video_and_runs_state_goal_checkpoints(lang_run, state_full, tmp_path, capsys):
+    import cv2
+
+    trainer, _ = lang_run
+    video = tmp_path / "videos" / "act.mp4"
+    args = ("act", str(trainer.out), "--instruction", "reach the red cube", "--episodes", "2")
+    assert cli(*args, "--video", str(video), "--fps", "5") == 0
+    out = capsys.readouterr().out
+    steps = [int(n) for n in re.findall(r"^episode \d: (\d+) steps", out, re.M)]
+    assert len(steps) == 2 and f"video: {video}" in out
+    cap = cv2.VideoCapture(str(video))
+    assert int(cap.get(cv2.CAP_PROP_FRAME_COUNT)) == sum(steps) + 2  # + each reset frame
+    ok, frame = cap.read()
+    assert ok and frame.shape[2] == 3 and frame.std() > 0
+    cap.release()
+
+    assert cli("act", str(state_full.out), "--episodes", "1") == 0
+    assert re.search(r"^success \d\.\d\d over 1 episodes$", capsys.readouterr().out, re.M)
+    assert cli("act", str(state_full.out), "--instruction", "reach the red cube") == 2
+    assert "not trained with language goals" in capsys.readouterr().err
+    assert cli("act", str(trainer.out)) == 2
+    assert "give an --instruction" in capsys.readouterr().err
+    assert cli(*args, "--video", str(tmp_path / "x.avi")) == 2
+    assert ".mp4" in capsys.readouterr().err
+
+
 # --- 7. no pickle ------------------------------------------------------------------------
 def test_checkpoints_load_without_pickle(lang_run, state_full, monkeypatch):
     def refuse(*args, **kwargs):

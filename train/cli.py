@@ -18,6 +18,8 @@ import json
 import sys
 from collections.abc import Sequence
 from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
 
 import numpy as np
 import tyro
@@ -134,14 +136,20 @@ class ActCommand:
 
     checkpoint: tyro.conf.Positional[str]
     """A checkpoint folder, or a run folder (its latest checkpoint)."""
-    instruction: str
-    """Any text; success is reported when the rule captioner can parse and check it."""
+    instruction: str = ""
+    """Any text; success is reported when the rule captioner can parse and check it.
+    Required for language checkpoints; state- and image-goal checkpoints run on the
+    environment's own goals."""
     episodes: int = 10
     """Episodes to run."""
     seed: int = 0
     """Seed of the layouts."""
     stochastic: bool = False
     """Sample actions instead of taking the policy's mean action."""
+    video: str = ""
+    """Save the episodes as a video here (``.mp4``), one after the other."""
+    fps: int = 10
+    """Frames per second of the video."""
 
     def run(self) -> None:
         from captioner.grammar import try_parse
@@ -150,13 +158,24 @@ class ActCommand:
 
         if self.episodes <= 0:
             raise LcrlError("--episodes must be positive")
-        policy = load_policy(self.checkpoint)
+        if self.video and not self.video.lower().endswith(".mp4"):
+            raise LcrlError(f"--video must name an .mp4 file, got {self.video!r}")
+        if self.fps <= 0:
+            raise LcrlError("--fps must be positive")
+        policy = load_policy(self.checkpoint, render=bool(self.video))
         task = policy.task
+        frames: list[np.ndarray] | None = [] if self.video else None
         if not isinstance(task, LanguageTask):
-            raise LcrlError("this checkpoint was not trained with language goals")
+            if self.instruction.strip():
+                raise LcrlError(
+                    "this checkpoint was not trained with language goals: drop --instruction "
+                    "to run it on the environment's own goals"
+                )
+            self._run_goals(policy, frames)
+            return
         text = " ".join(self.instruction.split())
         if not text:
-            raise LcrlError("empty instruction")
+            raise LcrlError("this is a language checkpoint: give an --instruction")
         meaning = try_parse(text)
         vector = np.asarray(task.encoder.encode([text])[0], np.float32)
         if meaning is None:
@@ -175,6 +194,7 @@ class ActCommand:
                     options=options,
                     goal_vector=vector,
                     deterministic=not self.stochastic,
+                    frames=frames,
                 )
             except LcrlError as e:
                 print(f"episode {i}: {e}")
@@ -188,6 +208,52 @@ class ActCommand:
             print(f"episode {i}: {r['steps']} steps, {status}")
         if checked:
             print(f"success {np.mean(successes):.2f} over {checked} episodes")
+        self._save_video(frames)
+
+    def _run_goals(self, policy: Any, frames: list[np.ndarray] | None) -> None:
+        from train.evaluate import run_episode
+
+        successes = []
+        for i in range(self.episodes):
+            r = run_episode(
+                policy.agent,
+                policy.task,
+                policy.env,
+                seed=self.seed + i,
+                deterministic=not self.stochastic,
+                frames=frames,
+            )
+            successes.append(r["success"])
+            print(f"episode {i}: {r['steps']} steps, {'success' if r['success'] else 'failure'}")
+        print(f"success {np.mean(successes):.2f} over {self.episodes} episodes")
+        self._save_video(frames)
+
+    def _save_video(self, frames: list[np.ndarray] | None) -> None:
+        if not frames:
+            return
+        path = save_video(self.video, frames, self.fps)
+        print(f"video: {path} ({len(frames)} frames at {self.fps} fps)")
+
+
+def save_video(path: str | Path, frames: Sequence[np.ndarray], fps: int = 10) -> Path:
+    """Write RGB uint8 frames ``(H, W, 3)`` to an ``.mp4`` file (OpenCV's mp4v codec)."""
+    import cv2
+
+    frames = [f for f in frames if f is not None]
+    if not frames:
+        raise LcrlError("no frames to save: the environment did not render")
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    h, w = frames[0].shape[:2]
+    writer = cv2.VideoWriter(str(path), cv2.VideoWriter_fourcc(*"mp4v"), float(fps), (w, h))
+    if not writer.isOpened():
+        raise LcrlError(f"cannot write a video to {path} (OpenCV has no mp4v encoder here)")
+    try:
+        for frame in frames:
+            writer.write(cv2.cvtColor(np.ascontiguousarray(frame, np.uint8), cv2.COLOR_RGB2BGR))
+    finally:
+        writer.release()
+    return path
 
 
 def _train(argv: Sequence[str]) -> None:

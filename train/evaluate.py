@@ -73,13 +73,18 @@ def run_episode(
     options: dict[str, Any] | None = None,
     goal_vector: np.ndarray | None = None,
     deterministic: bool = True,
+    frames: list[np.ndarray] | None = None,
 ) -> dict[str, Any]:
     """One episode with the policy; returns success, length, return and the instruction.
 
     ``goal_vector`` replaces the task's goal by an already embedded goal (e.g. the text
-    encoder's vector of a free-text instruction).
+    encoder's vector of a free-text instruction). ``frames``, when given, receives
+    ``env.render()`` after the reset and after every step (an env made with
+    ``render_mode="rgb_array"``).
     """
     obs, info = env.reset(seed=seed, options=options)
+    if frames is not None:
+        frames.append(env.render())
     first = obs
     goal = None if goal_vector is not None else np.asarray([task.goal(obs, env)])
     steps, ret, success = 0, 0.0, False
@@ -90,6 +95,8 @@ def run_episode(
         else:
             a = agent.act(o, goal, deterministic=deterministic)[0]
         obs, reward, terminated, truncated, info = env.step(task.scale_action(a))
+        if frames is not None:
+            frames.append(env.render())
         steps += 1
         ret += float(reward)
         success = success or bool(info.get("is_success", False))
@@ -168,7 +175,10 @@ def resolve_checkpoint(path: str | Path) -> Path:
 
 
 def load_policy(
-    path: str | Path, env_overrides: dict[str, Any] | None = None, device: str | None = None
+    path: str | Path,
+    env_overrides: dict[str, Any] | None = None,
+    device: str | None = None,
+    render: bool = False,
 ) -> LoadedPolicy:
     """Load a checkpoint and rebuild its env, task and agent.
 
@@ -176,6 +186,8 @@ def load_policy(
         path: a checkpoint folder or a run folder.
         env_overrides: env config fields to change (e.g. ``families``); the resulting
             env must match the checkpoint's observation and action shapes.
+        device: run the policy here instead of the checkpoint's device.
+        render: make the env with ``render_mode="rgb_array"`` (for videos).
 
     Raises:
         LcrlError: the checkpoint is missing or does not match the environment.
@@ -188,6 +200,8 @@ def load_policy(
         setattr(cfg.env, key, value)
     if device is not None:
         cfg.agent.device = device
+    if render:
+        cfg.env.extra = {**cfg.env.extra, "render_mode": "rgb_array"}
     env = make_env(cfg.env, "train")
     task = build_task(cfg, env, ckpt)
     problem = task.problem()
