@@ -4,9 +4,14 @@ Run from the repository root (needs ``pip install -e '.[bench]'`` for Fetch)::
 
     python benchmarks/learning_curves.py fetch-reach   # SAC + HER, FetchReach-v4, 10k steps
     python benchmarks/learning_curves.py lang2d --parallel  # language HER vs none, 100k
+    python benchmarks/learning_curves.py robosuite-reach --parallel  # robosuite, 50k
 
 ``fetch-reach``: SAC + HER (future, k=4) on gymnasium-robotics ``FetchReach-v4``; target:
 at least 90% success over 50 evaluation episodes within 10,000 environment steps.
+
+``robosuite-reach``: the robosuite Panda tabletop with reach instructions and privileged
+state observations, SAC + language HER against no relabelling, 50,000 steps; target: at
+least 80% success on seen instructions.
 
 ``lang2d``: the 2D tabletop with language goals (reach and push families), SAC with
 language hindsight relabelling against the same run without relabelling (``k=0``);
@@ -40,6 +45,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 from benchmarks.common import caption, machine, save_json, save_markdown
 from train.config import PRESETS, BufferConfig, TrainConfig
 from train.loop import Trainer
+from train.tasks import EnvConfig
 
 SUITES: dict[str, dict[str, Any]] = {
     "fetch-reach": {
@@ -58,6 +64,23 @@ SUITES: dict[str, dict[str, Any]] = {
         "eval_every": 10_000,
         "eval_episodes": 100,
         "target": ("her", "train", 0.80, 100_000),
+    },
+    "robosuite-reach": {
+        "title": "Language HER on the robosuite Panda tabletop (reach, privileged state)",
+        "runs": {
+            "her": ("robosuite", {"env": EnvConfig(kind="robosuite", families=("reach",))}),
+            "no-her": (
+                "robosuite",
+                {
+                    "env": EnvConfig(kind="robosuite", families=("reach",)),
+                    "buffer": BufferConfig(k=0),
+                },
+            ),
+        },
+        "eval_every": 5_000,
+        "eval_episodes": 50,
+        "target": ("her", "train", 0.80, 50_000),
+        "steps": 50_000,
     },
 }
 
@@ -130,7 +153,7 @@ def main(argv: list[str] | None = None) -> int:
             overrides,
             Path("runs/bench") / f"{args.suite}-{name}",
             suite,
-            args.steps,
+            args.steps or suite.get("steps"),
             args.seed,
         )
         for name, (preset, overrides) in suite["runs"].items()

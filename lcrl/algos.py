@@ -102,6 +102,11 @@ class SACConfig:
     """Target entropy; default ``-action_dim``."""
     max_grad_norm: float | None = None
     """Clip gradient norms to this (``None``: no clipping)."""
+    hindsight_bc: float = 0.0
+    """Weight of a hindsight behaviour-cloning term in the actor loss: on relabelled rows
+    (whose goal the episode did achieve later), the squared distance between the policy's
+    mean action and the action taken, as in goal-conditioned supervised learning. 0 turns
+    it off."""
 
 
 @dataclass
@@ -370,12 +375,13 @@ class SAC(Agent):
         self.target_entropy = float(-n if cfg.target_entropy is None else cfg.target_entropy)
 
     def _policy(
-        self, obs: Mapping[str, torch.Tensor], goal: torch.Tensor
-    ) -> tuple[torch.Tensor, torch.Tensor]:
+        self, obs: Mapping[str, torch.Tensor], goal: torch.Tensor, with_mean: bool = False
+    ) -> Any:
         mean, log_std = self.actor(obs, goal).chunk(2, -1)
         log_std = log_std.clamp(-20.0, 2.0)
         noise = torch.randn(mean.shape, generator=self.gen, device=self.device)
-        return gaussian_log_prob_tanh(mean, log_std, noise)
+        a, logp = gaussian_log_prob_tanh(mean, log_std, noise)
+        return (a, logp, torch.tanh(mean)) if with_mean else (a, logp)
 
     def act(
         self,
@@ -411,9 +417,14 @@ class SAC(Agent):
         self.critic_opt.step()
 
         self.critic.requires_grad_(False)
-        a, logp = self._policy(obs, goal)
+        a, logp, mean_action = self._policy(obs, goal, with_mean=True)
         q_pi = self.critic(obs, goal, a).min(0).values.squeeze(-1)
         actor_loss = (alpha * logp - q_pi).mean()
+        bc_loss = None
+        if cfg.hindsight_bc > 0.0 and batch.relabelled.any():
+            rel = torch.as_tensor(batch.relabelled, device=self.device)
+            bc_loss = (mean_action[rel] - act[rel]).pow(2).sum(-1).mean()
+            actor_loss = actor_loss + cfg.hindsight_bc * bc_loss
         self.actor_opt.zero_grad()
         actor_loss.backward()
         self.actor_opt.step()
@@ -427,13 +438,16 @@ class SAC(Agent):
         with torch.no_grad():
             self._target_flat.lerp_(self.critic_opt.flat, cfg.tau)
         self.updates += 1
-        return {
+        metrics = {
             "critic_loss": critic_loss.item(),
             "actor_loss": actor_loss.item(),
             "alpha": float(alpha),
             "q": q.detach().mean().item(),
             "entropy": -logp.detach().mean().item(),
         }
+        if bc_loss is not None:
+            metrics["bc_loss"] = bc_loss.item()
+        return metrics
 
     def modules(self) -> dict[str, nn.Module]:
         """Actor, critics, target critics and normalisers."""

@@ -848,3 +848,30 @@ def test_image_goal_updates_with_augmentation_are_deterministic() -> None:
 
     first, second = run(), run()
     assert_identical(first, second)
+
+
+def test_hindsight_bc_pulls_the_mean_action_to_relabelled_actions() -> None:
+    """With a large weight, the actor imitates relabelled rows' actions and ignores others."""
+    prob = problem(False)
+    base = make_batch(prob, np.random.default_rng(7), size=32)
+    target = np.tile(np.array([[0.6, -0.4]], np.float32), (32, 1))
+    rel = np.arange(32) < 16
+    action = np.where(rel[:, None], target, -target)  # other rows point the other way
+    batch = base._replace(action=action, relabelled=rel)
+
+    def mean_action(agent) -> np.ndarray:
+        with torch.no_grad():
+            o = agent.obs_tensors(batch.obs)
+            g = agent.goal_tensor(batch.goal)
+            return torch.tanh(agent.actor(o, g).chunk(2, -1)[0]).numpy()
+
+    agent = make_agent("sac", config=algos.SACConfig(hindsight_bc=50.0))
+    for _ in range(150):
+        metrics = agent.update(batch)
+    assert "bc_loss" in metrics and metrics["bc_loss"] < 0.05
+    np.testing.assert_allclose(mean_action(agent)[rel], target[rel], atol=0.15)
+
+    plain = make_agent("sac")
+    assert "bc_loss" not in plain.update(batch)
+    no_rel = make_agent("sac", config=algos.SACConfig(hindsight_bc=50.0))
+    assert "bc_loss" not in no_rel.update(batch._replace(relabelled=np.zeros(32, bool)))
