@@ -5,7 +5,13 @@ Importing this package registers the gymnasium ids:
 * ``lcrl/LangTabletop2D-v0``: the 2D tabletop with an instruction per episode (train set of
   split 0 by default; pass ``split_set="heldout"`` or ``"paraphrase"`` to gymnasium.make);
 * ``lcrl/LangTabletop2DDiscrete-v0``: the same with 8-direction discrete actions.
+
+``ScriptedController3D`` (the robosuite tabletop's scripted controller,
+:mod:`captioner.scripted3d`) is imported on first use, so that
+``python -m captioner.scripted3d`` runs the module only once.
 """
+
+from typing import Any
 
 import gymnasium
 
@@ -22,6 +28,7 @@ __all__ = [
     "InstructionParseError",
     "LanguageGoalWrapper",
     "RuleCaptioner",
+    "ScriptedController3D",
     "Split",
     "Thresholds",
     "make_split",
@@ -40,3 +47,11 @@ for _env_id, _kwargs in _LANG_IDS.items():
             max_episode_steps=50,
             kwargs=_kwargs,
         )
+
+
+def __getattr__(name: str) -> Any:
+    if name == "ScriptedController3D":
+        from captioner.scripted3d import ScriptedController3D
+
+        return ScriptedController3D
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
