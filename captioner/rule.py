@@ -19,7 +19,8 @@ push X <dir>
 put X <rel> Y
     In s, X - Y points along the relation (left of: X.x < Y.x, in front of: X.y < Y.y,
     ...) by at least ``relation_gap`` with at most ``relation_lateral`` offset on the other
-    axis; the relation did not hold in s0; and X moved at least ``move_distance``.
+    axis; the relation did not hold in s0; X moved at least ``move_distance``; and X is
+    not held (when the environment reports grasping): carried over the spot is not put.
 lift X
     X's centre rose at least ``lift_height`` since s0, and X is held when the environment
     reports grasping.
@@ -152,7 +153,10 @@ class RuleCaptioner:
             np.linalg.norm(s.positions[i, :2] - s0.positions[i, :2], axis=-1)
             >= self.thresholds.move_distance
         )
-        return self._relation(s, i, j, vec) & ~self._relation(s0, i, j, vec) & moved
+        ok = self._relation(s, i, j, vec) & ~self._relation(s0, i, j, vec) & moved
+        if s.grasped is not None:
+            ok &= ~s.grasped[i]
+        return ok
 
     def _lift(self, s0: SceneState, s: SceneState, i: np.ndarray) -> np.ndarray:
         ok = self._raised(s0, s, i)

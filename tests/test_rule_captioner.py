@@ -84,6 +84,16 @@ def test_put_requires_a_new_relation_made_by_moving_the_object():
     assert not CAP.satisfied("put the red cube left of the blue cylinder", s0, s_lat)
 
 
+def test_put_means_placed_not_carried():
+    s0 = scene([("red", "cube", 0.1, 0), ("blue", "cylinder", 0.0, 0)], grasped=[False, False])
+    objs = [("red", "cube", -0.07, 0.02, 0.08), ("blue", "cylinder", 0.0, 0)]
+    held = scene(objs, grasped=[True, False])
+    released = scene(objs, grasped=[False, False])
+    ins = "put the red cube left of the blue cylinder"
+    assert not CAP.satisfied(ins, s0, held) and ins not in texts(s0, held)
+    assert CAP.satisfied(ins, s0, released) and ins in texts(s0, released)
+
+
 def test_in_front_of_means_nearer_the_viewer():
     s0 = scene([("red", "cube", 0.0, 0.1), ("blue", "cube", 0.0, 0.0)])
     s = scene([("red", "cube", 0.0, -0.07), ("blue", "cube", 0.0, 0.0)])
