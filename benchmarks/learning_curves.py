@@ -13,6 +13,10 @@ at least 90% success over 50 evaluation episodes within 10,000 environment steps
 state observations, SAC + language HER against no relabelling, 50,000 steps; target: at
 least 80% success on seen instructions.
 
+``robosuite-push`` (push instructions, 50,000 steps) and ``robosuite-image`` (reach
+instructions from 64x64 camera images and proprioception, 10,000 steps: a CPU budget)
+report what the same learner reaches there; their targets are the reach target.
+
 ``lang2d``: the 2D tabletop with language goals (reach and push families), SAC with
 language hindsight relabelling against the same run without relabelling (``k=0``);
 target: at least 80% success on seen instructions within 100,000 steps, the baseline far
@@ -81,6 +85,33 @@ SUITES: dict[str, dict[str, Any]] = {
         "eval_episodes": 50,
         "target": ("her", "train", 0.80, 50_000),
         "steps": 50_000,
+    },
+    "robosuite-push": {
+        "title": "Language HER on the robosuite Panda tabletop (push, privileged state)",
+        "runs": {
+            "her": ("robosuite", {"env": EnvConfig(kind="robosuite", families=("push",))}),
+        },
+        "eval_every": 10_000,
+        "eval_episodes": 50,
+        "target": ("her", "train", 0.80, 50_000),
+        "steps": 50_000,
+    },
+    "robosuite-image": {
+        "title": "Language HER on the robosuite Panda tabletop from 64x64 camera images (reach)",
+        "runs": {
+            "her": (
+                "robosuite-image",
+                {
+                    "env": EnvConfig(
+                        kind="robosuite", families=("reach",), image_obs=True, image_size=64
+                    )
+                },
+            ),
+        },
+        "eval_every": 5_000,
+        "eval_episodes": 30,
+        "target": ("her", "train", 0.80, 10_000),
+        "steps": 10_000,
     },
 }
 
