@@ -146,3 +146,29 @@ def test_language_run_on_image_observations(tmp_path) -> None:
     assert trainer.step == 60 and set(final) >= {"train", "heldout", "paraphrase"}
     assert trainer.agent.updates > 0
     trainer.close()
+
+
+def test_simulator_errors_end_episodes_not_the_run(tmp_path, monkeypatch) -> None:
+    import csv
+
+    import envs.robosuite_tabletop as rt
+
+    original = rt.RobosuiteTabletopEnv._advance
+    calls = {"n": 0}
+
+    def flaky(self, action):
+        calls["n"] += 1
+        if calls["n"] % 7 == 0:
+            return "injected instability"
+        return original(self, action)
+
+    monkeypatch.setattr(rt.RobosuiteTabletopEnv, "_advance", flaky)
+    cfg = dataclasses.replace(tiny("robosuite-state", tmp_path / "flaky"), log_every=20)
+    trainer = Trainer(cfg)
+    with pytest.warns(RuntimeWarning, match="injected"):
+        trainer.run()
+    assert trainer.step == 60 and trainer.sim_errors >= 5
+    with (tmp_path / "flaky" / "progress.csv").open() as f:
+        rows = list(csv.DictReader(f))
+    assert int(rows[-1]["sim_errors"]) == trainer.sim_errors
+    trainer.close()

@@ -117,6 +117,7 @@ class Trainer:
         self.rng = np.random.default_rng(cfg.seed)
         self.step = 0
         self.episodes = 0
+        self.sim_errors = 0  # episodes a simulator error ended (the env reports them)
         self.recent: deque[float] = deque(maxlen=100)
         self._credit = 0.0
         self._metrics: dict[str, float] = {}
@@ -231,6 +232,8 @@ class Trainer:
         self.agent.observe(episode_obs, episode.get("achieved_goal"))
         self.episodes += 1
         self.recent.append(float(succeeded))
+        if info.get("sim_error"):
+            self.sim_errors += 1
 
     def _updates_due(self) -> int:
         """Gradient updates due after this env step."""
@@ -288,6 +291,7 @@ class Trainer:
             "steps_per_s": (self.step - self._step0) / max(elapsed, 1e-9),
             "updates": self.agent.updates,
             "buffer": self.buffer.size,
+            "sim_errors": self.sim_errors,
         }
         n = max(self._metric_count, 1)
         row.update({k: v / n for k, v in sorted(self._metrics.items())})
@@ -332,6 +336,7 @@ class Trainer:
             "trainer": {
                 "step": self.step,
                 "episodes": self.episodes,
+                "sim_errors": self.sim_errors,
                 "recent": list(self.recent),
                 "credit": self._credit,
             },
@@ -360,6 +365,7 @@ class Trainer:
         self.rng.bit_generator.state = ckpt.state("trainer_rng")
         trainer = ckpt.state("trainer")
         self.step, self.episodes = int(trainer["step"]), int(trainer["episodes"])
+        self.sim_errors = int(trainer.get("sim_errors", 0))
         self.recent.extend(trainer["recent"])
         self._credit = float(trainer["credit"])
         if ckpt.has_arrays():
