@@ -14,7 +14,7 @@ state observations, SAC + language HER against no relabelling, 50,000 steps; tar
 least 80% success on seen instructions.
 
 ``robosuite-push`` (push instructions, 50,000 steps) and ``robosuite-image`` (reach
-instructions from 64x64 camera images and proprioception, 10,000 steps: a CPU budget)
+instructions from 64x64 camera images and proprioception, 8,000 steps: a CPU budget)
 report what the same learner reaches there; their targets are the reach target.
 
 ``lang2d``: the 2D tabletop with language goals (reach and push families), SAC with
@@ -108,10 +108,10 @@ SUITES: dict[str, dict[str, Any]] = {
                 },
             ),
         },
-        "eval_every": 5_000,
+        "eval_every": 4_000,
         "eval_episodes": 30,
-        "target": ("her", "train", 0.80, 10_000),
-        "steps": 10_000,
+        "target": ("her", "train", 0.80, 8_000),
+        "steps": 8_000,
     },
 }
 
