@@ -177,6 +177,8 @@ def main(argv: list[str] | None = None) -> int:
     if args.eval_episodes:
         suite["eval_episodes"] = args.eval_episodes
     info = machine()
+    if args.parallel and len(suite["runs"]) > 1:
+        info["torch_threads"] = 1  # each run's process (see _one_thread)
     results: dict[str, Any] = {}
     jobs = {
         name: (
