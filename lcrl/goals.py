@@ -192,11 +192,22 @@ class StateGoals:
         ``future`` takes the next observation of a step ``t' >= t`` (uniform), ``final``
         the episode's last observation, ``episode`` the next observation of any step.
         """
+        slots = self._achieved_slots(idx, ep_start, ep_end, strategy, rng)
+        return self._achieved[slots], np.ones(idx.shape, bool)
+
+    @staticmethod
+    def _achieved_slots(
+        idx: np.ndarray,
+        ep_start: np.ndarray,
+        ep_end: np.ndarray,
+        strategy: str,
+        rng: np.random.Generator,
+    ) -> np.ndarray:
+        """Observation slots whose achieved goals relabel the transitions at ``idx``."""
         _check_strategy(strategy)
         last = ep_end - 1  # last transition slot
         first = ep_start if strategy == "episode" else idx
-        step = pick_step(first, last, strategy, rng)
-        return self._achieved[step + 1], np.ones(idx.shape, bool)
+        return pick_step(first, last, strategy, rng) + 1
 
     def relabelable(
         self, idx: np.ndarray, ep_start: np.ndarray, ep_end: np.ndarray, strategy: str
@@ -565,11 +576,8 @@ class ImageGoals(StateGoals):
         rng: np.random.Generator,
     ) -> tuple[np.ndarray, np.ndarray]:
         """Frames achieved by the same episode (slots of later observations)."""
-        _check_strategy(strategy)
-        last = ep_end - 1
-        first = ep_start if strategy == "episode" else idx
-        step = pick_step(first, last, strategy, rng)
-        return (step + 1).astype(np.int64), np.ones(idx.shape, bool)
+        slots = self._achieved_slots(idx, ep_start, ep_end, strategy, rng)
+        return slots.astype(np.int64), np.ones(idx.shape, bool)
 
     def random_goals(self, slots: np.ndarray, rng: np.random.Generator) -> np.ndarray:
         """The frames observed after the transitions at ``slots``."""
