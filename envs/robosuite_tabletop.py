@@ -94,7 +94,8 @@ import numpy as np
 from gymnasium import spaces
 
 from envs._gl import use_headless_gl
-from envs.scene import COLOURS, OBJECT_KINDS, SHAPES, SceneState, object_name
+from envs.layout import check_num_objects, check_objects, is_int, sample_points
+from envs.scene import COLOURS, OBJECT_KINDS, SceneState
 from lcrl.errors import LcrlError
 
 __all__ = [
@@ -137,7 +138,6 @@ _MIN_GOAL_MOVE = 0.08
 _GRIPPER_GOAL_XY = (0.2, 0.15)  # gripper goals: |x| <= 0.2, |y| <= 0.15
 _GRIPPER_GOAL_Z = (0.03, 0.25)  # above the table surface
 _MIN_GRIPPER_GOAL_MOVE = 0.1
-_SAMPLE_BATCH = 32
 _MAX_SAMPLE_TRIES = 200
 _PARK_Z = -0.5  # world z of parked objects: under the floor
 _POS_LIMIT = 3.0  # observation bounds (the floor is 6 m x 6 m)
@@ -169,8 +169,7 @@ def _bad(name: str, value: Any, allowed: str) -> RobosuiteTabletopConfigError:
     return RobosuiteTabletopConfigError(f"RobosuiteTabletopEnv: bad {name}={value!r}; {allowed}")
 
 
-def _is_int(v: Any) -> bool:
-    return isinstance(v, (int, np.integer)) and not isinstance(v, (bool, np.bool_))
+_WHO = "RobosuiteTabletopEnv"
 
 
 @contextlib.contextmanager
@@ -360,8 +359,8 @@ class RobosuiteTabletopEnv(gym.Env):
         init_noise: float = 0.02,
         render_mode: str | None = None,
     ) -> None:
-        self._count_range = _check_num_objects(num_objects)
-        self._allowed_slots = _check_objects(objects, self._count_range[1])
+        self._count_range = check_num_objects(num_objects, _MIN_OBJECTS, _MAX_OBJECTS, _bad)
+        self._allowed_slots = check_objects(objects, self._count_range[1], _bad)
         if goal not in _GOALS:
             raise _bad("goal", goal, f"expected one of {list(_GOALS)}")
         for name, value in (
@@ -372,12 +371,12 @@ class RobosuiteTabletopEnv(gym.Env):
         ):
             if not isinstance(value, (bool, np.bool_)):
                 raise _bad(name, value, "expected a bool")
-        if not _is_int(image_size) or image_size not in _IMAGE_SIZES:
+        if not is_int(image_size) or image_size not in _IMAGE_SIZES:
             raise _bad("image_size", image_size, f"expected one of {list(_IMAGE_SIZES)}")
-        if not _is_int(control_freq) or control_freq not in _CONTROL_FREQS:
+        if not is_int(control_freq) or control_freq not in _CONTROL_FREQS:
             raise _bad("control_freq", control_freq, f"expected one of {list(_CONTROL_FREQS)}")
         substeps = round(1.0 / (control_freq * _MODEL_TIMESTEP))
-        if not _is_int(controller_period) or not 1 <= controller_period <= substeps:
+        if not is_int(controller_period) or not 1 <= controller_period <= substeps:
             raise _bad(
                 "controller_period",
                 controller_period,
@@ -587,7 +586,7 @@ class RobosuiteTabletopEnv(gym.Env):
         n = lo if lo == hi else int(rng.integers(lo, hi + 1))
         order = rng.permutation(len(self._allowed_slots))[:n].tolist()
         slots = sorted(self._allowed_slots[i] for i in order)
-        points = _sample_points(n, [], _MIN_OBJECT_GAP, _SPAWN_X, _SPAWN_Y, rng)
+        points = sample_points(n, [], _MIN_OBJECT_GAP, _SPAWN_X, _SPAWN_Y, rng, _WHO)
         self._slots = slots
         self._present = np.zeros(_NUM_KINDS, bool)
         self._present[slots] = True
@@ -612,8 +611,8 @@ class RobosuiteTabletopEnv(gym.Env):
 
         if self._object_goal:
             mover = int(rng.integers(n))
-            (target,) = _sample_points(
-                1, points, max(_MIN_OBJECT_GAP, _MIN_GOAL_MOVE), _SPAWN_X, _SPAWN_Y, rng
+            (target,) = sample_points(
+                1, points, max(_MIN_OBJECT_GAP, _MIN_GOAL_MOVE), _SPAWN_X, _SPAWN_Y, rng, _WHO
             )
             desired = np.zeros(_GOAL_DIM_OBJECT, np.float32)
             for i, k in enumerate(slots):
@@ -916,89 +915,3 @@ def _make_renderer(mj: Any, model: Any, size: int) -> Any:
         finally:
             gl_context.GLContext = current
     return mj.Renderer(model, size, size)
-
-
-def _check_num_objects(num_objects: Any) -> tuple[int, int]:
-    allowed = (
-        f"expected an int in [{_MIN_OBJECTS}, {_MAX_OBJECTS}] or an inclusive "
-        f"(low, high) range within it"
-    )
-    if _is_int(num_objects):
-        lo = hi = int(num_objects)
-    elif (
-        isinstance(num_objects, (tuple, list))
-        and len(num_objects) == 2
-        and all(_is_int(v) for v in num_objects)
-    ):
-        lo, hi = int(num_objects[0]), int(num_objects[1])
-    else:
-        raise _bad("num_objects", num_objects, allowed)
-    if not _MIN_OBJECTS <= lo <= hi <= _MAX_OBJECTS:
-        raise _bad("num_objects", num_objects, allowed)
-    return lo, hi
-
-
-def _check_objects(objects: Any, max_count: int) -> list[int]:
-    if objects is None:
-        return list(range(_NUM_KINDS))
-    if isinstance(objects, str) or not isinstance(objects, Sequence):
-        raise _bad("objects", objects, "expected a sequence of (colour, shape) pairs")
-    slots: list[int] = []
-    for item in objects:
-        if (
-            isinstance(item, str)
-            or not isinstance(item, Sequence)
-            or len(item) != 2
-            or not all(isinstance(v, str) for v in item)
-        ):
-            raise _bad("objects", objects, f"entry {item!r} is not a (colour, shape) pair")
-        colour, shape = item
-        if colour not in COLOURS:
-            raise _bad(
-                "objects", objects, f"unknown colour {colour!r}; expected one of {list(COLOURS)}"
-            )
-        if shape not in SHAPES:
-            raise _bad(
-                "objects", objects, f"unknown shape {shape!r}; expected one of {list(SHAPES)}"
-            )
-        slot = OBJECT_KINDS.index((colour, shape))
-        if slot in slots:
-            raise _bad("objects", objects, f"{object_name(colour, shape)!r} is listed twice")
-        slots.append(slot)
-    if len(slots) < max_count:
-        raise _bad(
-            "objects",
-            objects,
-            f"needs at least {max_count} distinct kinds for num_objects up to {max_count}",
-        )
-    return sorted(slots)
-
-
-def _sample_points(
-    count: int,
-    existing: list[tuple[float, float]],
-    min_gap: float,
-    limit_x: float,
-    limit_y: float,
-    rng: np.random.Generator,
-) -> list[tuple[float, float]]:
-    """Rejection-sample ``count`` points of ``[-limit_x, limit_x] x [-limit_y, limit_y]``.
-
-    New points keep ``min_gap`` from each other and from ``existing``; candidates are drawn
-    in batches to keep the number of generator calls small.
-    """
-    placed = list(existing)
-    new: list[tuple[float, float]] = []
-    gap_sq = min_gap * min_gap
-    for _ in range(_MAX_SAMPLE_TRIES):
-        batch = rng.uniform((-limit_x, -limit_y), (limit_x, limit_y), (_SAMPLE_BATCH, 2))
-        for x, y in batch.tolist():
-            for qx, qy in placed:
-                if (x - qx) * (x - qx) + (y - qy) * (y - qy) < gap_sq:
-                    break
-            else:
-                placed.append((x, y))
-                new.append((x, y))
-                if len(new) == count:
-                    return new
-    raise RuntimeError("RobosuiteTabletopEnv: could not place objects without overlap")

@@ -67,7 +67,8 @@ import gymnasium as gym
 import numpy as np
 from gymnasium import spaces
 
-from envs.scene import COLOURS, OBJECT_KINDS, SHAPES, SceneState, object_name
+from envs.layout import check_num_objects, check_objects, sample_points
+from envs.scene import COLOURS, OBJECT_KINDS, SceneState
 from lcrl.errors import LcrlError
 
 __all__ = [
@@ -114,8 +115,6 @@ _PUSHER_SPAWN_LIMIT = 0.22
 _MIN_OBJECT_GAP = 0.08  # centre distance: > 2 * 0.025 * sqrt(2) (cube corners) + margin
 _MIN_PUSHER_GAP = 0.06  # centre distance: > 0.015 + 0.025 * sqrt(2) + margin
 _MIN_GOAL_MOVE = 0.08
-_SAMPLE_BATCH = 32
-_MAX_SAMPLE_TRIES = 200
 
 _THRESHOLD_SQ = DISTANCE_THRESHOLD * DISTANCE_THRESHOLD
 _CONTACT_ITERATIONS = 4  # push objects / relax / push the pusher back
@@ -157,6 +156,17 @@ class _UnitBox(spaces.Box):
 
 def _bad(name: str, value: Any, allowed: str) -> Tabletop2DConfigError:
     return Tabletop2DConfigError(f"Tabletop2DEnv: bad {name}={value!r}; {allowed}")
+
+
+def _points(
+    count: int,
+    existing: list[tuple[float, float]],
+    min_gap: float,
+    limit: float,
+    rng: np.random.Generator,
+) -> list[tuple[float, float]]:
+    """Non-overlapping points of ``[-limit, limit]^2`` (see :func:`envs.layout.sample_points`)."""
+    return sample_points(count, existing, min_gap, limit, limit, rng, "Tabletop2DEnv")
 
 
 def _clamp(v: float, lim: float) -> float:
@@ -304,8 +314,8 @@ class Tabletop2DEnv(gym.Env):
         image_size: int = 64,
         render_mode: str | None = None,
     ) -> None:
-        self._count_range = self._check_num_objects(num_objects)
-        self._allowed_slots = self._check_objects(objects, self._count_range[1])
+        self._count_range = check_num_objects(num_objects, _MIN_OBJECTS, _MAX_OBJECTS, _bad)
+        self._allowed_slots = check_objects(objects, self._count_range[1], _bad)
         if action_type not in _ACTION_TYPES:
             raise _bad("action_type", action_type, f"expected one of {list(_ACTION_TYPES)}")
         if isinstance(num_directions, bool) or num_directions not in _NUM_DIRECTIONS:
@@ -393,70 +403,6 @@ class Tabletop2DEnv(gym.Env):
         self._desired_list: list[float] = [0.0] * goal_dim
         self._has_reset = False
 
-    # ------------------------------------------------------------------ validation
-
-    @staticmethod
-    def _check_num_objects(num_objects: Any) -> tuple[int, int]:
-        allowed = (
-            f"expected an int in [{_MIN_OBJECTS}, {_MAX_OBJECTS}] or an inclusive "
-            f"(low, high) range within it"
-        )
-
-        def is_int(v: Any) -> bool:
-            return isinstance(v, (int, np.integer)) and not isinstance(v, (bool, np.bool_))
-
-        if is_int(num_objects):
-            lo = hi = int(num_objects)
-        elif (
-            isinstance(num_objects, (tuple, list))
-            and len(num_objects) == 2
-            and all(is_int(v) for v in num_objects)
-        ):
-            lo, hi = int(num_objects[0]), int(num_objects[1])
-        else:
-            raise _bad("num_objects", num_objects, allowed)
-        if not _MIN_OBJECTS <= lo <= hi <= _MAX_OBJECTS:
-            raise _bad("num_objects", num_objects, allowed)
-        return lo, hi
-
-    @staticmethod
-    def _check_objects(objects: Any, max_count: int) -> list[int]:
-        if objects is None:
-            return list(range(_NUM_KINDS))
-        if isinstance(objects, str) or not isinstance(objects, Sequence):
-            raise _bad("objects", objects, "expected a sequence of (colour, shape) pairs")
-        slots: list[int] = []
-        for item in objects:
-            if (
-                isinstance(item, str)
-                or not isinstance(item, Sequence)
-                or len(item) != 2
-                or not all(isinstance(v, str) for v in item)
-            ):
-                raise _bad("objects", objects, f"entry {item!r} is not a (colour, shape) pair")
-            colour, shape = item
-            if colour not in COLOURS:
-                raise _bad(
-                    "objects",
-                    objects,
-                    f"unknown colour {colour!r}; expected one of {list(COLOURS)}",
-                )
-            if shape not in SHAPES:
-                raise _bad(
-                    "objects", objects, f"unknown shape {shape!r}; expected one of {list(SHAPES)}"
-                )
-            slot = OBJECT_KINDS.index((colour, shape))
-            if slot in slots:
-                raise _bad("objects", objects, f"{object_name(colour, shape)!r} is listed twice")
-            slots.append(slot)
-        if len(slots) < max_count:
-            raise _bad(
-                "objects",
-                objects,
-                f"needs at least {max_count} distinct kinds for num_objects up to {max_count}",
-            )
-        return sorted(slots)
-
     # ------------------------------------------------------------------ gym API
 
     def reset(
@@ -478,13 +424,13 @@ class Tabletop2DEnv(gym.Env):
         order = rng.permutation(len(self._allowed_slots))[:n].tolist()
         slots = sorted(self._allowed_slots[i] for i in order)
 
-        points = self._sample_points(n, [], _MIN_OBJECT_GAP, _SPAWN_LIMIT, rng)
+        points = _points(n, [], _MIN_OBJECT_GAP, _SPAWN_LIMIT, rng)
         self._n = n
         self._slots = slots
         self._cube = [OBJECT_KINDS[s][1] == "cube" for s in slots]
         self._ox = [p[0] for p in points]
         self._oy = [p[1] for p in points]
-        (pusher,) = self._sample_points(1, points, _MIN_PUSHER_GAP, _PUSHER_SPAWN_LIMIT, rng)
+        (pusher,) = _points(1, points, _MIN_PUSHER_GAP, _PUSHER_SPAWN_LIMIT, rng)
         self._px, self._py = pusher
 
         template = [0.0] * _OBS_DIM
@@ -496,9 +442,7 @@ class Tabletop2DEnv(gym.Env):
             mover = int(rng.integers(n))
             # Keeping the target away from every current centre, the mover's included,
             # leaves room for the mover and makes it move at least _MIN_GOAL_MOVE.
-            (target,) = self._sample_points(
-                1, points, max(_MIN_OBJECT_GAP, _MIN_GOAL_MOVE), _SPAWN_LIMIT, rng
-            )
+            (target,) = _points(1, points, max(_MIN_OBJECT_GAP, _MIN_GOAL_MOVE), _SPAWN_LIMIT, rng)
             desired = [0.0] * _GOAL_DIM_OBJECT
             for i, s in enumerate(slots):
                 x, y = target if i == mover else points[i]
@@ -506,9 +450,7 @@ class Tabletop2DEnv(gym.Env):
                 desired[2 * s + 1] = y
         else:
             # Any point of the table the pusher can reach, not already (nearly) reached.
-            desired = list(
-                self._sample_points(1, [pusher], 2.0 * DISTANCE_THRESHOLD, _PUSHER_LIMIT, rng)[0]
-            )
+            desired = list(_points(1, [pusher], 2.0 * DISTANCE_THRESHOLD, _PUSHER_LIMIT, rng)[0])
         self._desired = np.array(desired, np.float32)
         self._desired_list = self._desired.tolist()  # float32-exact, as compute_reward sees it
         self._has_reset = True
@@ -623,34 +565,6 @@ class Tabletop2DEnv(gym.Env):
         )
 
     # ------------------------------------------------------------------ internals
-
-    @staticmethod
-    def _sample_points(
-        count: int,
-        existing: list[tuple[float, float]],
-        min_gap: float,
-        limit: float,
-        rng: np.random.Generator,
-    ) -> list[tuple[float, float]]:
-        """Rejection-sample ``count`` points in ``[-limit, limit]^2``, ``min_gap`` apart.
-
-        New points keep ``min_gap`` from each other and from ``existing``. Candidates are
-        drawn in batches to keep the number of generator calls small.
-        """
-        placed = list(existing)
-        new: list[tuple[float, float]] = []
-        gap_sq = min_gap * min_gap
-        for _ in range(_MAX_SAMPLE_TRIES):
-            for x, y in rng.uniform(-limit, limit, (_SAMPLE_BATCH, 2)).tolist():
-                for qx, qy in placed:
-                    if (x - qx) * (x - qx) + (y - qy) * (y - qy) < gap_sq:
-                        break
-                else:
-                    placed.append((x, y))
-                    new.append((x, y))
-                    if len(new) == count:
-                        return new
-        raise RuntimeError("Tabletop2DEnv: could not place objects without overlap")
 
     def _physics(self, dx: float, dy: float) -> None:
         """Advance the pusher by ``(dx, dy)`` metres and resolve every contact."""
