@@ -30,12 +30,15 @@ from lcrl.nets import (
     GoalConditionedNet,
     NetConfig,
     RunningNorm,
+    WhiteningNorm,
     flatten_parameters,
     gaussian_log_prob_tanh,
     random_shift,
 )
 
 GoalEmbedder = Callable[[np.ndarray, torch.device], torch.Tensor]
+#: Normalisations of text goals (:attr:`AgentOptions.text_goal_norm`).
+TEXT_GOAL_NORMS = ("whiten", "standardize")
 
 
 @dataclass
@@ -162,8 +165,17 @@ class AgentOptions:
     normalize_obs: bool = True
     """Normalise vector observations with running statistics."""
     normalize_goal: bool = True
-    """Standardise goals: state goals with running statistics of achieved goals, text goals
-    with the statistics of the training instructions' embeddings."""
+    """Normalise goals: state goals with running statistics of achieved goals, text goals
+    with the statistics of the training instructions' embeddings (see
+    ``text_goal_norm``)."""
+    text_goal_norm: str = "whiten"
+    """How text goals are normalised: ``whiten`` (regularised PCA whitening over the
+    training instructions, so that the one word telling two instructions apart, such as
+    left and right, is as visible as the rest) or ``standardize`` (each dimension on its
+    own)."""
+    text_whiten_eps: float = 0.01
+    """Ridge of the whitening, as a fraction of the embeddings' total variance (smaller
+    whitens harder)."""
     reward_shift: float = 0.0
     """Added to every reward the learner sees. -1 turns 0/1 success rewards into -1/0 ones
     (as in gymnasium-robotics): every step that does not reach the goal then costs
@@ -209,12 +221,26 @@ class Agent:
             for key, shape in problem.obs_shapes.items():
                 if len(shape) == 1:
                     self.norms[f"obs_{key}"] = RunningNorm(shape[0])
-        if options.normalize_goal and problem.goal_kind in ("vector", "text"):
+        if options.text_goal_norm not in TEXT_GOAL_NORMS:
+            raise LcrlError(
+                f"unknown text_goal_norm {options.text_goal_norm!r}; choose one of "
+                f"{TEXT_GOAL_NORMS}"
+            )
+        if options.text_whiten_eps <= 0:
+            raise LcrlError(f"text_whiten_eps must be positive, got {options.text_whiten_eps}")
+        if options.normalize_goal and problem.goal_kind == "text":
             # Frozen sentence embeddings of instructions are close to each other (cosine
-            # 0.98 between "push the red cube left" and "... right"); standardising each
-            # dimension over the instruction table spreads them apart.
-            eps = 1e-3 if problem.goal_kind == "text" else 1e-2
-            self.norms["goal"] = RunningNorm(problem.goal_shape[0], eps=eps)
+            # 0.98 between "push the red cube left" and "... right"); whitening over the
+            # instruction table spreads them apart (cosine 0.61), standardising each
+            # dimension much less (0.91).
+            if options.text_goal_norm == "whiten":
+                self.norms["goal"] = WhiteningNorm(
+                    problem.goal_shape[0], eps=options.text_whiten_eps
+                )
+            else:
+                self.norms["goal"] = RunningNorm(problem.goal_shape[0], eps=1e-3)
+        elif options.normalize_goal and problem.goal_kind == "vector":
+            self.norms["goal"] = RunningNorm(problem.goal_shape[0], eps=1e-2)
         self.norms.to(self.device)
         self.updates = 0
         self.acts = 0

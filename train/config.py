@@ -156,6 +156,10 @@ def config_from_dict(d: dict[str, Any]) -> TrainConfig:
                 kwargs[name] = value
         return cls(**kwargs)
 
+    agent = d.get("agent")
+    if isinstance(agent, dict) and "text_goal_norm" not in agent:
+        # Saved before text goals were whitened: their weights expect standardised goals.
+        d = {**d, "agent": {**agent, "text_goal_norm": "standardize"}}
     return build(TrainConfig, d)
 
 
