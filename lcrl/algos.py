@@ -168,11 +168,12 @@ class AgentOptions:
     """Normalise goals: state goals with running statistics of achieved goals, text goals
     with the statistics of the training instructions' embeddings (see
     ``text_goal_norm``)."""
-    text_goal_norm: str = "whiten"
-    """How text goals are normalised: ``whiten`` (regularised PCA whitening over the
-    training instructions, so that the one word telling two instructions apart, such as
-    left and right, is as visible as the rest) or ``standardize`` (each dimension on its
-    own)."""
+    text_goal_norm: str = "standardize"
+    """How text goals are normalised: ``standardize`` (each dimension on its own) or
+    ``whiten`` (regularised PCA whitening over the training instructions, so that the one
+    word telling two instructions apart, such as left and right, is as visible as the
+    rest: cosine 0.61 instead of 0.91 between those two). Whitening did not learn faster
+    in the runs measured so far (see the README), so it is not the default."""
     text_whiten_eps: float = 0.01
     """Ridge of the whitening, as a fraction of the embeddings' total variance (smaller
     whitens harder)."""

@@ -472,9 +472,10 @@ def test_saved_configs_keep_their_text_goal_normalisation():
     from train.config import config_from_dict, config_to_dict
 
     cfg = PRESETS["lang2d"][1]
+    cfg = dataclasses.replace(cfg, agent=dataclasses.replace(cfg.agent, text_goal_norm="whiten"))
     saved = config_to_dict(cfg)
     assert config_from_dict(saved).agent.text_goal_norm == "whiten"
-    # A config saved before text goals were whitened loads with the normalisation its
-    # weights were trained with.
+    # A config saved before the option existed loads with the normalisation its weights
+    # were trained with.
     del saved["agent"]["text_goal_norm"]
     assert config_from_dict(saved).agent.text_goal_norm == "standardize"

@@ -158,7 +158,7 @@ def config_from_dict(d: dict[str, Any]) -> TrainConfig:
 
     agent = d.get("agent")
     if isinstance(agent, dict) and "text_goal_norm" not in agent:
-        # Saved before text goals were whitened: their weights expect standardised goals.
+        # Saved before the option existed: those weights read standardised text goals.
         d = {**d, "agent": {**agent, "text_goal_norm": "standardize"}}
     return build(TrainConfig, d)
 
