@@ -16,10 +16,10 @@ least 80% success on seen instructions.
 ``robosuite-reach-long``: the same language-HER run alone, for 100,000 steps (one
 process, about 70 minutes on one core).
 
-``robosuite-push`` (push instructions, 100,000 steps: the reach run's budget) and ``robosuite-image`` (reach
-instructions from 64x64 camera images and proprioception; a CPU budget of 5,000 steps and
-2,000 updates at batch 64, about 30 minutes on one core) report what the same learner
-reaches there; their targets are the reach target.
+``robosuite-push`` (push instructions, 100,000 steps: the reach run's budget) and
+``robosuite-image`` (reach instructions from 64x64 camera images and proprioception; a
+CPU budget of 5,000 steps and 2,000 updates at batch 64, about 30 minutes on one core)
+report what the same learner reaches there; their targets are the reach target.
 
 ``lang2d``: the 2D tabletop with language goals (reach and push families), SAC with
 language hindsight relabelling against the same run without relabelling (``k=0``);

@@ -343,6 +343,10 @@ class RobosuiteTabletopEnv(gym.Env):
     #: The first values of ``"observation"`` that describe the robot itself (gripper
     #: x, y, z and opening).
     proprio_dim: int = 4
+    #: ``(start, count, width)`` of the object slots in ``"observation"``.
+    slot_layout: tuple[int, int, int] = (_SLOT0, _NUM_KINDS, 4)
+    #: Position values at the front of the agent's values and of every slot.
+    position_dims: int = 3
 
     def __init__(
         self,

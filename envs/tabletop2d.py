@@ -302,6 +302,10 @@ class Tabletop2DEnv(gym.Env):
     instruction_families: tuple[str, ...] = ("reach", "push", "put")
     #: The first values of ``"observation"`` that describe the agent itself (pusher x, y).
     proprio_dim: int = 2
+    #: ``(start, count, width)`` of the object slots in ``"observation"``.
+    slot_layout: tuple[int, int, int] = (2, 8, 3)
+    #: Position values at the front of the agent's values and of every slot.
+    position_dims: int = 2
 
     def __init__(
         self,

@@ -29,6 +29,7 @@ from lcrl.errors import LcrlError
 
 FUSIONS = ("concat", "film")
 GOAL_KINDS = ("vector", "text", "onehot", "image")
+SLOT_MODES = ("attention", "select")
 
 
 @dataclass
@@ -56,6 +57,12 @@ class NetConfig:
     objects: a shared MLP encodes each slot (plus a learned embedding of which slot it
     is), the goal picks slots by attention, and the picked features go to the fused MLP.
     Empty: plain concatenation."""
+    slot_mode: str = "attention"
+    """How the goal reads the object slots: ``attention`` (each slot encoded by a shared
+    MLP, picked by query-key attention) or ``select`` (the goal alone picks slots by
+    position, a softmax over slot indices per head, and the picked slots' raw values
+    are added to the full observation: cheap, and enough wherever a slot's position
+    says which object it holds, as in both tabletops)."""
     slot_dim: int = 64
     """Width of the per-slot features of the object attention."""
     slot_heads: int = 2
@@ -150,6 +157,43 @@ class SlotAttention(nn.Module):
         return torch.cat([picked, extra], -1)
 
 
+class SlotSelect(nn.Module):
+    """Goal-conditioned selection of object slots by position.
+
+    Every key's vector is ``[global (start values), count slots of width values,
+    rest]``, and slot ``i`` always holds the same object kind. Each head turns the goal
+    features into softmax weights over the ``count`` slot positions and picks the
+    weighted sum of the slots' raw values (from every key); the output is the picked
+    values of every head followed by every key's full vector, so that nothing is lost.
+
+    Args:
+        dims: vector width of each key (all keys share the slot layout).
+        layout: ``(start, count, width)``.
+        goal_dim: width of the goal features.
+        cfg: network config (``slot_heads``).
+    """
+
+    def __init__(
+        self, dims: Sequence[int], layout: Sequence[int], goal_dim: int, cfg: NetConfig
+    ) -> None:
+        super().__init__()
+        start, count, width = (int(v) for v in layout)
+        self.start, self.count, self.width = start, count, width
+        self.end = start + count * width
+        self.heads = cfg.slot_heads
+        self.logits = nn.Linear(goal_dim, self.heads * count)
+        self.out_dim = self.heads * len(dims) * width + sum(dims)
+
+    def forward(self, xs: Sequence[torch.Tensor], goal: torch.Tensor) -> torch.Tensor:
+        b = xs[0].shape[0]
+        slots = torch.cat(
+            [x[:, self.start : self.end].reshape(b, self.count, self.width) for x in xs], -1
+        )
+        w = torch.softmax(self.logits(goal).view(b, self.heads, self.count), -1)
+        picked = torch.bmm(w, slots).reshape(b, -1)  # (B, heads * keys * width)
+        return torch.cat([picked, *xs], -1)
+
+
 def random_shift(images: torch.Tensor, pad: int, generator: torch.Generator) -> torch.Tensor:
     """DrQ's random shift: pad ``(B, H, W, C)`` images by ``pad`` edge pixels and crop each
     back to ``(H, W)`` at a random offset; returns float images on the same 0-255 scale."""
@@ -185,7 +229,7 @@ class ObsEncoder(nn.Module):
         self.keys = sorted(obs_shapes)
         self.encoders = nn.ModuleDict()
         self.slot_keys: list[str] = []
-        self.slots: SlotAttention | None = None
+        self.slots: SlotAttention | SlotSelect | None = None
         dim = 0
         if cfg.slots:
             if len(cfg.slots) != 3:
@@ -201,7 +245,10 @@ class ObsEncoder(nn.Module):
                     f"no vector observation holds the slot layout {tuple(cfg.slots)}: "
                     f"shapes {dict(obs_shapes)}"
                 )
-            self.slots = SlotAttention(
+            if cfg.slot_mode not in SLOT_MODES:
+                raise LcrlError(f"unknown slot_mode {cfg.slot_mode!r}; choose one of {SLOT_MODES}")
+            reader = SlotAttention if cfg.slot_mode == "attention" else SlotSelect
+            self.slots = reader(
                 [obs_shapes[k][0] for k in self.slot_keys], cfg.slots, goal_dim, cfg
             )
             dim += self.slots.out_dim

@@ -808,6 +808,42 @@ def test_object_slot_attention_reads_slots_and_learns() -> None:
     assert any(".slots." in k for k in changed)
 
 
+def test_slot_select_picks_slots_by_goal_and_learns_which() -> None:
+    from lcrl.nets import GoalConditionedNet, SlotSelect
+
+    cfg = NetConfig(hidden=(32, 32), slots=(2, 4, 3), slot_heads=1, slot_mode="select")
+    shapes = {"observation": (14,), "initial": (14,)}
+    net = GoalConditionedNet(shapes, "onehot", (4,), 1, cfg)
+    sel = net.obs_encoder.slots
+    assert isinstance(sel, SlotSelect)
+    assert sel.out_dim == 2 * 3 + 2 * 14  # picked slot of each key, then both full vectors
+    obs = {k: torch.randn(6, 14) for k in shapes}
+    # Logits that put all weight on slot 2: the picked values are slot 2 of each key.
+    with torch.no_grad():
+        sel.logits.weight.zero_()
+        sel.logits.bias.copy_(torch.tensor([0.0, 0.0, 50.0, 0.0]))
+    out = sel([obs["initial"], obs["observation"]], torch.zeros(6, cfg.text_dim))
+    torch.testing.assert_close(out[:, :3], obs["initial"][:, 8:11])
+    torch.testing.assert_close(out[:, 3:6], obs["observation"][:, 8:11])
+    torch.testing.assert_close(out[:, 6:20], obs["initial"])
+    with pytest.raises(LcrlError, match="slot_mode"):
+        GoalConditionedNet(shapes, "onehot", (4,), 1, NetConfig(slots=(2, 4, 3), slot_mode="x"))
+
+    # Regression "the first value of the slot the goal names": learned to a small error.
+    torch.manual_seed(0)
+    net = GoalConditionedNet({"observation": (14,)}, "onehot", (4,), 1, cfg)
+    opt = torch.optim.Adam(net.parameters(), 3e-3)
+    for _ in range(600):
+        x = torch.randn(128, 14)
+        k = torch.randint(0, 4, (128,))
+        target = x[torch.arange(128), 2 + 3 * k]
+        loss = F.mse_loss(net({"observation": x}, torch.eye(4)[k]).squeeze(-1), target)
+        opt.zero_grad()
+        loss.backward()
+        opt.step()
+    assert float(loss.detach()) < 0.05
+
+
 @pytest.mark.parametrize("algo", ["sac", "td3", "dqn"])
 def test_multi_step_batches_bootstrap_with_their_discount(algo: str) -> None:
     """A row's ``discount`` replaces gamma in the bootstrap; a reward shift counts once per

@@ -217,6 +217,23 @@ def test_absent_kinds_are_zero(env: RobosuiteTabletopEnv) -> None:
     assert moved.sum() == 1 and o[4 + 4 * int(np.argmax(moved)) + 3] == 1.0
 
 
+def test_relative_positions_in_3d(env: RobosuiteTabletopEnv) -> None:
+    from envs.features import RelativePositions, slot_layout
+
+    wrapped = RelativePositions(env)
+    assert slot_layout(wrapped) == (4, 8, 7, 3)
+    obs, _ = wrapped.reset(seed=5)
+    x = obs["observation"]
+    assert x.shape == (4 + 8 * 7,) and wrapped.observation_space["observation"].contains(x)
+    s = env.scene()
+    for k, kind in enumerate(OBJECT_KINDS):
+        slot = x[4 + 7 * k : 11 + 7 * k]
+        if s.index(*kind) < 0:
+            np.testing.assert_array_equal(slot, 0.0)
+        else:
+            np.testing.assert_allclose(slot[4:], s.positions[s.index(*kind)] - s.gripper, atol=1e-5)
+
+
 def test_reset_keeps_the_model(env: RobosuiteTabletopEnv) -> None:
     model, data = env.model, env.data
     for seed in range(5):

@@ -71,6 +71,10 @@ class EnvConfig:
     goal: str = "object"
     """State goal of ``state2d`` and robosuite state or image goals: ``object`` (all object
     positions), ``pusher`` (2D) or ``gripper`` (robosuite)."""
+    relative_positions: bool = False
+    """Add each object's position relative to the gripper (pusher) to its observation
+    slot (:class:`envs.features.RelativePositions`); pair with ``--agent.net.slots``
+    ``(2, 8, 5)`` on the 2D tabletop or ``(4, 8, 7)`` on robosuite."""
     train_until_success: bool = True
     """Language goals: training episodes end when their instruction is achieved. ``False``
     runs them to the time limit and keeps what happens after the success (an object
@@ -129,7 +133,7 @@ def make_env(cfg: EnvConfig, split_set: str = "train", training: bool = False) -
         kwargs.update(image=True, image_size=cfg.image_size)
     if cfg.kind == "state2d":
         kwargs["goal"] = cfg.goal
-        base: gym.Env = Tabletop2DEnv(**kwargs)
+        base: gym.Env = _features(Tabletop2DEnv(**kwargs), cfg)
         return gym.wrappers.TimeLimit(base, cfg.max_episode_steps)
     from captioner.grammar import FAMILIES_2D
     from captioner.lang_env import LanguageGoalWrapper
@@ -139,13 +143,22 @@ def make_env(cfg: EnvConfig, split_set: str = "train", training: bool = False) -
     if bad:
         raise LcrlError(f"the 2D tabletop supports the families {FAMILIES_2D}, not {bad}")
     env = LanguageGoalWrapper(
-        Tabletop2DEnv(**kwargs),
+        _features(Tabletop2DEnv(**kwargs), cfg),
         split=make_split(cfg.split_seed, FAMILIES_2D),
         split_set=split_set,
         families=tuple(cfg.families),
         terminate_on_success=cfg.train_until_success or not training,
     )
     return gym.wrappers.TimeLimit(env, cfg.max_episode_steps)
+
+
+def _features(env: gym.Env, cfg: EnvConfig) -> gym.Env:
+    """The observation feature wrappers a config asks for."""
+    if cfg.relative_positions:
+        from envs.features import RelativePositions
+
+        return RelativePositions(env)
+    return env
 
 
 def _make_robosuite(cfg: EnvConfig, split_set: str, training: bool) -> gym.Env:
@@ -159,7 +172,7 @@ def _make_robosuite(cfg: EnvConfig, split_set: str, training: bool) -> gym.Env:
         if cfg.goal_type == "image" and goal != "object":
             raise LcrlError("image goals on the robosuite tabletop need goal='object'")
         kwargs["goal"] = goal
-    base = RobosuiteTabletopEnv(**kwargs)
+    base = _features(RobosuiteTabletopEnv(**kwargs), cfg)
     if cfg.goal_type != "language":
         return gym.wrappers.TimeLimit(base, cfg.max_episode_steps)
     from captioner.grammar import FAMILIES
