@@ -175,10 +175,23 @@ _NESTED: dict[tuple[str, str], type] = {
 }
 
 
+#: Object slots of the 2D tabletop's observation with relative positions: after the
+#: pusher's x, y, 8 kinds of [x, y, present, x - pusher x, y - pusher y].
+SLOTS_2D = (2, 8, 5)
+
+
+def _net2d(**fields: Any) -> AgentOptions:
+    """Language goals pick object slots by position (``slot_mode="select"``) and read
+    positions relative to the pusher: the critic learns the reach reward several times
+    faster than from the plain concatenation (see the README)."""
+    return AgentOptions(net=NetConfig(slots=SLOTS_2D, slot_mode="select", **fields))
+
+
 def _lang2d(**overrides: Any) -> TrainConfig:
     cfg = TrainConfig(
         out="runs/lang2d",
-        env=EnvConfig(kind="lang2d", families=("reach", "push")),
+        env=EnvConfig(kind="lang2d", families=("reach", "push"), relative_positions=True),
+        agent=_net2d(),
         buffer=BufferConfig(k=4, random_fraction=0.1),
         total_steps=100_000,
         eval_every=10_000,
@@ -223,8 +236,9 @@ PRESETS: dict[str, tuple[str, TrainConfig]] = {
                 min_objects=2,
                 max_objects=2,
                 max_episode_steps=30,
+                relative_positions=True,
             ),
-            agent=AgentOptions(net=NetConfig(hidden=(128, 128), text_dim=32)),
+            agent=_net2d(hidden=(128, 128), text_dim=32),
             total_steps=8_000,
             learning_starts=500,
             batch_size=128,
@@ -237,7 +251,9 @@ PRESETS: dict[str, tuple[str, TrainConfig]] = {
         "2D tabletop, language goals, 8 discrete moves, double DQN + language HER",
         _lang2d(
             out="runs/lang2d-dqn",
-            env=EnvConfig(kind="lang2d", families=("reach", "push"), discrete=True),
+            env=EnvConfig(
+                kind="lang2d", families=("reach", "push"), discrete=True, relative_positions=True
+            ),
         ),
     ),
     "lang2d-td3": (
