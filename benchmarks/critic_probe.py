@@ -160,7 +160,7 @@ def probe(
 
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    parser.add_argument("networks", nargs="*", choices=list(NETWORKS), default=[])
+    parser.add_argument("networks", nargs="*", help=f"any of {', '.join(NETWORKS)} (default: all)")
     parser.add_argument("--samples", type=int, default=60_000)
     parser.add_argument("--test", type=int, default=10_000, help="held-out samples")
     parser.add_argument("--updates", type=int, default=4_000)
@@ -168,6 +168,9 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--seed", type=int, default=0)
     args = parser.parse_args(argv)
     names = args.networks or list(NETWORKS)
+    unknown = [n for n in names if n not in NETWORKS]
+    if unknown:
+        parser.error(f"unknown networks {unknown}; choose from {', '.join(NETWORKS)}")
     torch.set_num_threads(1)
     info = machine()
     t0 = time.perf_counter()
