@@ -167,14 +167,34 @@ def run_one(
     t0 = time.perf_counter()
     Trainer(cfg).run()
     seconds = time.perf_counter() - t0
-    with (out / "eval.csv").open() as f:
-        rows = [{k: float(v) for k, v in r.items()} for r in csv.DictReader(f)]
+    rows = read_eval(out)
     return {
         "preset": preset,
         "k": cfg.buffer.k,
         "seconds": seconds,
         "curve": rows,
         "total_steps": cfg.total_steps,
+    }
+
+
+def read_eval(out: Path) -> list[dict[str, float]]:
+    """The evaluation curve a run wrote to ``out/eval.csv``."""
+    with (out / "eval.csv").open() as f:
+        return [{k: float(v) for k, v in r.items()} for r in csv.DictReader(f)]
+
+
+def read_run(preset: str, overrides: dict[str, Any], out: Path) -> dict[str, Any]:
+    """A finished or stopped run's curve, from its folder (no timing)."""
+    if not (out / "eval.csv").exists():
+        raise SystemExit(f"no evaluations in {out}: train the suite first")
+    cfg: TrainConfig = dataclasses.replace(PRESETS[preset][1], **overrides)
+    curve = read_eval(out)
+    return {
+        "preset": preset,
+        "k": cfg.buffer.k,
+        "seconds": None,
+        "curve": curve,
+        "total_steps": int(curve[-1]["step"]) if curve else 0,
     }
 
 
@@ -190,6 +210,12 @@ def main(argv: list[str] | None = None) -> int:
     )
     parser.add_argument(
         "--eval-episodes", type=int, default=None, help="override the episodes per evaluation set"
+    )
+    parser.add_argument(
+        "--report-only",
+        action="store_true",
+        help="train nothing: rebuild the results from the evaluations already in runs/bench/ "
+        "(e.g. of a run stopped early)",
     )
     args = parser.parse_args(argv)
     suite = dict(SUITES[args.suite])
@@ -210,7 +236,9 @@ def main(argv: list[str] | None = None) -> int:
         )
         for name, (preset, overrides) in suite["runs"].items()
     }
-    if args.parallel and len(jobs) > 1:
+    if args.report_only:
+        results = {name: read_run(*job[:2], job[2]) for name, job in jobs.items()}
+    elif args.parallel and len(jobs) > 1:
         # One process per run, one torch thread each, so that the runs share the machine.
         ctx = multiprocessing.get_context("spawn")
         with ProcessPoolExecutor(len(jobs), mp_context=ctx, initializer=_one_thread) as pool:
@@ -263,6 +291,12 @@ def main(argv: list[str] | None = None) -> int:
         f"({run_name}): {verdict}."
     )
     for name, res in results.items():
+        if res["seconds"] is None:
+            lines.append(
+                f"- {name}: evaluated up to step {res['total_steps']:,} (rebuilt from "
+                f"runs/bench/{args.suite}-{name}; no timing)"
+            )
+            continue
         lines.append(
             f"- {name}: {res['total_steps']:,} steps in {res['seconds']:.0f} s "
             f"({res['total_steps'] / res['seconds']:.0f} steps/s incl. evaluation)"
