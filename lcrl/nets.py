@@ -103,7 +103,24 @@ class ConvEncoder(nn.Module):
         return self.head(self.convs(x).flatten(1))
 
 
-class SlotAttention(nn.Module):
+class _SlotReader(nn.Module):
+    """Shared part of the slot readers: the ``(start, count, width)`` layout and the
+    slots of every key side by side, ``(B, count, keys * width)``."""
+
+    def __init__(self, layout: Sequence[int]) -> None:
+        super().__init__()
+        start, count, width = (int(v) for v in layout)
+        self.start, self.count, self.width = start, count, width
+        self.end = start + count * width
+
+    def _slots(self, xs: Sequence[torch.Tensor]) -> torch.Tensor:
+        b = xs[0].shape[0]
+        return torch.cat(
+            [x[:, self.start : self.end].reshape(b, self.count, self.width) for x in xs], -1
+        )
+
+
+class SlotAttention(_SlotReader):
     """Goal-conditioned attention over object slots of vector observations.
 
     Every key's vector is ``[global (start values), count slots of width values,
@@ -122,10 +139,8 @@ class SlotAttention(nn.Module):
     def __init__(
         self, dims: Sequence[int], layout: Sequence[int], goal_dim: int, cfg: NetConfig
     ) -> None:
-        super().__init__()
-        start, count, width = (int(v) for v in layout)
-        self.start, self.count, self.width = start, count, width
-        self.end = start + count * width
+        super().__init__(layout)
+        count, width = self.count, self.width
         self.extra = sum(d - count * width for d in dims)  # global + rest values, all keys
         d, heads = cfg.slot_dim, cfg.slot_heads
         self.identity = nn.Parameter(torch.randn(count, d) * 0.1)
@@ -137,9 +152,7 @@ class SlotAttention(nn.Module):
 
     def forward(self, xs: Sequence[torch.Tensor], goal: torch.Tensor) -> torch.Tensor:
         b = xs[0].shape[0]
-        slots = torch.cat(
-            [x[:, self.start : self.end].reshape(b, self.count, self.width) for x in xs], -1
-        )
+        slots = self._slots(xs)
         extra = torch.cat([torch.cat([x[:, : self.start], x[:, self.end :]], -1) for x in xs], -1)
         per_slot = torch.cat(
             [
@@ -157,7 +170,7 @@ class SlotAttention(nn.Module):
         return torch.cat([picked, extra], -1)
 
 
-class SlotSelect(nn.Module):
+class SlotSelect(_SlotReader):
     """Goal-conditioned selection of object slots by position.
 
     Every key's vector is ``[global (start values), count slots of width values,
@@ -176,19 +189,14 @@ class SlotSelect(nn.Module):
     def __init__(
         self, dims: Sequence[int], layout: Sequence[int], goal_dim: int, cfg: NetConfig
     ) -> None:
-        super().__init__()
-        start, count, width = (int(v) for v in layout)
-        self.start, self.count, self.width = start, count, width
-        self.end = start + count * width
+        super().__init__(layout)
         self.heads = cfg.slot_heads
-        self.logits = nn.Linear(goal_dim, self.heads * count)
-        self.out_dim = self.heads * len(dims) * width + sum(dims)
+        self.logits = nn.Linear(goal_dim, self.heads * self.count)
+        self.out_dim = self.heads * len(dims) * self.width + sum(dims)
 
     def forward(self, xs: Sequence[torch.Tensor], goal: torch.Tensor) -> torch.Tensor:
         b = xs[0].shape[0]
-        slots = torch.cat(
-            [x[:, self.start : self.end].reshape(b, self.count, self.width) for x in xs], -1
-        )
+        slots = self._slots(xs)
         w = torch.softmax(self.logits(goal).view(b, self.heads, self.count), -1)
         picked = torch.bmm(w, slots).reshape(b, -1)  # (B, heads * keys * width)
         return torch.cat([picked, *xs], -1)
