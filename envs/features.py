@@ -6,7 +6,8 @@ per object kind in :data:`~envs.scene.OBJECT_KINDS` order, each ``[position, pre
 The env class says where: ``slot_layout = (start, count, width)`` and ``position_dims``
 (the position values at the front of the agent values and of each slot).
 
-:class:`RelativePositions` adds each object's position relative to the agent to its slot.
+:class:`SlotFeatures` adds to each slot the object's position relative to the agent
+(:class:`RelativePositions`) and, optionally, how far it moved since the episode began.
 A goal-conditioned network then reads "how far is the red cube from the gripper" from
 one slot instead of computing a difference between two inputs that it must first learn
 to pick by the goal; with :class:`lcrl.nets.SlotSelect` the one-step reach reward is
@@ -23,12 +24,12 @@ from gymnasium import spaces
 
 from lcrl.errors import LcrlError
 
-__all__ = ["RelativePositions", "slot_layout"]
+__all__ = ["RelativePositions", "SlotFeatures", "slot_layout"]
 
 
 def slot_layout(env: gym.Env) -> tuple[int, int, int, int]:
     """``(start, count, width, position_dims)`` of ``env``'s observation slots: from the
-    outermost :class:`RelativePositions` if any, else from the unwrapped env's class."""
+    outermost :class:`SlotFeatures` if any, else from the unwrapped env's class."""
     e: Any = env
     while True:
         if "slot_layout" in vars(e):
@@ -47,43 +48,69 @@ def slot_layout(env: gym.Env) -> tuple[int, int, int, int]:
     return int(start), int(count), int(width), int(base.position_dims)
 
 
-class RelativePositions(gym.ObservationWrapper):
-    """Append to every object slot its position minus the agent's position.
+class SlotFeatures(gym.ObservationWrapper):
+    """Append per-object features to every object slot.
 
-    Slot ``k`` becomes ``[original values, rel_1 .. rel_d]`` with ``d = position_dims``;
-    absent kinds (present flag, the slot's last value, is 0) get zeros. The agent values
+    Slot ``k`` becomes ``[original values, rel_1 .. rel_d, disp_1 .. disp_d]`` with
+    ``d = position_dims``, each part present when its option is on:
+
+    * ``relative``: the object's position minus the agent's position (how far the red
+      cube is from the gripper);
+    * ``displacement``: the object's position minus its position at the episode's reset
+      (how far the red cube has been pushed). Push and put instructions are judged on
+      that change; as an explicit feature it is normalised on its own scale (most objects
+      never move, so a 5 cm push stands out) instead of being a small difference of two
+      large position inputs.
+
+    Absent kinds (present flag, the slot's last value, is 0) get zeros. The agent values
     and anything after the slots are unchanged, so ``slot_layout`` becomes
-    ``(start, count, width + d)``.
+    ``(start, count, width + d * parts)``.
 
     Args:
         env: a tabletop (or a wrapper of one) whose class defines ``slot_layout`` and
-            ``position_dims``.
+            ``position_dims``; not already wrapped by :class:`SlotFeatures`.
+        relative: add positions relative to the agent.
+        displacement: add displacements since the reset.
     """
 
-    def __init__(self, env: gym.Env) -> None:
+    def __init__(self, env: gym.Env, relative: bool = True, displacement: bool = False) -> None:
         super().__init__(env)
+        if not (relative or displacement):
+            raise LcrlError("SlotFeatures needs relative=True or displacement=True")
+        e: Any = env
+        while isinstance(e, gym.Wrapper):
+            if isinstance(e, SlotFeatures):
+                raise LcrlError(
+                    "the env already has slot features: use one SlotFeatures with both options"
+                )
+            e = e.env
         start, count, width, dims = slot_layout(env)
         space = env.observation_space
         if not isinstance(space, spaces.Dict) or "observation" not in space.spaces:
-            raise LcrlError("RelativePositions needs a Dict observation with 'observation'")
+            raise LcrlError("SlotFeatures needs a Dict observation with 'observation'")
         box = space["observation"]
         if start < dims or start + count * width > box.shape[0]:
             raise LcrlError(f"slot layout {(start, count, width)} does not fit {box.shape}")
+        self.relative, self.displacement = bool(relative), bool(displacement)
         self._start, self._count, self._width, self._dims = start, count, width, dims
         self._end = start + count * width
-        self.slot_layout = (start, count, width + dims)
+        parts = int(self.relative) + int(self.displacement)
+        self.slot_layout = (start, count, width + dims * parts)
         self.position_dims = dims
+        self._origin: np.ndarray | None = None  # slot positions at the last reset
         low, high = box.low.astype(np.float64), box.high.astype(np.float64)
         slots_lo = low[start : self._end].reshape(count, width)
         slots_hi = high[start : self._end].reshape(count, width)
-        rel_lo = np.minimum(slots_lo[:, :dims] - high[:dims], 0.0)
-        rel_hi = np.maximum(slots_hi[:, :dims] - low[:dims], 0.0)
-        new_low = np.concatenate(
-            [low[:start], np.concatenate([slots_lo, rel_lo], 1).ravel(), low[self._end :]]
-        )
-        new_high = np.concatenate(
-            [high[:start], np.concatenate([slots_hi, rel_hi], 1).ravel(), high[self._end :]]
-        )
+        los, his = [slots_lo], [slots_hi]
+        if self.relative:
+            los.append(np.minimum(slots_lo[:, :dims] - high[:dims], 0.0))
+            his.append(np.maximum(slots_hi[:, :dims] - low[:dims], 0.0))
+        if self.displacement:
+            span = slots_hi[:, :dims] - slots_lo[:, :dims]
+            los.append(np.minimum(-span, 0.0))
+            his.append(np.maximum(span, 0.0))
+        new_low = np.concatenate([low[:start], np.concatenate(los, 1).ravel(), low[self._end :]])
+        new_high = np.concatenate([high[:start], np.concatenate(his, 1).ravel(), high[self._end :]])
         self.observation_space = spaces.Dict(
             {
                 **space.spaces,
@@ -93,17 +120,53 @@ class RelativePositions(gym.ObservationWrapper):
             }
         )
 
-    def features(self, observation: np.ndarray) -> np.ndarray:
-        """The extended ``"observation"`` vector(s) (any leading batch shape)."""
+    def _slots(self, x: np.ndarray) -> np.ndarray:
+        return x[..., self._start : self._end].reshape(*x.shape[:-1], self._count, self._width)
+
+    def features(self, observation: np.ndarray, origin: np.ndarray | None = None) -> np.ndarray:
+        """The extended ``"observation"`` vector(s) (any leading batch shape).
+
+        Args:
+            observation: raw observation vector(s) of the wrapped env.
+            origin: with ``displacement``, the raw observation(s) at the episode's reset
+                (default: the one this wrapper saw at its last reset).
+        """
         x = np.asarray(observation, np.float32)
         lead = x.shape[:-1]
-        slots = x[..., self._start : self._end].reshape(*lead, self._count, self._width)
+        slots = self._slots(x)
         present = slots[..., -1:] > 0.5
-        rel = np.where(present, slots[..., : self._dims] - x[..., None, : self._dims], 0.0)
-        body = np.concatenate([slots, rel.astype(np.float32)], -1).reshape(*lead, -1)
+        parts = [slots]
+        if self.relative:
+            rel = slots[..., : self._dims] - x[..., None, : self._dims]
+            parts.append(np.where(present, rel, 0.0).astype(np.float32))
+        if self.displacement:
+            if origin is None:
+                if self._origin is None:
+                    raise LcrlError("SlotFeatures: reset the env before asking for displacements")
+                start = self._origin
+            else:
+                start = self._slots(np.asarray(origin, np.float32))[..., : self._dims]
+            disp = slots[..., : self._dims] - start
+            parts.append(np.where(present, disp, 0.0).astype(np.float32))
+        body = np.concatenate(parts, -1).reshape(*lead, -1)
         return np.concatenate([x[..., : self._start], body, x[..., self._end :]], -1)
+
+    def reset(
+        self, *, seed: int | None = None, options: dict[str, Any] | None = None
+    ) -> tuple[dict[str, Any], dict[str, Any]]:
+        obs, info = self.env.reset(seed=seed, options=options)
+        raw = np.asarray(obs["observation"], np.float32)
+        self._origin = self._slots(raw)[..., : self._dims].copy()
+        return self.observation(obs), info
 
     def observation(self, observation: dict[str, Any]) -> dict[str, Any]:
         out = dict(observation)
         out["observation"] = self.features(observation["observation"])
         return out
+
+
+class RelativePositions(SlotFeatures):
+    """:class:`SlotFeatures` with positions relative to the agent only."""
+
+    def __init__(self, env: gym.Env) -> None:
+        super().__init__(env, relative=True, displacement=False)

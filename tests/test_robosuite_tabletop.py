@@ -234,6 +234,26 @@ def test_relative_positions_in_3d(env: RobosuiteTabletopEnv) -> None:
             np.testing.assert_allclose(slot[4:], s.positions[s.index(*kind)] - s.gripper, atol=1e-5)
 
 
+def test_displacements_in_3d(env: RobosuiteTabletopEnv) -> None:
+    from envs.features import SlotFeatures, slot_layout
+
+    wrapped = SlotFeatures(env, relative=False, displacement=True)
+    assert slot_layout(wrapped) == (4, 8, 7, 3)
+    obs, _ = wrapped.reset(seed=6)
+    start = env.scene()
+    np.testing.assert_array_equal(obs["observation"][4:].reshape(8, 7)[:, 4:], 0.0)
+    for _ in range(5):  # objects settle and may shift a little; the features follow them
+        obs, *_ = wrapped.step(np.array([0.0, 0.0, -1.0, -1.0]))
+    slots, now = obs["observation"][4:].reshape(8, 7), env.scene()
+    for k, kind in enumerate(OBJECT_KINDS):
+        i = now.index(*kind)
+        if i < 0:
+            np.testing.assert_array_equal(slots[k], 0.0)
+        else:
+            moved = now.positions[i] - start.positions[i]
+            np.testing.assert_allclose(slots[k, 4:], moved, atol=1e-5)
+
+
 def test_reset_keeps_the_model(env: RobosuiteTabletopEnv) -> None:
     model, data = env.model, env.data
     for seed in range(5):

@@ -36,6 +36,7 @@ EVAL_SEED_OFFSET = 7_777_777
 def build_task(cfg: TrainConfig, env: gym.Env, ckpt: Checkpoint | None = None) -> Task:
     """The task adapter; language tasks load the frozen text encoder (and the checkpoint's
     instruction table, when given)."""
+    check_slots(cfg, env)
     if not is_language(cfg.env):
         return make_task(cfg.env, env)
     from lcrl.text_encoder import FrozenTextEncoder
@@ -48,6 +49,26 @@ def build_task(cfg: TrainConfig, env: gym.Env, ckpt: Checkpoint | None = None) -
     task = make_task(cfg.env, env, encoder.encode, **kwargs)
     task.encoder = encoder  # type: ignore[attr-defined]
     return task
+
+
+def check_slots(cfg: TrainConfig, env: gym.Env) -> None:
+    """Refuse ``agent.net.slots`` that do not match the env's object slots (the network
+    would read the wrong values silently)."""
+    slots = tuple(cfg.agent.net.slots)
+    if not slots or cfg.env.image_obs:
+        return
+    from envs.features import slot_layout
+
+    try:
+        layout = slot_layout(env)[:3]
+    except LcrlError:
+        return  # the env does not describe its slots: the user's layout is taken as given
+    if slots != layout:
+        raise LcrlError(
+            f"agent.net.slots is {slots} but this env's observation slots are {layout} "
+            "(relative_positions and displacements widen each slot): pass "
+            f"--agent.net.slots {' '.join(map(str, layout))}"
+        )
 
 
 def build_agent(algo: str, problem: Problem, cfg: TrainConfig, goal_embed: Any) -> Agent:

@@ -75,6 +75,10 @@ class EnvConfig:
     """Add each object's position relative to the gripper (pusher) to its observation
     slot (:class:`envs.features.RelativePositions`); pair with ``--agent.net.slots``
     ``(2, 8, 5)`` on the 2D tabletop or ``(4, 8, 7)`` on robosuite."""
+    displacements: bool = False
+    """Add each object's displacement since the episode's reset to its observation slot
+    (:class:`envs.features.SlotFeatures`): push and put are judged on it. Widens each slot
+    by 2 values on the 2D tabletop (3 on robosuite); set ``--agent.net.slots`` to match."""
     train_until_success: bool = True
     """Language goals: training episodes end when their instruction is achieved. ``False``
     runs them to the time limit and keeps what happens after the success (an object
@@ -154,10 +158,10 @@ def make_env(cfg: EnvConfig, split_set: str = "train", training: bool = False) -
 
 def _features(env: gym.Env, cfg: EnvConfig) -> gym.Env:
     """The observation feature wrappers a config asks for."""
-    if cfg.relative_positions:
-        from envs.features import RelativePositions
+    if cfg.relative_positions or cfg.displacements:
+        from envs.features import SlotFeatures
 
-        return RelativePositions(env)
+        return SlotFeatures(env, relative=cfg.relative_positions, displacement=cfg.displacements)
     return env
 
 
