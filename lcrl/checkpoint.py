@@ -819,6 +819,10 @@ class Checkpoint:
             )
         return unflatten_state(tensors, skeleton)
 
+    def has_state(self, name: str) -> bool:
+        """Whether ``states[name]`` was saved (older checkpoints may lack newer states)."""
+        return name in self._state_skeletons()
+
     def has_arrays(self) -> bool:
         """Return whether the checkpoint has an ``arrays.npz`` file.
 

@@ -479,3 +479,37 @@ def test_saved_configs_keep_their_text_goal_normalisation():
     # were trained with.
     del saved["agent"]["text_goal_norm"]
     assert config_from_dict(saved).agent.text_goal_norm == "standardize"
+
+
+def test_scripted_episodes_are_stored_counted_and_resumed(text_encoder, tmp_path):
+    out = tmp_path / "scripted"
+    cfg = tiny("lang2d", out, total_steps=400, scripted_fraction=0.5, checkpoint_every=200)
+    trainer = Trainer(cfg)
+    trainer.run()
+    assert 0 < trainer.scripted_episodes < trainer.episodes
+    # the live success rate counts the policy's episodes only
+    assert len(trainer.recent) == trainer.episodes - trainer.scripted_episodes
+    buf = trainer.buffer
+    acts = buf.action[: buf.size]
+    assert np.all(np.abs(acts) <= 1.0)
+    # Scripted episodes succeed at their instruction and end there (terminated), so the
+    # buffer holds far more terminated episodes than 400 steps of a barely trained policy.
+    assert buf.terminated[: buf.size].sum() >= 0.8 * trainer.scripted_episodes
+    _, rows = read_csv(out / "progress.csv")
+    assert int(rows[-1]["scripted_episodes"]) == trainer.scripted_episodes
+    # resuming restores the scripted-episode generator: the continuation is identical
+    twin = tmp_path / "twin"
+    Trainer(dataclasses.replace(cfg, out=str(twin), total_steps=200)).run()
+    resumed = Trainer(dataclasses.replace(cfg, out=str(twin), total_steps=400, resume=True))
+    resumed.run()
+    assert resumed.scripted_episodes == trainer.scripted_episodes
+    assert resumed.episodes == trainer.episodes
+
+
+def test_scripted_episode_settings_are_checked(text_encoder, tmp_path):
+    with pytest.raises(LcrlError, match="scripted_fraction"):
+        Trainer(tiny("lang2d", tmp_path / "a", scripted_fraction=1.5))
+    with pytest.raises(LcrlError, match="scripted_noise"):
+        Trainer(tiny("lang2d", tmp_path / "b", scripted_fraction=0.5, scripted_noise=-1.0))
+    with pytest.raises(LcrlError, match="no scripted controller"):
+        Trainer(tiny("state2d", tmp_path / "c", scripted_fraction=0.5))

@@ -68,6 +68,15 @@ class TrainConfig:
     """Hold each random action of the first ``learning_starts`` steps for this many steps
     (1: a fresh action every step). Held actions travel further, so a random pusher
     touches and pushes more objects and the captioner has more to label."""
+    scripted_fraction: float = 0.0
+    """Fraction of training episodes acted by the env's scripted controller instead of the
+    policy (language goals on both tabletops). They are stored, captioned, relabelled and
+    counted in ``total_steps`` like any other episode: an exploration aid for families
+    whose first success a policy rarely stumbles on (push). 0 is pure reinforcement
+    learning. Evaluation always runs the policy."""
+    scripted_noise: float = 0.3
+    """Standard deviation of the Gaussian noise added to the scripted controller's actions
+    (in ``[-1, 1]`` units), so that scripted episodes also show near misses."""
     batch_size: int = 256
     """Transitions per update."""
     updates_per_step: float = 1.0
@@ -126,6 +135,10 @@ class TrainConfig:
             raise LcrlError("updates_per_step must be >= 0")
         if self.buffer.k < 0:
             raise LcrlError("buffer.k must be >= 0")
+        if not 0.0 <= self.scripted_fraction <= 1.0:
+            raise LcrlError(f"scripted_fraction must be in [0, 1], got {self.scripted_fraction}")
+        if self.scripted_noise < 0:
+            raise LcrlError(f"scripted_noise must be >= 0, got {self.scripted_noise}")
         if self.keep_checkpoints < 1:
             raise LcrlError("keep_checkpoints must be at least 1")
 

@@ -29,7 +29,7 @@ from lcrl.errors import LcrlError
 from train.config import TrainConfig, config_from_dict, config_to_dict
 from train.evaluate import build_agent, build_task, evaluate, format_results
 from train.report import write_report
-from train.tasks import make_env
+from train.tasks import ScriptedActor, make_env
 
 
 class CsvLog:
@@ -115,9 +115,16 @@ class Trainer:
             gamma=self.agent.cfg.gamma,
         )
         self.rng = np.random.default_rng(cfg.seed)
+        self.scripted = (
+            ScriptedActor(cfg.env, self.task, cfg.scripted_noise)
+            if cfg.scripted_fraction > 0
+            else None
+        )
+        self.scripted_rng = np.random.default_rng([cfg.seed, 1])
         self.step = 0
         self.episodes = 0
         self.sim_errors = 0  # episodes a simulator error ended (the env reports them)
+        self.scripted_episodes = 0  # episodes acted by the scripted controller
         self.recent: deque[float] = deque(maxlen=100)
         self._credit = 0.0
         self._metrics: dict[str, float] = {}
@@ -195,9 +202,14 @@ class Trainer:
         actions, rewards, terms = [], [], []
         succeeded = False  # at any step (episodes may go on after success)
         start_step = self.step
+        scripted = self.scripted is not None and self.scripted_rng.random() < cfg.scripted_fraction
+        if scripted:
+            self.scripted.reset()
         try:
             while True:
-                if self.step < cfg.learning_starts:
+                if scripted:
+                    a = self.scripted.act(env, self.scripted_rng)
+                elif self.step < cfg.learning_starts:
                     if (self.step - start_step) % cfg.random_action_repeat == 0:
                         random_a = task.random_action(self.rng)
                     a = random_a
@@ -231,7 +243,10 @@ class Trainer:
         self.buffer.add_episode(episode)
         self.agent.observe(episode_obs, episode.get("achieved_goal"))
         self.episodes += 1
-        self.recent.append(float(succeeded))
+        if scripted:
+            self.scripted_episodes += 1
+        else:  # the live success rate is the policy's
+            self.recent.append(float(succeeded))
         if info.get("sim_error"):
             self.sim_errors += 1
 
@@ -292,6 +307,7 @@ class Trainer:
             "updates": self.agent.updates,
             "buffer": self.buffer.size,
             "sim_errors": self.sim_errors,
+            "scripted_episodes": self.scripted_episodes,
         }
         n = max(self._metric_count, 1)
         row.update({k: v / n for k, v in sorted(self._metrics.items())})
@@ -333,10 +349,12 @@ class Trainer:
             **self.agent.states(),
             "buffer_rng": self.buffer.rng.bit_generator.state,
             "trainer_rng": self.rng.bit_generator.state,
+            "scripted_rng": self.scripted_rng.bit_generator.state,
             "trainer": {
                 "step": self.step,
                 "episodes": self.episodes,
                 "sim_errors": self.sim_errors,
+                "scripted_episodes": self.scripted_episodes,
                 "recent": list(self.recent),
                 "credit": self._credit,
             },
@@ -363,9 +381,12 @@ class Trainer:
         self.agent.load_states(states)
         self.buffer.rng.bit_generator.state = ckpt.state("buffer_rng")
         self.rng.bit_generator.state = ckpt.state("trainer_rng")
+        if ckpt.has_state("scripted_rng"):
+            self.scripted_rng.bit_generator.state = ckpt.state("scripted_rng")
         trainer = ckpt.state("trainer")
         self.step, self.episodes = int(trainer["step"]), int(trainer["episodes"])
         self.sim_errors = int(trainer.get("sim_errors", 0))
+        self.scripted_episodes = int(trainer.get("scripted_episodes", 0))
         self.recent.extend(trainer["recent"])
         self._credit = float(trainer["credit"])
         if ckpt.has_arrays():

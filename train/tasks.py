@@ -475,6 +475,56 @@ class LanguageTask(Task):
         return self.embeddings[np.asarray(goals, np.int64)]
 
 
+class ScriptedActor:
+    """The env's scripted controller as a policy-space actor for training episodes.
+
+    Args:
+        cfg: the env config (language goals on the 2D tabletop or robosuite).
+        task: the run's task (action scaling, discrete moves).
+        noise: std of the Gaussian noise added to continuous actions.
+
+    Raises:
+        LcrlError: the env has no scripted controller.
+    """
+
+    def __init__(self, cfg: EnvConfig, task: Task, noise: float) -> None:
+        if not is_language(cfg):
+            raise LcrlError(
+                "scripted episodes need language goals on the 2D tabletop or robosuite "
+                f"(env kind {cfg.kind!r}, goal type {cfg.goal_type!r} has no scripted controller)"
+            )
+        if cfg.kind == "lang2d":
+            from captioner.scripted import ScriptedController2D
+
+            self.controller: Any = ScriptedController2D()
+        else:
+            from captioner.scripted3d import ScriptedController3D
+
+            self.controller = ScriptedController3D()
+        self.task, self.noise = task, float(noise)
+
+    def reset(self) -> None:
+        """Start a new episode."""
+        reset = getattr(self.controller, "reset", None)
+        if reset is not None:
+            reset()
+
+    def act(self, env: gym.Env, rng: np.random.Generator) -> np.ndarray:
+        """The controller's action for the env's current scene, in policy space."""
+        wrapper = find_language_wrapper(env)
+        a = self.controller.act(wrapper.meaning, wrapper.s0, env.unwrapped.scene())
+        if self.task.discrete:
+            from captioner.scripted import to_discrete
+
+            return np.asarray(to_discrete(a))
+        a = np.asarray(a, np.float32)
+        if self.noise > 0:
+            a = a + rng.normal(0.0, self.noise, a.shape).astype(np.float32)
+        low, high = self.task.low, self.task.high
+        # the controllers speak the env's action units; the buffer stores policy units
+        return np.clip(2.0 * (a - low) / (high - low) - 1.0, -1.0, 1.0).astype(np.float32)
+
+
 def find_language_wrapper(env: gym.Env) -> Any:
     """The :class:`~captioner.lang_env.LanguageGoalWrapper` inside ``env``."""
     from captioner.lang_env import LanguageGoalWrapper
