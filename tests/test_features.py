@@ -110,6 +110,6 @@ def test_slots_that_do_not_match_the_env_are_refused() -> None:
 
     cfg = PRESETS["lang2d"][1]
     check_slots(cfg, make_env(cfg.env))  # the preset matches its env
-    env = make_env(EnvConfig(kind="lang2d", relative_positions=True, displacements=True))
-    with pytest.raises(LcrlError, match=r"--agent\.net\.slots 2 8 7"):
+    env = make_env(EnvConfig(kind="lang2d", relative_positions=True))
+    with pytest.raises(LcrlError, match=r"--agent\.net\.slots 2 8 5"):
         check_slots(cfg, env)

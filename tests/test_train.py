@@ -327,7 +327,7 @@ def test_load_policy_rejects_mismatched_env_and_missing_path(lang_run, tmp_path)
     msg = str(e.value)
     assert "does not match" in msg
     assert "text goals (384,)" in msg and "vector goals (16,)" in msg
-    assert "initial (42,)" in msg
+    assert "initial (58,)" in msg
 
     with pytest.raises(LcrlError) as e:
         load_policy(trainer.out, env_overrides={"discrete": True})

@@ -188,9 +188,18 @@ _NESTED: dict[tuple[str, str], type] = {
 }
 
 
-#: Object slots of the 2D tabletop's observation with relative positions: after the
-#: pusher's x, y, 8 kinds of [x, y, present, x - pusher x, y - pusher y].
-SLOTS_2D = (2, 8, 5)
+#: Object slots of the 2D tabletop's observation with relative positions and
+#: displacements: after the pusher's x, y, 8 kinds of [x, y, present, x - pusher x,
+#: y - pusher y, x - x at reset, y - y at reset].
+SLOTS_2D = (2, 8, 7)
+
+
+def _env2d(**fields: Any) -> EnvConfig:
+    """The 2D tabletop with language goals, object slots extended by positions relative to
+    the pusher and displacements since the reset (what reach and push are judged on)."""
+    values: dict[str, Any] = {"families": ("reach", "push")}
+    values.update(fields)
+    return EnvConfig(kind="lang2d", relative_positions=True, displacements=True, **values)
 
 
 def _net2d(**fields: Any) -> AgentOptions:
@@ -203,10 +212,11 @@ def _net2d(**fields: Any) -> AgentOptions:
 def _lang2d(**overrides: Any) -> TrainConfig:
     cfg = TrainConfig(
         out="runs/lang2d",
-        env=EnvConfig(kind="lang2d", families=("reach", "push"), relative_positions=True),
+        env=_env2d(),
         agent=_net2d(),
         buffer=BufferConfig(k=4, random_fraction=0.1),
         total_steps=100_000,
+        scripted_fraction=0.2,
         eval_every=10_000,
         eval_episodes=100,
     )
@@ -232,25 +242,23 @@ _IMAGE_AGENT = AgentOptions(net=NetConfig(share_cnn=True), augment_pad=4)
 
 PRESETS: dict[str, tuple[str, TrainConfig]] = {
     "lang2d": (
-        "2D tabletop, language goals (reach, push), SAC + language HER, 100k steps",
+        "2D tabletop, language goals (reach, push), SAC + language HER, 20% scripted "
+        "exploration episodes, 100k steps",
         _lang2d(),
     ),
     "lang2d-noher": (
         "the lang2d run without hindsight relabelling (the baseline it must beat)",
         _lang2d(out="runs/lang2d-noher", buffer=BufferConfig(k=0)),
     ),
+    "lang2d-rl": (
+        "the lang2d run without scripted episodes: every training episode is the policy's",
+        _lang2d(out="runs/lang2d-rl", scripted_fraction=0.0),
+    ),
     "lang2d-quick": (
         "a small lang2d run (reach, 2 objects, 8k steps, small networks): a few minutes on a CPU",
         _lang2d(
             out="runs/lang2d-quick",
-            env=EnvConfig(
-                kind="lang2d",
-                families=("reach",),
-                min_objects=2,
-                max_objects=2,
-                max_episode_steps=30,
-                relative_positions=True,
-            ),
+            env=_env2d(families=("reach",), min_objects=2, max_objects=2, max_episode_steps=30),
             agent=_net2d(hidden=(128, 128), text_dim=32),
             total_steps=8_000,
             learning_starts=500,
@@ -264,9 +272,7 @@ PRESETS: dict[str, tuple[str, TrainConfig]] = {
         "2D tabletop, language goals, 8 discrete moves, double DQN + language HER",
         _lang2d(
             out="runs/lang2d-dqn",
-            env=EnvConfig(
-                kind="lang2d", families=("reach", "push"), discrete=True, relative_positions=True
-            ),
+            env=_env2d(discrete=True),
         ),
     ),
     "lang2d-td3": (
