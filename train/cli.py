@@ -7,6 +7,7 @@ Subcommands:
     demo    caption scripted and random episodes on the 2D tabletop, write a report
     split   make a compositional instruction split and save it as JSON
     parse   show how the grammar reads instructions (canonical form and slots)
+    caption collect   gather camera episodes labelled by the rule captioner (HDF5)
 
 User mistakes (bad options, unparseable instructions, missing files) print one line
 starting with ``lcrl: error:`` and exit with status 2; Ctrl-C exits with status 130.
@@ -281,6 +282,29 @@ def _train(argv: Sequence[str]) -> None:
     del results
 
 
+@dataclass
+class CaptionStub:
+    """Learned-captioner data and models: ``lcrl caption collect --help``."""
+
+    def run(self) -> None:
+        _caption(["--help"])
+
+
+def _caption(argv: Sequence[str]) -> None:
+    from captioner.dataset import CaptionDataset, CollectConfig, collect
+
+    cfg = tyro.extras.subcommand_cli_from_dict(
+        {"collect": CollectConfig},
+        prog="lcrl caption",
+        description="Learned captioner: collect labelled camera episodes.",
+        args=list(argv),
+    )
+    if isinstance(cfg, CollectConfig):
+        path = collect(cfg)
+        with CaptionDataset(path) as data:
+            print(data.summary())
+
+
 def main(argv: Sequence[str] | None = None) -> None:
     """Entry point of the ``lcrl`` console script."""
     from train.demo import DemoConfig, run_demo
@@ -293,10 +317,14 @@ def main(argv: Sequence[str] | None = None) -> None:
         "demo": DemoConfig,
         "split": SplitCommand,
         "parse": ParseCommand,
+        "caption": CaptionStub,
     }
     try:
         if args and args[0] == "train":
             _train(args[1:])
+            return
+        if args and args[0] == "caption":
+            _caption(args[1:])
             return
         cfg = tyro.extras.subcommand_cli_from_dict(
             commands,

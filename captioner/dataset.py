@@ -1,0 +1,659 @@
+"""Caption datasets: camera episodes with the rule captioner's labels, in one HDF5 file.
+
+A learned captioner reads (first frame, current frame) and writes the instruction that the
+change between them achieved; a learned reward model scores (instruction, first frame,
+current frame). Both learn from episodes labelled by the rule captioner, which
+:func:`collect` gathers on either tabletop: random episodes (held random actions),
+scripted episodes (the scripted controller following an instruction feasible in the
+layout, train or held-out, with action noise) and, given a checkpoint, policy episodes.
+
+File layout (``format = "lcrl-caption-dataset"``, ``version = 1``)::
+
+    attrs      format, version, meta (JSON: env, families, split seed, image size,
+               sources, collect settings)
+    instructions         (I,) str   canonical instructions: the split's train set first,
+                                    then its held-out combinations
+    instruction_set      (I,) str   "train" or "heldout" for each instruction
+    frames               (N, H, W, 3) uint8  every observation's camera frame
+    proprio              (N, P) float32      the robot's own state (pusher or gripper)
+    episode_start        (E + 1,) int64      episode e's observations are
+                                             [episode_start[e], episode_start[e + 1])
+    episode_source       (E,) uint8          index into meta["sources"] (random, scripted,
+                                             policy)
+    episode_instruction  (E,) int32          the instruction followed (-1: random)
+    label_start          (N + 1,) int64      observation j's labels are
+    label_ids            (L,) int16          label_ids[label_start[j]:label_start[j + 1]]:
+                                             every instruction of the table that the
+                                             change from the episode's first scene to
+                                             observation j satisfies (the rule captioner)
+
+The labels are complete over the table, so an instruction missing from an observation's
+labels is a true negative for the reward model. :class:`CaptionDataset` reads the file
+lazily (frames are read per batch, not loaded whole).
+"""
+
+from __future__ import annotations
+
+import json
+import os
+from collections.abc import Iterator, Sequence
+from dataclasses import asdict, dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from captioner.grammar import FAMILIES, FAMILIES_2D, Instruction
+from captioner.rule import RuleCaptioner
+from captioner.splits import Split, make_split
+from envs.scene import SceneState
+from lcrl.errors import LcrlError
+
+FORMAT = "lcrl-caption-dataset"
+VERSION = 1
+SOURCES: tuple[str, ...] = ("random", "scripted", "policy")
+ENVS: tuple[str, ...] = ("lang2d", "robosuite")
+
+__all__ = [
+    "ENVS",
+    "FORMAT",
+    "SOURCES",
+    "VERSION",
+    "CaptionDataset",
+    "CaptionDatasetWriter",
+    "CollectConfig",
+    "collect",
+    "instruction_table",
+]
+
+
+def _h5py() -> Any:
+    try:
+        import h5py
+    except ImportError:  # pragma: no cover - h5py is a dependency
+        raise LcrlError("caption datasets need h5py: pip install h5py") from None
+    return h5py
+
+
+def instruction_table(split: Split) -> tuple[list[str], list[str]]:
+    """The canonical instructions of a split (train set first, then held-out
+    combinations) and the set each belongs to."""
+    train = list(split.texts("train"))
+    heldout = [t for t in split.texts("heldout") if t not in set(train)]
+    return train + heldout, ["train"] * len(train) + ["heldout"] * len(heldout)
+
+
+class CaptionDatasetWriter:
+    """Appends labelled episodes to a new HDF5 caption dataset.
+
+    The file is written under a temporary name and moved into place by :meth:`close`, so
+    a finished file is always complete; episodes are flushed as they come, and closing
+    after an interruption keeps every episode written so far.
+
+    Args:
+        path: the dataset file to create.
+        instructions: the instruction table (canonical texts).
+        instruction_set: ``"train"`` or ``"heldout"`` per instruction.
+        frame_shape: ``(H, W, 3)`` of the camera frames.
+        proprio_dim: width of the proprioception vector.
+        meta: JSON-able description (env, families, settings).
+        overwrite: replace an existing file instead of refusing.
+    """
+
+    def __init__(
+        self,
+        path: str | os.PathLike,
+        instructions: Sequence[str],
+        instruction_set: Sequence[str],
+        frame_shape: Sequence[int],
+        proprio_dim: int,
+        meta: dict[str, Any],
+        overwrite: bool = False,
+    ) -> None:
+        h5py = _h5py()
+        self.path = Path(path)
+        if self.path.exists() and not overwrite:
+            raise LcrlError(f"{self.path} exists; pass --overwrite to replace it")
+        if len(instructions) != len(instruction_set):
+            raise LcrlError("instructions and instruction_set differ in length")
+        if len(instructions) >= 2**15:
+            raise LcrlError(f"at most {2**15 - 1} instructions, got {len(instructions)}")
+        self.path.parent.mkdir(parents=True, exist_ok=True)
+        self._tmp = self.path.with_name(self.path.name + ".part")
+        self._ids = {t: i for i, t in enumerate(instructions)}
+        self.num_instructions = len(instructions)
+        f = self._file = h5py.File(self._tmp, "w")
+        f.attrs["format"] = FORMAT
+        f.attrs["version"] = VERSION
+        f.attrs["meta"] = json.dumps(meta)
+        text = h5py.string_dtype("utf-8")
+        f.create_dataset("instructions", data=np.asarray(instructions, dtype=object), dtype=text)
+        f.create_dataset(
+            "instruction_set", data=np.asarray(instruction_set, dtype=object), dtype=text
+        )
+        h, w, c = (int(v) for v in frame_shape)
+        f.create_dataset(
+            "frames",
+            (0, h, w, c),
+            np.uint8,
+            maxshape=(None, h, w, c),
+            chunks=(1, h, w, c),
+            compression="lzf",
+        )
+        f.create_dataset("proprio", (0, proprio_dim), np.float32, maxshape=(None, proprio_dim))
+        f.create_dataset("episode_start", data=np.zeros(1, np.int64), maxshape=(None,))
+        f.create_dataset("episode_source", (0,), np.uint8, maxshape=(None,))
+        f.create_dataset("episode_instruction", (0,), np.int32, maxshape=(None,))
+        f.create_dataset("label_start", data=np.zeros(1, np.int64), maxshape=(None,))
+        f.create_dataset("label_ids", (0,), np.int16, maxshape=(None,), chunks=(4096,))
+        self.episodes = 0
+        self.observations = 0
+
+    def ids(self, texts: Sequence[str]) -> list[int]:
+        """Table ids of canonical instructions (texts outside the table are dropped)."""
+        return sorted({self._ids[t] for t in texts if t in self._ids})
+
+    def add_episode(
+        self,
+        frames: np.ndarray,
+        proprio: np.ndarray,
+        labels: Sequence[Sequence[int]],
+        source: str,
+        instruction: int = -1,
+    ) -> None:
+        """Append one episode: ``T + 1`` frames, proprioception rows and label-id lists."""
+        if source not in SOURCES:
+            raise LcrlError(f"unknown episode source {source!r}; choose one of {SOURCES}")
+        n = len(frames)
+        if n < 1 or len(proprio) != n or len(labels) != n:
+            raise LcrlError(
+                f"an episode needs as many frames ({n}), proprio rows ({len(proprio)}) and "
+                f"label lists ({len(labels)}), at least one"
+            )
+        if not -1 <= instruction < self.num_instructions:
+            raise LcrlError(f"instruction id {instruction} is outside the table")
+        flat = np.asarray([i for lab in labels for i in lab], np.int64)
+        if flat.size and (flat.min() < 0 or flat.max() >= self.num_instructions):
+            raise LcrlError(f"label ids must be in [0, {self.num_instructions})")
+        f = self._file
+
+        def grow(name: str, values: np.ndarray) -> None:
+            ds = f[name]
+            start = ds.shape[0]
+            ds.resize(start + len(values), axis=0)
+            ds[start:] = values
+
+        lab_start = f["label_start"][-1] + np.cumsum([len(lab) for lab in labels])
+        grow("frames", np.asarray(frames, np.uint8))
+        grow("proprio", np.asarray(proprio, np.float32))
+        grow("label_ids", flat.astype(np.int16))
+        grow("label_start", lab_start.astype(np.int64))
+        grow("episode_start", np.asarray([self.observations + n], np.int64))
+        grow("episode_source", np.asarray([SOURCES.index(source)], np.uint8))
+        grow("episode_instruction", np.asarray([instruction], np.int32))
+        f.flush()
+        self.episodes += 1
+        self.observations += n
+
+    def discard(self) -> None:
+        """Close and delete the unfinished file."""
+        if self._file is not None:
+            self._file.close()
+            self._file = None
+        self._tmp.unlink(missing_ok=True)
+
+    def close(self) -> Path:
+        """Finish the file and move it into place; returns its path."""
+        if self._file is None:
+            return self.path
+        self._file.close()
+        self._file = None
+        if self.episodes == 0:
+            self._tmp.unlink(missing_ok=True)
+            raise LcrlError("no episode was collected: nothing written")
+        os.replace(self._tmp, self.path)
+        return self.path
+
+
+class CaptionDataset:
+    """Read a caption dataset written by :class:`CaptionDatasetWriter`.
+
+    Args:
+        path: the HDF5 file.
+
+    Raises:
+        LcrlError: the file is missing or is not a caption dataset of a known version.
+    """
+
+    def __init__(self, path: str | os.PathLike) -> None:
+        h5py = _h5py()
+        self.path = Path(path)
+        if not self.path.is_file():
+            raise LcrlError(f"no caption dataset at {self.path}")
+        try:
+            f = h5py.File(self.path, "r")
+        except OSError as e:
+            raise LcrlError(f"{self.path} is not an HDF5 file ({e})") from None
+        if f.attrs.get("format") != FORMAT:
+            f.close()
+            raise LcrlError(f"{self.path} is not an lcrl caption dataset (no format {FORMAT!r})")
+        if int(f.attrs.get("version", -1)) != VERSION:
+            version = f.attrs.get("version")
+            f.close()
+            raise LcrlError(f"{self.path} has format version {version}; this lcrl reads {VERSION}")
+        self._file = f
+        self.meta: dict[str, Any] = json.loads(f.attrs["meta"])
+        self.instructions: list[str] = [s.decode() for s in f["instructions"][:]]
+        self.instruction_set: list[str] = [s.decode() for s in f["instruction_set"][:]]
+        self.episode_start = f["episode_start"][:]
+        self.episode_source = f["episode_source"][:]
+        self.episode_instruction = f["episode_instruction"][:]
+        self.label_start = f["label_start"][:]
+        self.label_ids = f["label_ids"][:]
+        self.frames = f["frames"]
+        self.proprio = f["proprio"][:]
+
+    def __enter__(self) -> CaptionDataset:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+    def close(self) -> None:
+        """Close the file."""
+        if self._file is not None:
+            self._file.close()
+            self._file = None
+
+    @property
+    def num_episodes(self) -> int:
+        return len(self.episode_start) - 1
+
+    @property
+    def num_observations(self) -> int:
+        return int(self.episode_start[-1])
+
+    @property
+    def frame_shape(self) -> tuple[int, ...]:
+        return tuple(self.frames.shape[1:])
+
+    def labels(self, j: int) -> np.ndarray:
+        """Instruction ids that observation ``j`` satisfies (relative to its episode's
+        first observation)."""
+        return self.label_ids[self.label_start[j] : self.label_start[j + 1]]
+
+    def episode_of(self, j: np.ndarray | int) -> np.ndarray:
+        """Episode index of observation(s) ``j``."""
+        return np.searchsorted(self.episode_start, j, side="right") - 1
+
+    def first_of(self, j: np.ndarray | int) -> np.ndarray:
+        """Index of the first observation of ``j``'s episode."""
+        return self.episode_start[self.episode_of(j)]
+
+    def read_frames(self, idx: np.ndarray) -> np.ndarray:
+        """Frames at the observation indices ``idx`` (any order, repeats allowed)."""
+        idx = np.asarray(idx, np.int64)
+        order = np.unique(idx)
+        block = self.frames[order]  # h5py reads increasing unique indices
+        return block[np.searchsorted(order, idx)]
+
+    def episode(self, e: int) -> dict[str, Any]:
+        """Episode ``e``: frames, proprio, labels (lists of ids), source, instruction."""
+        if not 0 <= e < self.num_episodes:
+            raise LcrlError(f"episode {e} is outside [0, {self.num_episodes})")
+        a, b = int(self.episode_start[e]), int(self.episode_start[e + 1])
+        return {
+            "frames": self.frames[a:b],
+            "proprio": self.proprio[a:b],
+            "labels": [self.labels(j).tolist() for j in range(a, b)],
+            "source": SOURCES[int(self.episode_source[e])],
+            "instruction": int(self.episode_instruction[e]),
+        }
+
+    def counts(self) -> dict[str, Any]:
+        """Episodes per source, labelled observations, labels per family and set."""
+        per_source = {s: int(np.sum(self.episode_source == i)) for i, s in enumerate(SOURCES)}
+        fam = np.asarray([t.split()[0] for t in self.instructions])
+        sets = np.asarray(self.instruction_set)
+        per_family: dict[str, dict[str, int]] = {}
+        for f in sorted(set(fam.tolist())):
+            for s in ("train", "heldout"):
+                n = int(np.isin(self.label_ids, np.flatnonzero((fam == f) & (sets == s))).sum())
+                per_family.setdefault(f, {})[s] = n
+        labelled = int(np.sum(np.diff(self.label_start) > 0))
+        return {
+            "episodes": self.num_episodes,
+            "observations": self.num_observations,
+            "labelled_observations": labelled,
+            "episodes_per_source": per_source,
+            "labels_per_family": per_family,
+        }
+
+    def summary(self) -> str:
+        """A few lines for the terminal."""
+        c = self.counts()
+        src = ", ".join(f"{k} {v}" for k, v in c["episodes_per_source"].items() if v)
+        fams = "; ".join(
+            f"{f}: {v['train']} seen / {v['heldout']} held-out"
+            for f, v in c["labels_per_family"].items()
+        )
+        return (
+            f"{self.path}: {c['episodes']} episodes ({src}), {c['observations']} frames "
+            f"{'x'.join(map(str, self.frame_shape))}, {c['labelled_observations']} with labels\n"
+            f"labels per family: {fams}"
+        )
+
+
+# --------------------------------------------------------------------------- collection
+
+
+@dataclass
+class CollectConfig:
+    """Collect labelled camera episodes into a caption dataset (``lcrl caption collect``)."""
+
+    out: str = "data/captions-lang2d.h5"
+    """The HDF5 file to write."""
+    env: str = "lang2d"
+    """``lang2d`` (the 2D tabletop, top-down frames) or ``robosuite`` (the Panda
+    tabletop's agentview camera)."""
+    episodes: int = 200
+    """Episodes to collect, shared out over ``sources`` in turn."""
+    sources: tuple[str, ...] = ("random", "scripted")
+    """Where episodes come from: ``random`` (held random actions), ``scripted`` (the
+    scripted controller on an instruction feasible in the layout, from the split's
+    training set or its held-out combinations), ``policy`` (the ``policy`` checkpoint)."""
+    policy: str = ""
+    """Checkpoint or run folder acting the ``policy`` episodes (its env must be ``env``)."""
+    families: tuple[str, ...] = ()
+    """Instruction families labelled (and followed by scripted episodes); empty: reach,
+    push and put on the 2D tabletop, every family on robosuite."""
+    split_seed: int = 0
+    """Seed of the compositional split whose held-out combinations are marked."""
+    image_size: int = 64
+    """Camera frame side in pixels."""
+    min_objects: int = 2
+    """Fewest objects on the table."""
+    max_objects: int = 3
+    """Most objects on the table."""
+    max_episode_steps: int = 50
+    """Steps per episode at most (scripted episodes stop at success)."""
+    random_action_repeat: int = 5
+    """Hold each random action for this many steps (held actions travel and push)."""
+    scripted_noise: float = 0.3
+    """Standard deviation of the Gaussian noise on scripted actions."""
+    heldout_fraction: float = 0.25
+    """Fraction of scripted episodes that follow a held-out combination (so that held-out
+    evaluation has examples; training code decides whether to use them)."""
+    seed: int = 0
+    """Seed of layouts, instructions and actions."""
+    overwrite: bool = False
+    """Replace an existing file."""
+    progress: bool = True
+    """Show a progress bar."""
+
+    def validate(self) -> None:
+        """Raise :class:`LcrlError` for bad settings."""
+        if self.env not in ENVS:
+            raise LcrlError(f"unknown env {self.env!r}; choose one of {ENVS}")
+        bad = [s for s in self.sources if s not in SOURCES]
+        if bad or not self.sources:
+            raise LcrlError(f"sources must be among {SOURCES}, got {self.sources}")
+        if "policy" in self.sources and not self.policy:
+            raise LcrlError("policy episodes need --policy CHECKPOINT")
+        allowed = FAMILIES_2D if self.env == "lang2d" else FAMILIES
+        bad = [f for f in self.families if f not in allowed]
+        if bad:
+            raise LcrlError(f"the {self.env} env supports the families {allowed}, not {bad}")
+        for name in ("episodes", "max_episode_steps", "random_action_repeat"):
+            if getattr(self, name) <= 0:
+                raise LcrlError(f"{name} must be positive, got {getattr(self, name)}")
+        if not 0.0 <= self.heldout_fraction <= 1.0:
+            raise LcrlError("heldout_fraction must be in [0, 1]")
+        if self.scripted_noise < 0:
+            raise LcrlError("scripted_noise must be >= 0")
+        if self.min_objects > self.max_objects:
+            raise LcrlError("min_objects is larger than max_objects")
+
+    def resolved_families(self) -> tuple[str, ...]:
+        if self.families:
+            return tuple(self.families)
+        return FAMILIES_2D if self.env == "lang2d" else FAMILIES
+
+
+class _Source:
+    """One tabletop with camera frames, its scripted controller and the rule captioner."""
+
+    def __init__(self, cfg: CollectConfig, families: tuple[str, ...]) -> None:
+        kwargs = {
+            "num_objects": (cfg.min_objects, cfg.max_objects),
+            "image": True,
+            "image_size": cfg.image_size,
+        }
+        if cfg.env == "lang2d":
+            from captioner.scripted import ScriptedController2D
+            from envs.tabletop2d import Tabletop2DEnv
+
+            self.env: Any = Tabletop2DEnv(**kwargs)
+            self.controller: Any = ScriptedController2D()
+        else:
+            from captioner.scripted3d import ScriptedController3D
+            from envs.robosuite_tabletop import RobosuiteTabletopEnv
+
+            self.env = RobosuiteTabletopEnv(**kwargs)
+            self.controller = ScriptedController3D()
+        self.proprio_dim = int(self.env.slot_layout[0])
+        self.captioner = RuleCaptioner(families)
+
+    def close(self) -> None:
+        self.env.close()
+
+
+def _proprio(obs: dict[str, Any], dim: int) -> np.ndarray:
+    return np.asarray(obs["observation"][:dim], np.float32)
+
+
+def _choose(
+    captioner: RuleCaptioner,
+    table: Sequence[Instruction],
+    sets: Sequence[str],
+    s0: SceneState,
+    want: str,
+    rng: np.random.Generator,
+) -> int | None:
+    """A feasible instruction of set ``want`` (family first, uniformly), or None."""
+    ok = [i for i, m in enumerate(table) if sets[i] == want and captioner.feasible(m, s0)]
+    if not ok:
+        return None
+    families = sorted({table[i].family for i in ok})
+    fam = families[int(rng.integers(len(families)))]
+    ok = [i for i in ok if table[i].family == fam]
+    return ok[int(rng.integers(len(ok)))]
+
+
+def collect(cfg: CollectConfig) -> Path:
+    """Collect ``cfg.episodes`` labelled episodes into ``cfg.out``; returns the path.
+
+    Ctrl-C stops collecting and keeps the episodes finished so far (the file is
+    completed before the interrupt is raised again).
+    """
+    cfg.validate()
+    from tqdm import tqdm
+
+    from captioner.grammar import parse
+
+    families = cfg.resolved_families()
+    split = make_split(cfg.split_seed, FAMILIES_2D if cfg.env == "lang2d" else FAMILIES)
+    texts, sets = instruction_table(split)
+    keep = [i for i, t in enumerate(texts) if t.split()[0] in families]
+    texts = [texts[i] for i in keep]
+    sets = [sets[i] for i in keep]
+    table = [parse(t) for t in texts]
+    policy = None
+    if "policy" in cfg.sources:
+        policy = _load_policy(cfg)
+    src = _Source(cfg, families)
+    rng = np.random.default_rng(cfg.seed)
+    meta = {
+        "env": cfg.env,
+        "families": list(families),
+        "split_seed": cfg.split_seed,
+        "split_fingerprint": split.fingerprint(),
+        "image_size": cfg.image_size,
+        "sources": list(SOURCES),
+        "collect": asdict(cfg),
+    }
+    first = src.env.reset(seed=cfg.seed)[0]
+    writer = CaptionDatasetWriter(
+        cfg.out,
+        texts,
+        sets,
+        first["image"].shape,
+        src.proprio_dim,
+        meta,
+        overwrite=cfg.overwrite,
+    )
+    bar = tqdm(total=cfg.episodes, disable=not cfg.progress, desc="collect", unit="ep")
+    try:
+        for e in range(cfg.episodes):
+            kind = cfg.sources[e % len(cfg.sources)]
+            seed = int(cfg.seed * 1_000_003 + e)
+            if kind == "policy":
+                ep = _policy_episode(policy, cfg, seed, writer)
+            else:
+                ep, _ = _episode(src, kind, cfg, seed, rng, table, sets, writer)
+            writer.add_episode(**ep)
+            bar.update(1)
+    except KeyboardInterrupt:
+        bar.close()
+        src.close()
+        if writer.episodes:
+            path = writer.close()
+            print(f"interrupted: kept {writer.episodes} episodes in {path}")
+        else:
+            writer.discard()
+        raise
+    bar.close()
+    src.close()
+    return writer.close()
+
+
+def _episode(
+    src: _Source,
+    kind: str,
+    cfg: CollectConfig,
+    seed: int,
+    rng: np.random.Generator,
+    table: Sequence[Instruction],
+    sets: Sequence[str],
+    writer: CaptionDatasetWriter,
+) -> tuple[dict[str, Any], list[SceneState]]:
+    """One random or scripted episode and the scenes it went through."""
+    env = src.env
+    obs, _ = env.reset(seed=seed)
+    s0 = env.scene()
+    target = -1
+    if kind == "scripted":
+        want = "heldout" if rng.random() < cfg.heldout_fraction else "train"
+        for _ in range(20):
+            choice = _choose(src.captioner, table, sets, s0, want, rng)
+            if choice is not None:
+                break
+            obs, _ = env.reset(seed=int(rng.integers(2**31)))
+            s0 = env.scene()
+        if choice is None:
+            raise LcrlError(f"no {want} instruction is feasible in 20 layouts")
+        target = choice
+        reset = getattr(src.controller, "reset", None)
+        if reset is not None:
+            reset()
+    frames = [obs["image"]]
+    proprio = [_proprio(obs, src.proprio_dim)]
+    scenes = [s0]
+    low, high = env.action_space.low, env.action_space.high
+    action = None
+    for t in range(cfg.max_episode_steps):
+        if kind == "random":
+            if t % cfg.random_action_repeat == 0:
+                action = rng.uniform(low, high).astype(np.float32)
+        else:
+            a = src.controller.act(table[target], s0, scenes[-1])
+            a = a + rng.normal(0.0, cfg.scripted_noise, a.shape)
+            action = np.clip(a, low, high).astype(np.float32)
+        obs, _, terminated, truncated, info = env.step(action)
+        frames.append(obs["image"])
+        proprio.append(_proprio(obs, src.proprio_dim))
+        scenes.append(env.scene())
+        if kind == "scripted" and src.captioner.satisfied(table[target], s0, scenes[-1]):
+            break
+        if terminated or truncated or info.get("sim_error"):
+            break
+    labels = [writer.ids([i.text for i in src.captioner.caption(s0, s)]) for s in scenes]
+    episode = {
+        "frames": np.stack(frames),
+        "proprio": np.stack(proprio),
+        "labels": labels,
+        "source": kind,
+        "instruction": target,
+    }
+    return episode, scenes
+
+
+def _load_policy(cfg: CollectConfig) -> Any:
+    from train.evaluate import load_policy
+
+    p = load_policy(cfg.policy)
+    kind = p.cfg.env.kind
+    if kind != cfg.env or p.cfg.env.image_obs:
+        raise LcrlError(
+            f"the policy was trained on {kind!r}{' from images' if p.cfg.env.image_obs else ''}; "
+            f"policy episodes need a privileged-state {cfg.env!r} policy"
+        )
+    extra = {**p.cfg.env.extra, "image": True, "image_size": cfg.image_size}
+    return load_policy(cfg.policy, env_overrides={"extra": extra})
+
+
+def _policy_episode(p: Any, cfg: CollectConfig, seed: int, writer: CaptionDatasetWriter) -> dict:
+    from train.tasks import find_language_wrapper
+
+    env, task, agent = p.env, p.task, p.agent
+    obs, _ = env.reset(seed=seed)
+    first = obs
+    goal = np.asarray([task.goal(obs, env)])
+    base = env.unwrapped
+    dim = int(base.slot_layout[0])
+    wrapper = find_language_wrapper(env)
+    s0 = base.scene()
+    # the agent values lead the observation, unchanged by the slot feature wrappers
+    frames, proprio, scenes = [obs["image"]], [_proprio(obs, dim)], [s0]
+    for _ in range(cfg.max_episode_steps):
+        st = {k: v[None] for k, v in task.storage_obs(obs, first).items()}
+        a = agent.act(st, goal)[0]
+        obs, _, terminated, truncated, _ = env.step(task.scale_action(a))
+        frames.append(obs["image"])
+        proprio.append(_proprio(obs, dim))
+        scenes.append(base.scene())
+        if terminated or truncated:
+            break
+    labels = [writer.ids([i.text for i in wrapper.captioner.caption(s0, s)]) for s in scenes]
+    ids = writer.ids([wrapper.meaning.text])
+    return {
+        "frames": np.stack(frames),
+        "proprio": np.stack(proprio),
+        "labels": labels,
+        "source": "policy",
+        "instruction": ids[0] if ids else -1,
+    }
+
+
+def iter_pairs(
+    data: CaptionDataset, episodes: np.ndarray | None = None
+) -> Iterator[tuple[int, int, np.ndarray]]:
+    """``(first observation, observation, labels)`` of every labelled observation (of the
+    given episodes)."""
+    eps = range(data.num_episodes) if episodes is None else episodes
+    for e in eps:
+        a, b = int(data.episode_start[e]), int(data.episode_start[e + 1])
+        for j in range(a, b):
+            lab = data.labels(j)
+            if lab.size:
+                yield a, j, lab

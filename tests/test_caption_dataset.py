@@ -1,0 +1,158 @@
+"""Caption datasets: collection on the tabletops, the HDF5 format, reading, errors."""
+
+from __future__ import annotations
+
+import h5py
+import numpy as np
+import pytest
+
+from captioner import dataset as ds
+from captioner.dataset import CaptionDataset, CaptionDatasetWriter, CollectConfig, collect
+from captioner.grammar import parse
+from captioner.rule import RuleCaptioner
+from lcrl.errors import LcrlError
+from train.cli import main
+
+
+@pytest.fixture(scope="module")
+def small(tmp_path_factory):
+    path = tmp_path_factory.mktemp("cap") / "d.h5"
+    collect(CollectConfig(out=str(path), episodes=16, progress=False, heldout_fraction=0.5))
+    return path
+
+
+def test_collected_file_layout_and_labels(small):
+    with CaptionDataset(small) as data:
+        assert data.num_episodes == 16
+        assert data.frame_shape == (64, 64, 3)
+        assert data.proprio.shape == (data.num_observations, 2)
+        c = data.counts()
+        assert c["episodes_per_source"] == {"random": 8, "scripted": 8, "policy": 0}
+        assert set(data.instruction_set) == {"train", "heldout"}
+        # the table is the split's train set first, then its held-out combinations
+        first_heldout = data.instruction_set.index("heldout")
+        assert set(data.instruction_set[first_heldout:]) == {"heldout"}
+        cap = RuleCaptioner(("reach", "push", "put"))
+        saw_heldout_target = False
+        succeeded = 0
+        for e in range(data.num_episodes):
+            ep = data.episode(e)
+            n = len(ep["frames"])
+            assert ep["frames"].dtype == np.uint8 and len(ep["labels"]) == n
+            # pusher positions: proprio rows are the pusher's x, y on the table
+            assert np.all(np.abs(ep["proprio"]) <= 0.25)
+            if ep["source"] == "scripted":
+                target = ep["instruction"]
+                assert target >= 0
+                # scripted episodes stop at success (or at the time limit)
+                assert target not in ep["labels"][0]
+                if n <= 50:
+                    assert target in ep["labels"][-1]
+                    succeeded += 1
+                saw_heldout_target |= data.instruction_set[target] == "heldout"
+                meaning = parse(data.instructions[target])
+                assert meaning.family in cap.families
+            else:
+                assert ep["instruction"] == -1
+        assert saw_heldout_target
+        assert succeeded >= 6  # of 8 scripted episodes, with action noise
+        # frames read in any order with repeats come back in that order
+        idx = np.array([5, 2, 5, 0])
+        np.testing.assert_array_equal(data.read_frames(idx)[0], data.frames[5])
+        np.testing.assert_array_equal(data.read_frames(idx)[1], data.frames[2])
+        assert data.episode_of(data.episode_start[3]) == 3
+        pairs = list(ds.iter_pairs(data, np.array([0, 1])))
+        assert all(data.first_of(j) == a and lab.size for a, j, lab in pairs)
+        assert "16 episodes" in data.summary()
+
+
+def test_labels_name_what_the_rule_captioner_says(tmp_path):
+    """An episode's label ids, written and read back, name the captioner's instructions."""
+    cfg = CollectConfig(out=str(tmp_path / "x.h5"), sources=("scripted",), progress=False)
+    src = ds._Source(cfg, cfg.resolved_families())
+    texts, sets = ds.instruction_table(ds.make_split(0, ds.FAMILIES_2D))
+    table = [parse(t) for t in texts]
+    writer = CaptionDatasetWriter(cfg.out, texts, sets, (64, 64, 3), 2, {"test": True})
+    ep, scenes = ds._episode(src, "scripted", cfg, 5, np.random.default_rng(1), table, sets, writer)
+    writer.add_episode(**ep)
+    writer.close()
+    cap = RuleCaptioner(("reach", "push", "put"))
+    with CaptionDataset(cfg.out) as data:
+        assert data.meta == {"test": True}
+        back = data.episode(0)
+        assert len(back["labels"]) == len(scenes) > 1
+        for ids, scene in zip(back["labels"], scenes, strict=True):
+            said = {i.text for i in cap.caption(scenes[0], scene)}
+            assert {data.instructions[i] for i in ids} == said
+        assert any(back["labels"])  # the scripted episode achieved something
+        assert data.instructions[back["instruction"]] in said  # its target, at the end
+
+
+def test_interrupt_keeps_finished_episodes(tmp_path, monkeypatch):
+    path = tmp_path / "cut.h5"
+    real = ds._episode
+    calls = {"n": 0}
+
+    def flaky(*args, **kwargs):
+        calls["n"] += 1
+        if calls["n"] == 4:
+            raise KeyboardInterrupt
+        return real(*args, **kwargs)
+
+    monkeypatch.setattr(ds, "_episode", flaky)
+    with pytest.raises(KeyboardInterrupt):
+        collect(CollectConfig(out=str(path), episodes=10, progress=False))
+    with CaptionDataset(path) as data:
+        assert data.num_episodes == 3
+    assert not path.with_name(path.name + ".part").exists()
+
+
+def test_bad_settings_and_files(tmp_path, small):
+    with pytest.raises(LcrlError, match="unknown env"):
+        collect(CollectConfig(out=str(tmp_path / "a.h5"), env="mars"))
+    with pytest.raises(LcrlError, match="--policy"):
+        collect(CollectConfig(out=str(tmp_path / "a.h5"), sources=("policy",)))
+    with pytest.raises(LcrlError, match="supports the families"):
+        collect(CollectConfig(out=str(tmp_path / "a.h5"), families=("stack",)))
+    with pytest.raises(LcrlError, match="--overwrite"):
+        collect(CollectConfig(out=str(small), episodes=1, progress=False))
+    with pytest.raises(LcrlError, match="no caption dataset"):
+        CaptionDataset(tmp_path / "missing.h5")
+    (tmp_path / "junk.h5").write_text("not hdf5")
+    with pytest.raises(LcrlError, match="not an HDF5 file"):
+        CaptionDataset(tmp_path / "junk.h5")
+    with h5py.File(tmp_path / "other.h5", "w") as f:
+        f.attrs["format"] = "something else"
+    with pytest.raises(LcrlError, match="not an lcrl caption dataset"):
+        CaptionDataset(tmp_path / "other.h5")
+    w = CaptionDatasetWriter(tmp_path / "w.h5", ["reach the red cube"], ["train"], (8, 8, 3), 2, {})
+    with pytest.raises(LcrlError, match="label ids"):
+        w.add_episode(np.zeros((2, 8, 8, 3)), np.zeros((2, 2)), [[], [3]], "random")
+    with pytest.raises(LcrlError, match="as many frames"):
+        w.add_episode(np.zeros((2, 8, 8, 3)), np.zeros((1, 2)), [[], []], "random")
+    with pytest.raises(LcrlError, match="nothing written"):
+        w.close()
+
+
+def test_cli_collect(tmp_path, capsys):
+    out = tmp_path / "cli.h5"
+    main(["caption", "collect", "--out", str(out), "--episodes", "4", "--no-progress"])
+    assert "4 episodes" in capsys.readouterr().out
+    with pytest.raises(SystemExit) as e:
+        main(["caption", "collect", "--out", str(out), "--episodes", "4", "--no-progress"])
+    assert e.value.code == 2
+    assert "lcrl: error:" in capsys.readouterr().err
+
+
+def test_robosuite_collection(tmp_path):
+    pytest.importorskip("robosuite")
+    path = tmp_path / "robo.h5"
+    collect(
+        CollectConfig(
+            out=str(path), env="robosuite", episodes=2, max_episode_steps=6, progress=False
+        )
+    )
+    with CaptionDataset(path) as data:
+        assert data.num_episodes == 2 and data.proprio.shape[1] == 4
+        assert data.frame_shape == (64, 64, 3)
+        assert data.frames[0].std() > 0  # a rendered picture, not a blank frame
