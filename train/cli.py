@@ -8,6 +8,8 @@ Subcommands:
     split   make a compositional instruction split and save it as JSON
     parse   show how the grammar reads instructions (canonical form and slots)
     caption collect   gather camera episodes labelled by the rule captioner (HDF5)
+    caption train     fit the learned captioner and reward model on such a dataset
+    caption eval      exact match, slot accuracy, BLEU-4, reward AUC of those models
 
 User mistakes (bad options, unparseable instructions, missing files) print one line
 starting with ``lcrl: error:`` and exit with status 2; Ctrl-C exits with status 130.
@@ -290,19 +292,65 @@ class CaptionStub:
         _caption(["--help"])
 
 
+@dataclass
+class CaptionEvalCommand:
+    """Evaluate a learned captioner / reward model on a caption dataset: exact match,
+    per-slot accuracy, BLEU-4, reward-model precision / recall / AUC, on seen instructions
+    and on held-out word combinations."""
+
+    checkpoint: tyro.conf.Positional[str]
+    """The checkpoint folder (``lcrl caption train --out``)."""
+    data: str = ""
+    """Caption dataset to evaluate on (default: the one it was trained on, its held-out
+    episodes)."""
+    beam: int = 0
+    """Beam width for decoding (0: greedy)."""
+    max_pairs: int = 2000
+    """Observations per group at most."""
+    json: str = ""
+    """Also write every figure to this JSON file."""
+
+    def run(self) -> None:
+        from captioner.dataset import CaptionDataset
+        from captioner.learned import (
+            LearnedCaptioner,
+            evaluate_models,
+            format_results,
+            save_results,
+        )
+
+        lc = LearnedCaptioner.load(self.checkpoint)
+        path = self.data or lc.meta.get("dataset", "")
+        if not path:
+            raise LcrlError("pass --data: the checkpoint does not name its dataset")
+        with CaptionDataset(path) as data:
+            results = evaluate_models(lc, data, max_pairs=self.max_pairs, beam=self.beam)
+        print(format_results(results))
+        if self.json:
+            print(f"saved {save_results(results, self.json)}")
+
+
 def _caption(argv: Sequence[str]) -> None:
     from captioner.dataset import CaptionDataset, CollectConfig, collect
+    from captioner.learned import CaptionTrainConfig, train_models
 
     cfg = tyro.extras.subcommand_cli_from_dict(
-        {"collect": CollectConfig},
+        {"collect": CollectConfig, "train": CaptionTrainConfig, "eval": CaptionEvalCommand},
         prog="lcrl caption",
-        description="Learned captioner: collect labelled camera episodes.",
+        description="Learned captioner and reward model: collect labelled camera episodes, "
+        "train, evaluate.",
         args=list(argv),
     )
     if isinstance(cfg, CollectConfig):
         path = collect(cfg)
         with CaptionDataset(path) as data:
             print(data.summary())
+    elif isinstance(cfg, CaptionTrainConfig):
+        path = train_models(cfg)
+        print(f"saved {path}")
+        CaptionEvalCommand(str(path)).run()
+    else:
+        cfg.run()
 
 
 def main(argv: Sequence[str] | None = None) -> None:

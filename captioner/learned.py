@@ -1,0 +1,1049 @@
+"""Learned captioner and learned reward model over camera frames.
+
+Both read a pair of camera frames, the episode's first frame and the current one, and
+optionally the robot's proprioception at both; they learn from a caption dataset
+(:mod:`captioner.dataset`) labelled by the rule captioner, so that relabelling can later
+run where no privileged state exists.
+
+* :class:`Captioner`: a small CNN over the two frames stacked on the channel axis, then a
+  GRU that writes the instruction word by word over the grammar's vocabulary (so it can
+  produce word combinations it never saw as a whole). An observation that achieved
+  nothing is captioned ``<none>``. Greedy and beam decoding; a caption's log-likelihood is
+  returned with it, so unsure captions can be dropped by a threshold.
+* :class:`RewardModel`: the probability that an instruction is satisfied by the change
+  from the first frame to the current one. The instruction enters as the frozen text
+  encoder's embedding (standardised over the training instructions), so any free text
+  can be scored.
+
+Training (:func:`train_models`) uses the dataset's training episodes; held-out
+instructions (the split's held-out word combinations) are never used as targets, positives
+or negatives. :func:`evaluate_models` reports, on held-out episodes and separately on
+observations that achieved a held-out combination: exact match, per-slot accuracy (verb,
+object, direction, relation, reference object), BLEU-4, and the reward model's precision,
+recall and ROC AUC.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from collections import Counter
+from collections.abc import Sequence
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+from torch import nn
+from torch.nn import functional as F
+
+from captioner.dataset import CaptionDataset
+from captioner.grammar import FAMILIES, Instruction, all_instructions, try_parse
+from lcrl.checkpoint import CheckpointError, load_checkpoint, save_checkpoint
+from lcrl.errors import LcrlError
+
+SPECIALS: tuple[str, ...] = ("<pad>", "<bos>", "<eos>", "<none>")
+PAD, BOS, EOS, NONE = 0, 1, 2, 3
+NONE_TEXT = "<none>"
+CHECKPOINT_KIND = "lcrl-learned-captioner"
+MODELS: tuple[str, ...] = ("captioner", "reward")
+
+__all__ = [
+    "MODELS",
+    "NONE_TEXT",
+    "CaptionModelConfig",
+    "CaptionTrainConfig",
+    "Captioner",
+    "LearnedCaptioner",
+    "RewardModel",
+    "Vocabulary",
+    "bleu4",
+    "evaluate_models",
+    "roc_auc",
+    "train_models",
+]
+
+
+# --------------------------------------------------------------------------- vocabulary
+
+
+class Vocabulary:
+    """Words of the grammar's canonical instructions, after the special tokens."""
+
+    def __init__(self, words: Sequence[str]) -> None:
+        words = [w for w in words if w not in SPECIALS]
+        self.words: list[str] = list(SPECIALS) + sorted(set(words))
+        self.index = {w: i for i, w in enumerate(self.words)}
+
+    @classmethod
+    def from_grammar(cls, families: Sequence[str] = FAMILIES) -> Vocabulary:
+        """Every word of every canonical instruction of ``families``."""
+        return cls([w for ins in all_instructions(families) for w in ins.text.split()])
+
+    def __len__(self) -> int:
+        return len(self.words)
+
+    def encode(self, text: str, max_len: int) -> list[int]:
+        """``<bos> words <eos>`` (``<bos> <none> <eos>`` for :data:`NONE_TEXT`), padded to
+        ``max_len`` tokens."""
+        words = [NONE_TEXT] if text == NONE_TEXT else text.split()
+        unknown = [w for w in words if w not in self.index]
+        if unknown:
+            raise LcrlError(f"words outside the captioner's vocabulary: {unknown}")
+        ids = [BOS, *(self.index[w] for w in words), EOS]
+        if len(ids) > max_len:
+            raise LcrlError(f"{text!r} is longer than {max_len - 2} words")
+        return ids + [PAD] * (max_len - len(ids))
+
+    def decode(self, ids: Sequence[int]) -> str:
+        """Text of a generated id sequence (up to ``<eos>``; ``<bos>`` skipped)."""
+        out = []
+        for i in ids:
+            i = int(i)
+            if i in (EOS, PAD):
+                break
+            if i == BOS:
+                continue
+            out.append(self.words[i])
+        return " ".join(out)
+
+
+# --------------------------------------------------------------------------- models
+
+
+@dataclass
+class CaptionModelConfig:
+    """Sizes of the captioner and the reward model."""
+
+    channels: tuple[int, ...] = (32, 64, 64, 64)
+    """Channels of the 3x3 convolutions over the stacked frame pair (the first three have
+    stride 2)."""
+    features: int = 256
+    """Width of the frame-pair features."""
+    use_proprio: bool = True
+    """Also read the robot's proprioception at the first and the current frame."""
+    embed: int = 64
+    """Captioner word-embedding width."""
+    hidden: int = 256
+    """Captioner GRU width, and the reward model's MLP width."""
+    text_features: int = 128
+    """Reward model: width of the projection of the frozen text embedding."""
+    max_len: int = 12
+    """Captions are at most ``max_len - 2`` words."""
+
+
+class FramePairEncoder(nn.Module):
+    """CNN over (first frame, current frame) stacked as 6 channels, plus proprioception."""
+
+    def __init__(self, frame_shape: Sequence[int], proprio_dim: int, cfg: CaptionModelConfig):
+        super().__init__()
+        h, w, c = (int(v) for v in frame_shape)
+        layers: list[nn.Module] = []
+        ch = 2 * c
+        for i, out in enumerate(cfg.channels):
+            layers += [nn.Conv2d(ch, out, 3, stride=2 if i < 3 else 1, padding=1), nn.ReLU()]
+            ch = out
+        self.convs = nn.Sequential(*layers)
+        with torch.no_grad():
+            flat = self.convs(torch.zeros(1, 2 * c, h, w)).numel()
+        self.proprio_dim = proprio_dim if cfg.use_proprio else 0
+        self.head = nn.Sequential(
+            nn.Linear(flat + 2 * self.proprio_dim, cfg.features),
+            nn.LayerNorm(cfg.features),
+            nn.ReLU(),
+        )
+        self.out_dim = cfg.features
+
+    def forward(
+        self, first: torch.Tensor, current: torch.Tensor, p0: torch.Tensor, p: torch.Tensor
+    ) -> torch.Tensor:
+        x = torch.cat([first, current], -1).permute(0, 3, 1, 2).float() / 255.0 - 0.5
+        z = self.convs(x).flatten(1)
+        if self.proprio_dim:
+            z = torch.cat([z, p0, p], -1)
+        return self.head(z)
+
+
+class Captioner(nn.Module):
+    """Frame pair -> instruction, word by word (GRU decoder over the vocabulary)."""
+
+    def __init__(
+        self, frame_shape: Sequence[int], proprio_dim: int, vocab_size: int, cfg: CaptionModelConfig
+    ) -> None:
+        super().__init__()
+        self.cfg = cfg
+        self.encoder = FramePairEncoder(frame_shape, proprio_dim, cfg)
+        self.embed = nn.Embedding(vocab_size, cfg.embed, padding_idx=PAD)
+        self.init = nn.Linear(cfg.features, cfg.hidden)
+        self.gru = nn.GRU(cfg.embed + cfg.features, cfg.hidden, batch_first=True)
+        self.out = nn.Linear(cfg.hidden, vocab_size)
+
+    def forward(self, ctx: torch.Tensor, tokens: torch.Tensor) -> torch.Tensor:
+        """Logits ``(B, L, V)`` for the next token after each of ``tokens`` ``(B, L)``."""
+        h0 = torch.tanh(self.init(ctx)).unsqueeze(0)
+        e = self.embed(tokens)
+        x = torch.cat([e, ctx.unsqueeze(1).expand(-1, e.shape[1], -1)], -1)
+        y, _ = self.gru(x, h0)
+        return self.out(y)
+
+    def _step(
+        self, ctx: torch.Tensor, token: torch.Tensor, h: torch.Tensor
+    ) -> tuple[torch.Tensor, torch.Tensor]:
+        x = torch.cat([self.embed(token), ctx], -1).unsqueeze(1)
+        y, h = self.gru(x, h)
+        return F.log_softmax(self.out(y[:, 0]), -1), h
+
+    @torch.no_grad()
+    def greedy(self, ctx: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """Most likely word at every step: token ids ``(B, max_len - 1)`` and the
+        caption's log-likelihood ``(B,)``."""
+        b = ctx.shape[0]
+        h = torch.tanh(self.init(ctx)).unsqueeze(0)
+        token = torch.full((b,), BOS, dtype=torch.long, device=ctx.device)
+        done = torch.zeros(b, dtype=torch.bool, device=ctx.device)
+        total = torch.zeros(b, device=ctx.device)
+        out = []
+        for _ in range(self.cfg.max_len - 1):
+            logp, h = self._step(ctx, token, h)
+            lp, token = logp.max(-1)
+            total = total + torch.where(done, torch.zeros_like(lp), lp)
+            token = torch.where(done, torch.full_like(token, PAD), token)
+            out.append(token)
+            done = done | (token == EOS)
+            if bool(done.all()):
+                break
+        return torch.stack(out, 1), total
+
+    @torch.no_grad()
+    def beam(self, ctx: torch.Tensor, width: int = 4) -> list[list[tuple[list[int], float]]]:
+        """Beam search: for each row, up to ``width`` finished captions (token ids,
+        log-likelihood), best first."""
+        results = []
+        for i in range(ctx.shape[0]):
+            c = ctx[i : i + 1]
+            h = torch.tanh(self.init(c)).unsqueeze(0)
+            beams: list[tuple[list[int], float, torch.Tensor]] = [([BOS], 0.0, h)]
+            finished: list[tuple[list[int], float]] = []
+            for _ in range(self.cfg.max_len - 1):
+                if not beams:
+                    break
+                tokens = torch.tensor([b[0][-1] for b in beams], device=ctx.device)
+                hs = torch.cat([b[2] for b in beams], 1)
+                logp, hs = self._step(c.expand(len(beams), -1), tokens, hs)
+                cand = []
+                top_lp, top_id = logp.topk(min(width, logp.shape[-1]), -1)
+                for k, (seq, score, _) in enumerate(beams):
+                    for lp, t in zip(top_lp[k].tolist(), top_id[k].tolist(), strict=True):
+                        cand.append(([*seq, t], score + lp, hs[:, k : k + 1]))
+                cand.sort(key=lambda x: -x[1])
+                beams = []
+                for seq, score, hk in cand:
+                    if seq[-1] == EOS:
+                        finished.append((seq[1:], score))
+                    elif len(beams) < width:
+                        beams.append((seq, score, hk))
+                    if len(beams) >= width and len(finished) >= width:
+                        break
+            finished.sort(key=lambda x: -x[1])
+            results.append(finished[:width])
+        return results
+
+
+class RewardModel(nn.Module):
+    """(instruction embedding, frame pair) -> logit of "the instruction is satisfied"."""
+
+    def __init__(
+        self,
+        frame_shape: Sequence[int],
+        proprio_dim: int,
+        text_dim: int,
+        cfg: CaptionModelConfig,
+    ) -> None:
+        super().__init__()
+        self.encoder = FramePairEncoder(frame_shape, proprio_dim, cfg)
+        self.register_buffer("text_mean", torch.zeros(text_dim))
+        self.register_buffer("text_std", torch.ones(text_dim))
+        self.text = nn.Linear(text_dim, cfg.text_features)
+        self.film = nn.Linear(cfg.text_features, 2 * cfg.features)
+        self.mlp = nn.Sequential(
+            nn.Linear(cfg.features + cfg.text_features, cfg.hidden),
+            nn.ReLU(),
+            nn.Linear(cfg.hidden, cfg.hidden),
+            nn.ReLU(),
+            nn.Linear(cfg.hidden, 1),
+        )
+
+    def set_text_stats(self, embeddings: np.ndarray) -> None:
+        """Standardise text embeddings with the statistics of the training instructions."""
+        e = torch.as_tensor(np.asarray(embeddings, np.float32))
+        self.text_mean.copy_(e.mean(0))
+        self.text_std.copy_(e.std(0).clamp_min(1e-3))
+
+    def forward(self, ctx: torch.Tensor, text: torch.Tensor) -> torch.Tensor:
+        t = F.relu(self.text((text - self.text_mean) / self.text_std))
+        gamma, beta = self.film(t).chunk(2, -1)
+        z = ctx * (1.0 + gamma) + beta  # the instruction picks which frame features matter
+        return self.mlp(torch.cat([z, t], -1)).squeeze(-1)
+
+
+# --------------------------------------------------------------------------- metrics
+
+
+def bleu4(candidate: str, references: Sequence[str]) -> float:
+    """Sentence BLEU-4 against several references (uniform weights, brevity penalty, +1
+    smoothing of the higher n-gram precisions as in Lin and Och 2004)."""
+    cand = candidate.split()
+    refs = [r.split() for r in references]
+    if not cand or not refs:
+        return 0.0
+    logs = []
+    for n in range(1, 5):
+        grams = Counter(tuple(cand[i : i + n]) for i in range(len(cand) - n + 1))
+        if not grams:
+            logs.append(math.log(1.0 / (1.0 + 1.0)))  # smoothed empty order
+            continue
+        best: Counter = Counter()
+        for r in refs:
+            rg = Counter(tuple(r[i : i + n]) for i in range(len(r) - n + 1))
+            for g in grams:
+                best[g] = max(best[g], rg[g])
+        hit = sum(min(c, best[g]) for g, c in grams.items())
+        total = sum(grams.values())
+        if n == 1:
+            if hit == 0:
+                return 0.0
+            logs.append(math.log(hit / total))
+        else:
+            logs.append(math.log((hit + 1.0) / (total + 1.0)))
+    ref_len = min((abs(len(r) - len(cand)), len(r)) for r in refs)[1]
+    bp = 1.0 if len(cand) > ref_len else math.exp(1.0 - ref_len / len(cand))
+    return bp * math.exp(sum(logs) / 4.0)
+
+
+def roc_auc(scores: np.ndarray, labels: np.ndarray) -> float:
+    """Area under the ROC curve (ties count one half); NaN without both classes."""
+    scores = np.asarray(scores, np.float64)
+    labels = np.asarray(labels, bool)
+    pos, neg = labels.sum(), (~labels).sum()
+    if pos == 0 or neg == 0:
+        return float("nan")
+    order = np.argsort(scores, kind="mergesort")
+    ranks = np.empty(len(scores), np.float64)
+    sorted_scores = scores[order]
+    i = 0
+    while i < len(scores):  # average ranks over ties
+        j = i
+        while j + 1 < len(scores) and sorted_scores[j + 1] == sorted_scores[i]:
+            j += 1
+        ranks[order[i : j + 1]] = 0.5 * (i + j) + 1.0
+        i = j + 1
+    return float((ranks[labels].sum() - pos * (pos + 1) / 2.0) / (pos * neg))
+
+
+SLOT_GROUPS: dict[str, tuple[str, ...]] = {
+    "verb": ("family",),
+    "object": ("colour", "shape"),
+    "direction": ("direction",),
+    "relation": ("relation",),
+    "reference": ("target_colour", "target_shape"),
+}
+
+
+def slot_matches(generated: Instruction | None, label: Instruction) -> dict[str, bool]:
+    """For each slot group the label has, whether the generated instruction agrees."""
+    want = label.slots()
+    got = generated.slots() if generated is not None else {}
+    out = {}
+    for group, keys in SLOT_GROUPS.items():
+        if all(k in want for k in keys):
+            out[group] = all(got.get(k) == want[k] for k in keys)
+    return out
+
+
+# --------------------------------------------------------------------------- data
+
+
+def _observations(data: CaptionDataset, episodes: np.ndarray) -> np.ndarray:
+    """Observation indices of the given episodes."""
+    if len(episodes) == 0:
+        return np.zeros(0, np.int64)
+    starts, ends = data.episode_start[episodes], data.episode_start[episodes + 1]
+    return np.concatenate([np.arange(a, b) for a, b in zip(starts, ends, strict=True)])
+
+
+class _Pairs:
+    """Frame pairs of a caption dataset, in memory, with the episode split."""
+
+    def __init__(self, data: CaptionDataset, val_fraction: float, seed: int) -> None:
+        self.data = data
+        self.frames = data.frames[:]  # uint8, (N, H, W, 3)
+        self.proprio = data.proprio.astype(np.float32)
+        n_ep = data.num_episodes
+        perm = np.random.default_rng(seed).permutation(n_ep)
+        n_val = max(1, round(val_fraction * n_ep)) if n_ep > 1 else 0
+        self.val_episodes = np.sort(perm[:n_val])
+        self.train_episodes = np.sort(perm[n_val:])
+        self.seen = np.asarray([s == "train" for s in data.instruction_set])
+        self.first = data.first_of(np.arange(data.num_observations))
+        p = self.proprio
+        self.p_mean = p.mean(0) if len(p) else np.zeros(p.shape[1], np.float32)
+        self.p_std = p.std(0).clip(1e-3) if len(p) else np.ones(p.shape[1], np.float32)
+
+    def observations(self, episodes: np.ndarray) -> np.ndarray:
+        return _observations(self.data, episodes)
+
+    def tensors(self, idx: np.ndarray, device: torch.device) -> tuple[torch.Tensor, ...]:
+        first = self.first[idx]
+        p0 = (self.proprio[first] - self.p_mean) / self.p_std
+        p = (self.proprio[idx] - self.p_mean) / self.p_std
+        return (
+            torch.as_tensor(self.frames[first], device=device),
+            torch.as_tensor(self.frames[idx], device=device),
+            torch.as_tensor(p0, device=device),
+            torch.as_tensor(p, device=device),
+        )
+
+
+# --------------------------------------------------------------------------- training
+
+
+@dataclass
+class CaptionTrainConfig:
+    """Train the learned captioner and reward model on a caption dataset
+    (``lcrl caption train``)."""
+
+    data: str = "data/captions-lang2d.h5"
+    """The caption dataset (``lcrl caption collect``)."""
+    out: str = "runs/captioner"
+    """Checkpoint folder to write."""
+    models: tuple[str, ...] = MODELS
+    """Which models to train: ``captioner``, ``reward`` or both."""
+    steps: int = 3000
+    """Gradient steps per model."""
+    batch_size: int = 64
+    """Frame pairs per step."""
+    lr: float = 3e-4
+    """Adam learning rate."""
+    none_fraction: float = 0.25
+    """Captioner: fraction of each batch drawn from observations that achieved nothing
+    (target ``<none>``)."""
+    hard_negative_fraction: float = 0.5
+    """Reward model: fraction of the negatives that share the object or the family of an
+    instruction the observation satisfies (the rest are any other instruction)."""
+    val_fraction: float = 0.2
+    """Episodes held out of training for evaluation."""
+    model: CaptionModelConfig = field(default_factory=CaptionModelConfig)
+    """Network sizes."""
+    text_model: str = ""
+    """Frozen text encoder for the reward model (empty: the packaged all-MiniLM-L6-v2)."""
+    device: str = "cpu"
+    """``cpu`` or ``cuda``."""
+    seed: int = 0
+    """Seed of the episode split, sampling and initialisation."""
+    threads: int = 0
+    """Torch CPU threads (0: leave torch's default)."""
+    overwrite: bool = False
+    """Replace an existing checkpoint in ``out``."""
+    progress: bool = True
+    """Show progress bars."""
+
+    def validate(self) -> None:
+        bad = [m for m in self.models if m not in MODELS]
+        if bad or not self.models:
+            raise LcrlError(f"models must be among {MODELS}, got {self.models}")
+        for name in ("steps", "batch_size"):
+            if getattr(self, name) <= 0:
+                raise LcrlError(f"{name} must be positive")
+        for name in ("none_fraction", "hard_negative_fraction"):
+            if not 0.0 <= getattr(self, name) <= 1.0:
+                raise LcrlError(f"{name} must be in [0, 1]")
+        if not 0.0 < self.val_fraction < 1.0:
+            raise LcrlError("val_fraction must be in (0, 1)")
+        if self.device not in ("cpu", "cuda") and not self.device.startswith("cuda:"):
+            raise LcrlError(f"device must be cpu or cuda, got {self.device!r}")
+        if self.device.startswith("cuda") and not torch.cuda.is_available():
+            raise LcrlError("device cuda was asked for but torch sees no CUDA device")
+
+
+def _text_encoder(name: str) -> Any:
+    from lcrl.text_encoder import FrozenTextEncoder, TextEncoderConfig
+
+    cfg = TextEncoderConfig() if not name else TextEncoderConfig(model=name)
+    return FrozenTextEncoder(cfg)
+
+
+class _Sampler:
+    """Training batches for both models from the training episodes."""
+
+    def __init__(self, pairs: _Pairs, table: list[Instruction], rng: np.random.Generator):
+        self.pairs, self.rng, self.table = pairs, rng, table
+        data = pairs.data
+        obs = pairs.observations(pairs.train_episodes)
+        seen = pairs.seen
+        self.labelled: list[int] = []
+        self.targets: list[np.ndarray] = []
+        self.empty: list[int] = []
+        for j in obs:
+            lab = data.labels(int(j)).astype(np.int64)
+            if lab.size == 0:
+                self.empty.append(int(j))
+            elif seen[lab].any():
+                self.labelled.append(int(j))
+                self.targets.append(lab[seen[lab]])
+            # observations whose labels are all held-out never enter training
+        self.labelled_arr = np.asarray(self.labelled, np.int64)
+        self.empty_arr = np.asarray(self.empty, np.int64)
+        self.seen_ids = np.flatnonzero(seen)
+        if not self.labelled:
+            raise LcrlError("no training observation carries a training instruction label")
+        # hard negatives: seen instructions sharing the object or the family
+        self.related: list[np.ndarray] = []
+        for ins in table:
+            rel = [
+                k
+                for k in self.seen_ids
+                if table[k] != ins and (table[k].obj == ins.obj or table[k].family == ins.family)
+            ]
+            self.related.append(np.asarray(rel, np.int64))
+
+    def caption_batch(self, n: int, none_fraction: float) -> tuple[np.ndarray, list[int | None]]:
+        n_none = int(self.rng.binomial(n, none_fraction)) if self.empty else 0
+        k = self.rng.integers(len(self.labelled), size=n - n_none)
+        idx = list(self.labelled_arr[k])
+        texts: list[int | None] = [
+            int(self.targets[i][self.rng.integers(len(self.targets[i]))]) for i in k
+        ]
+        if n_none:
+            idx += list(self.empty_arr[self.rng.integers(len(self.empty), size=n_none)])
+            texts += [None] * n_none
+        return np.asarray(idx, np.int64), texts
+
+    def reward_batch(self, n: int, hard: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Observation indices, instruction ids and 0/1 targets, half positives."""
+        n_pos = n // 2
+        k = self.rng.integers(len(self.labelled), size=n)
+        idx = self.labelled_arr[k].copy()
+        ids = np.empty(n, np.int64)
+        y = np.zeros(n, np.float32)
+        for r in range(n):
+            sat = self.targets[k[r]]
+            if r < n_pos:
+                ids[r] = sat[self.rng.integers(len(sat))]
+                y[r] = 1.0
+                continue
+            if self.empty and self.rng.random() < 0.3:  # nothing achieved: any instruction
+                idx[r] = self.empty_arr[self.rng.integers(len(self.empty))]
+                ids[r] = self.seen_ids[self.rng.integers(len(self.seen_ids))]
+                continue
+            all_labels = self.pairs.data.labels(int(idx[r]))
+            pool = self.related[int(sat[self.rng.integers(len(sat))])]
+            if self.rng.random() >= hard or pool.size == 0:
+                pool = self.seen_ids
+            for _ in range(10):
+                cand = int(pool[self.rng.integers(len(pool))])
+                if cand not in all_labels:
+                    break
+            else:
+                cand = -1
+            if cand < 0:  # every candidate was satisfied: fall back to a positive
+                ids[r] = sat[0]
+                y[r] = 1.0
+            else:
+                ids[r] = cand
+        return idx, ids, y
+
+
+class LearnedCaptioner:
+    """A trained captioner and/or reward model with what they need to run.
+
+    Load one with :meth:`load`; :meth:`caption` and :meth:`score` take uint8 frames.
+    """
+
+    def __init__(
+        self,
+        vocab: Vocabulary,
+        instructions: list[str],
+        instruction_set: list[str],
+        frame_shape: tuple[int, ...],
+        proprio_dim: int,
+        cfg: CaptionModelConfig,
+        p_mean: np.ndarray,
+        p_std: np.ndarray,
+        text_model: str,
+        meta: dict[str, Any],
+        device: str = "cpu",
+    ) -> None:
+        self.vocab = vocab
+        self.instructions = instructions
+        self.instruction_set = instruction_set
+        self.frame_shape = tuple(int(v) for v in frame_shape)
+        self.proprio_dim = int(proprio_dim)
+        self.cfg = cfg
+        self.p_mean = np.asarray(p_mean, np.float32)
+        self.p_std = np.asarray(p_std, np.float32)
+        self.text_model = text_model
+        self.meta = meta
+        self.device = torch.device(device)
+        self.captioner: Captioner | None = None
+        self.reward: RewardModel | None = None
+        self._encoder: Any = None
+
+    # -- inputs
+    def _inputs(
+        self, first: np.ndarray, current: np.ndarray, p0: np.ndarray | None, p: np.ndarray | None
+    ) -> tuple[torch.Tensor, ...]:
+        first = np.asarray(first, np.uint8)
+        current = np.asarray(current, np.uint8)
+        if first.shape[1:] != self.frame_shape or current.shape != first.shape:
+            raise LcrlError(
+                f"frames must be (B, {', '.join(map(str, self.frame_shape))}) uint8 pairs; got "
+                f"{first.shape} and {current.shape}"
+            )
+        b = first.shape[0]
+        if p0 is None or p is None:
+            if self.cfg.use_proprio:
+                raise LcrlError("this model reads proprioception: pass p0 and p")
+            p0 = p = np.zeros((b, self.proprio_dim), np.float32)
+        p0 = (np.asarray(p0, np.float32) - self.p_mean) / self.p_std
+        p = (np.asarray(p, np.float32) - self.p_mean) / self.p_std
+        dev = self.device
+        return (
+            torch.as_tensor(first, device=dev),
+            torch.as_tensor(current, device=dev),
+            torch.as_tensor(p0, device=dev),
+            torch.as_tensor(p, device=dev),
+        )
+
+    def encode_texts(self, texts: Sequence[str]) -> torch.Tensor:
+        """Frozen text embeddings of instructions (any free text)."""
+        if self._encoder is None:
+            self._encoder = _text_encoder(self.text_model)
+        return torch.as_tensor(self._encoder.encode(list(texts)), device=self.device)
+
+    # -- inference
+    @torch.no_grad()
+    def caption(
+        self,
+        first: np.ndarray,
+        current: np.ndarray,
+        p0: np.ndarray | None = None,
+        p: np.ndarray | None = None,
+        beam: int = 0,
+    ) -> list[tuple[str, float]]:
+        """Best caption and its log-likelihood per frame pair (``<none>``: nothing
+        achieved). ``beam > 0`` decodes by beam search of that width."""
+        if self.captioner is None:
+            raise LcrlError(
+                "this checkpoint has no captioner (it was trained with --models reward)"
+            )
+        self.captioner.eval()
+        ctx = self.captioner.encoder(*self._inputs(first, current, p0, p))
+        if beam > 0:
+            out = []
+            for beams in self.captioner.beam(ctx, beam):
+                ids, score = beams[0] if beams else ([EOS], float("-inf"))
+                out.append((self.vocab.decode(ids), float(score)))
+            return out
+        ids, logp = self.captioner.greedy(ctx)
+        return [
+            (self.vocab.decode(row), float(lp))
+            for row, lp in zip(ids.tolist(), logp.tolist(), strict=True)
+        ]
+
+    @torch.no_grad()
+    def score(
+        self,
+        texts: Sequence[str],
+        first: np.ndarray,
+        current: np.ndarray,
+        p0: np.ndarray | None = None,
+        p: np.ndarray | None = None,
+    ) -> np.ndarray:
+        """Probability that each ``texts[i]`` is satisfied by the change from
+        ``first[i]`` to ``current[i]``."""
+        if self.reward is None:
+            raise LcrlError(
+                "this checkpoint has no reward model (it was trained with --models captioner)"
+            )
+        if len(texts) != len(first):
+            raise LcrlError(f"{len(texts)} instructions for {len(first)} frame pairs")
+        self.reward.eval()
+        ctx = self.reward.encoder(*self._inputs(first, current, p0, p))
+        return torch.sigmoid(self.reward(ctx, self.encode_texts(texts))).cpu().numpy()
+
+    # -- saving
+    def save(self, directory: str | Path) -> Path:
+        modules: dict[str, nn.Module] = {}
+        if self.captioner is not None:
+            modules["captioner"] = self.captioner
+        if self.reward is not None:
+            modules["reward"] = self.reward
+        meta = {
+            "kind": CHECKPOINT_KIND,
+            "models": sorted(modules),
+            "frame_shape": list(self.frame_shape),
+            "proprio_dim": self.proprio_dim,
+            "model": asdict(self.cfg),
+            "text_model": self.text_model,
+            "proprio_mean": self.p_mean.tolist(),
+            "proprio_std": self.p_std.tolist(),
+            **self.meta,
+        }
+        json_files = {
+            "vocabulary": {"words": self.vocab.words},
+            "instructions": {"texts": self.instructions, "sets": self.instruction_set},
+        }
+        return save_checkpoint(directory, modules=modules, meta=meta, json_files=json_files)
+
+    @classmethod
+    def load(cls, path: str | Path, device: str = "cpu") -> LearnedCaptioner:
+        """Load a checkpoint written by :meth:`save` (or ``lcrl caption train``)."""
+        try:
+            ckpt = load_checkpoint(path)
+        except CheckpointError as e:
+            raise LcrlError(str(e)) from None
+        meta = ckpt.meta
+        if meta.get("kind") != CHECKPOINT_KIND:
+            raise LcrlError(
+                f"{path} is not a learned-captioner checkpoint (kind {meta.get('kind')!r}); "
+                "policy checkpoints go to lcrl eval / act"
+            )
+        words = ckpt.json("vocabulary")["words"]
+        vocab = Vocabulary([])
+        vocab.words = list(words)
+        vocab.index = {w: i for i, w in enumerate(words)}
+        table = ckpt.json("instructions")
+        mcfg = CaptionModelConfig(**{**meta["model"], "channels": tuple(meta["model"]["channels"])})
+        known = {"kind", "models", "frame_shape", "proprio_dim", "model", "text_model",
+                 "proprio_mean", "proprio_std"}  # fmt: skip
+        lc = cls(
+            vocab,
+            list(table["texts"]),
+            list(table["sets"]),
+            tuple(meta["frame_shape"]),
+            int(meta["proprio_dim"]),
+            mcfg,
+            np.asarray(meta["proprio_mean"], np.float32),
+            np.asarray(meta["proprio_std"], np.float32),
+            meta.get("text_model", ""),
+            {k: v for k, v in meta.items() if k not in known},
+            device,
+        )
+        try:
+            if "captioner" in meta["models"]:
+                lc.captioner = Captioner(lc.frame_shape, lc.proprio_dim, len(vocab), mcfg)
+                ckpt.load_module("captioner", lc.captioner)
+                lc.captioner.to(lc.device)
+            if "reward" in meta["models"]:
+                dim = int(meta["text_dim"])
+                lc.reward = RewardModel(lc.frame_shape, lc.proprio_dim, dim, mcfg)
+                ckpt.load_module("reward", lc.reward)
+                lc.reward.to(lc.device)
+        except CheckpointError as e:
+            raise LcrlError(str(e)) from None
+        return lc
+
+    def check_dataset(self, data: CaptionDataset) -> None:
+        """Refuse a dataset whose frames or robot state differ from the training data's."""
+        if data.frame_shape != self.frame_shape or data.proprio.shape[1] != self.proprio_dim:
+            raise LcrlError(
+                f"the models read {'x'.join(map(str, self.frame_shape))} frames and "
+                f"{self.proprio_dim} proprioception values; {data.path} has "
+                f"{'x'.join(map(str, data.frame_shape))} frames and {data.proprio.shape[1]}"
+            )
+
+
+def train_models(cfg: CaptionTrainConfig) -> Path:
+    """Train the models a config asks for and save them; returns the checkpoint path."""
+    cfg.validate()
+    from tqdm import tqdm
+
+    out = Path(cfg.out)
+    if (out / "meta.json").exists() and not cfg.overwrite:
+        raise LcrlError(f"{out} already holds a checkpoint; pass --overwrite to replace it")
+    if cfg.threads > 0:
+        torch.set_num_threads(cfg.threads)
+    torch.manual_seed(cfg.seed)
+    rng = np.random.default_rng(cfg.seed)
+    device = torch.device(cfg.device)
+    data = CaptionDataset(cfg.data)
+    try:
+        pairs = _Pairs(data, cfg.val_fraction, cfg.seed)
+        table = [_parse(t) for t in data.instructions]
+        sampler = _Sampler(pairs, table, rng)
+        vocab = Vocabulary.from_grammar()
+        mcfg = cfg.model
+        lc = LearnedCaptioner(
+            vocab,
+            data.instructions,
+            data.instruction_set,
+            data.frame_shape,
+            data.proprio.shape[1],
+            mcfg,
+            pairs.p_mean,
+            pairs.p_std,
+            cfg.text_model,
+            {
+                "dataset": str(cfg.data),
+                "dataset_meta": data.meta,
+                "val_episodes": pairs.val_episodes.tolist(),
+                "train": asdict(cfg),
+            },
+            cfg.device,
+        )
+        history: dict[str, list[float]] = {}
+        if "captioner" in cfg.models:
+            tokens = torch.as_tensor(
+                [vocab.encode(t, mcfg.max_len) for t in data.instructions]
+                + [vocab.encode(NONE_TEXT, mcfg.max_len)],
+                device=device,
+            )
+            none_row = len(data.instructions)
+            model = Captioner(data.frame_shape, lc.proprio_dim, len(vocab), mcfg).to(device)
+            opt = torch.optim.Adam(model.parameters(), cfg.lr)
+            losses = []
+            bar = tqdm(range(cfg.steps), disable=not cfg.progress, desc="captioner")
+            for _ in bar:
+                idx, targets = sampler.caption_batch(cfg.batch_size, cfg.none_fraction)
+                rows = torch.as_tensor(
+                    [none_row if t is None else t for t in targets], device=device
+                )
+                seq = tokens[rows]
+                ctx = model.encoder(*pairs.tensors(idx, device))
+                logits = model(ctx, seq[:, :-1])
+                loss = F.cross_entropy(
+                    logits.reshape(-1, logits.shape[-1]), seq[:, 1:].reshape(-1), ignore_index=PAD
+                )
+                opt.zero_grad()
+                loss.backward()
+                opt.step()
+                losses.append(loss.item())
+                bar.set_postfix_str(f"loss {np.mean(losses[-50:]):.3f}", refresh=False)
+            lc.captioner = model
+            history["captioner_loss"] = losses
+        if "reward" in cfg.models:
+            seen_texts = [
+                t
+                for t, s in zip(data.instructions, data.instruction_set, strict=True)
+                if s == "train"
+            ]
+            lc.text_model = cfg.text_model
+            emb = lc.encode_texts(data.instructions)
+            model_r = RewardModel(data.frame_shape, lc.proprio_dim, emb.shape[1], mcfg).to(device)
+            model_r.set_text_stats(lc.encode_texts(seen_texts).cpu().numpy())
+            model_r.to(device)
+            lc.meta["text_dim"] = int(emb.shape[1])
+            opt = torch.optim.Adam(model_r.parameters(), cfg.lr)
+            losses = []
+            bar = tqdm(range(cfg.steps), disable=not cfg.progress, desc="reward model")
+            for _ in bar:
+                idx, ids, y = sampler.reward_batch(cfg.batch_size, cfg.hard_negative_fraction)
+                ctx = model_r.encoder(*pairs.tensors(idx, device))
+                logit = model_r(ctx, emb[torch.as_tensor(ids, device=device)])
+                loss = F.binary_cross_entropy_with_logits(logit, torch.as_tensor(y, device=device))
+                opt.zero_grad()
+                loss.backward()
+                opt.step()
+                losses.append(loss.item())
+                bar.set_postfix_str(f"loss {np.mean(losses[-50:]):.3f}", refresh=False)
+            lc.reward = model_r
+            history["reward_loss"] = losses
+        lc.meta["history"] = {
+            k: [float(np.mean(v[i : i + 50])) for i in range(0, len(v), 50)]
+            for k, v in history.items()
+        }
+        return lc.save(out)
+    finally:
+        data.close()
+
+
+def _parse(text: str) -> Instruction:
+    ins = try_parse(text)
+    if ins is None:
+        raise LcrlError(f"dataset instruction {text!r} does not parse")
+    return ins
+
+
+# --------------------------------------------------------------------------- evaluation
+
+
+def evaluate_models(
+    lc: LearnedCaptioner,
+    data: CaptionDataset,
+    episodes: np.ndarray | None = None,
+    max_pairs: int = 2000,
+    batch_size: int = 128,
+    beam: int = 0,
+    seed: int = 0,
+) -> dict[str, Any]:
+    """Captioner and reward-model figures on ``episodes`` (default: the checkpoint's
+    held-out episodes when it was trained on ``data``, else every episode).
+
+    Returns a dict with ``seen`` (observations that achieved a training instruction) and
+    ``heldout_combinations`` (observations that achieved a held-out combination), each
+    with captioner ``exact_match``, ``slot_accuracy`` per slot group, ``bleu4``, and the
+    reward model's ``precision``, ``recall`` and ``auc``; plus ``none_accuracy`` (the
+    captioner says ``<none>`` where nothing was achieved).
+    """
+    lc.check_dataset(data)
+    if episodes is None:
+        same = lc.meta.get("dataset_meta") == data.meta and "val_episodes" in lc.meta
+        episodes = (
+            np.asarray(lc.meta["val_episodes"], np.int64) if same else np.arange(data.num_episodes)
+        )
+    rng = np.random.default_rng(seed)
+    obs = _observations(data, np.asarray(episodes, np.int64))
+    names = data.instructions  # matched to the models by text, never by id
+    heldout_names = {t for t, s in zip(names, data.instruction_set, strict=True) if s == "heldout"}
+    groups: dict[str, list[tuple[int, list[str]]]] = {"seen": [], "heldout_combinations": []}
+    empty: list[int] = []
+    for j in obs:
+        lab = [names[i] for i in data.labels(int(j))]
+        if not lab:
+            empty.append(int(j))
+            continue
+        if any(t in heldout_names for t in lab):
+            groups["heldout_combinations"].append((int(j), lab))
+        if any(t not in heldout_names for t in lab):
+            groups["seen"].append((int(j), lab))
+    first_of = data.first_of
+
+    def batches(idx: list[int]) -> Any:
+        for s in range(0, len(idx), batch_size):
+            sl = np.asarray(idx[s : s + batch_size], np.int64)
+            f = data.read_frames(first_of(sl))
+            c = data.read_frames(sl)
+            yield sl, f, c, data.proprio[first_of(sl)], data.proprio[sl]
+
+    results: dict[str, Any] = {"episodes": len(episodes)}
+    for name, items in groups.items():
+        if len(items) > max_pairs:
+            items = [items[i] for i in np.sort(rng.choice(len(items), max_pairs, replace=False))]
+        res: dict[str, Any] = {"observations": len(items)}
+        if lc.captioner is not None and items:
+            idx = [j for j, _ in items]
+            captions = []
+            for _, f, c, p0, p in batches(idx):
+                captions += lc.caption(f, c, p0, p, beam=beam)
+            exact, bleu, slots = [], [], {g: [] for g in SLOT_GROUPS}
+            made_heldout = []
+            for (_, lab), (text, _) in zip(items, captions, strict=True):
+                # the references: the labels of the group's kind (seen or held-out)
+                refs = [t for t in lab if (t in heldout_names) == (name != "seen")]
+                exact.append(text in lab)
+                made_heldout.append(text in heldout_names and text in lab)
+                bleu.append(bleu4(text, refs))
+                gen = try_parse(text) if text != NONE_TEXT else None
+                best = max(
+                    (slot_matches(gen, _parse(r)) for r in refs),
+                    key=lambda m: sum(m.values()),
+                )
+                for g, ok in best.items():
+                    slots[g].append(ok)
+            res["exact_match"] = float(np.mean(exact))
+            res["bleu4"] = float(np.mean(bleu))
+            res["slot_accuracy"] = {g: float(np.mean(v)) for g, v in slots.items() if v}
+            if name != "seen":
+                res["heldout_caption_rate"] = float(np.mean(made_heldout))
+            res["examples"] = [
+                {"labels": lab[:4], "caption": text}
+                for (_, lab), (text, _) in list(zip(items, captions, strict=True))[:5]
+            ]
+        if lc.reward is not None and items:
+            pos_idx, pos_txt, neg_idx, neg_txt = [], [], [], []
+            pool = (
+                sorted(heldout_names)
+                if name != "seen"
+                else [t for t in names if t not in heldout_names]
+            )
+            by_obj: dict[tuple[str, str], list[str]] = {}
+            for t in pool:
+                by_obj.setdefault(_parse(t).obj, []).append(t)
+            for j, lab in items:
+                mine = [t for t in lab if (t in heldout_names) == (name != "seen")]
+                if not mine:
+                    continue
+                pos_idx.append(j)
+                pos_txt.append(mine[rng.integers(len(mine))])
+                # a hard negative: same object, not satisfied
+                obj = _parse(pos_txt[-1]).obj
+                cands = [t for t in by_obj.get(obj, []) if t not in lab] or [
+                    t for t in pool if t not in lab
+                ]
+                if cands:
+                    neg_idx.append(j)
+                    neg_txt.append(cands[rng.integers(len(cands))])
+            for j in (
+                rng.choice(empty, min(len(empty), len(pos_idx) // 2), replace=False)
+                if empty
+                else []
+            ):
+                neg_idx.append(int(j))
+                neg_txt.append(pool[rng.integers(len(pool))])
+            all_idx = pos_idx + neg_idx
+            all_txt = pos_txt + neg_txt
+            y = np.asarray([1] * len(pos_idx) + [0] * len(neg_idx), bool)
+            scores = []
+            for s in range(0, len(all_idx), batch_size):
+                sl = np.asarray(all_idx[s : s + batch_size], np.int64)
+                f = data.read_frames(first_of(sl))
+                c = data.read_frames(sl)
+                scores.append(
+                    lc.score(
+                        all_txt[s : s + batch_size],
+                        f,
+                        c,
+                        data.proprio[first_of(sl)],
+                        data.proprio[sl],
+                    )
+                )
+            sc = np.concatenate(scores) if scores else np.zeros(0)
+            pred = sc >= 0.5
+            tp = int(np.sum(pred & y))
+            res["reward_pairs"] = len(y)
+            res["precision"] = float(tp / max(int(pred.sum()), 1))
+            res["recall"] = float(tp / max(int(y.sum()), 1))
+            res["auc"] = roc_auc(sc, y)
+        results[name] = res
+    if lc.captioner is not None and empty:
+        sample = (
+            empty if len(empty) <= max_pairs else list(rng.choice(empty, max_pairs, replace=False))
+        )
+        said = []
+        for _, f, c, p0, p in batches(sorted(int(j) for j in sample)):
+            said += [t == NONE_TEXT for t, _ in lc.caption(f, c, p0, p, beam=beam)]
+        results["none_accuracy"] = float(np.mean(said))
+    return results
+
+
+def format_results(results: dict[str, Any]) -> str:
+    """A few lines for the terminal."""
+    lines = [f"episodes evaluated: {results['episodes']}"]
+    for name in ("seen", "heldout_combinations"):
+        r = results.get(name)
+        if not r:
+            continue
+        parts = [f"{name}: {r['observations']} observations"]
+        if "exact_match" in r:
+            slots = ", ".join(f"{g} {v:.2f}" for g, v in r["slot_accuracy"].items())
+            parts.append(
+                f"exact match {r['exact_match']:.2f}, BLEU-4 {r['bleu4']:.2f}, slots: {slots}"
+            )
+        if "auc" in r:
+            parts.append(
+                f"reward model AUC {r['auc']:.3f}, precision {r['precision']:.2f}, "
+                f"recall {r['recall']:.2f} ({r['reward_pairs']} pairs)"
+            )
+        lines.append("; ".join(parts))
+    if "none_accuracy" in results:
+        lines.append(f"'<none>' where nothing was achieved: {results['none_accuracy']:.2f}")
+    return "\n".join(lines)
+
+
+def save_results(results: dict[str, Any], path: str | Path) -> Path:
+    """Write evaluation results as JSON."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_text(json.dumps(results, indent=1))
+    return path
