@@ -1,0 +1,166 @@
+"""Learned captioner and reward model: vocabulary, metrics, training, loading, evaluation."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+import torch
+
+from captioner.dataset import CaptionDataset, CollectConfig, collect
+from captioner.grammar import Instruction
+from captioner.learned import (
+    NONE_TEXT,
+    CaptionModelConfig,
+    CaptionTrainConfig,
+    LearnedCaptioner,
+    Vocabulary,
+    bleu4,
+    evaluate_models,
+    roc_auc,
+    slot_matches,
+    train_models,
+)
+from lcrl.errors import LcrlError
+from train.cli import main
+
+TINY = CaptionModelConfig(channels=(16, 16, 16, 16), features=64, hidden=64, embed=32)
+
+
+@pytest.fixture(scope="module")
+def one_thread():
+    before = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(before)
+
+
+@pytest.fixture(scope="module")
+def dataset(tmp_path_factory):
+    path = tmp_path_factory.mktemp("lc") / "d.h5"
+    collect(
+        CollectConfig(
+            out=str(path), episodes=80, image_size=32, families=("reach", "push"), progress=False
+        )
+    )
+    return path
+
+
+@pytest.fixture(scope="module")
+def trained(dataset, tmp_path_factory, one_thread):
+    out = tmp_path_factory.mktemp("lc") / "ckpt"
+    cfg = CaptionTrainConfig(data=str(dataset), out=str(out), steps=400, model=TINY, progress=False)
+    return train_models(cfg)
+
+
+def test_vocabulary_round_trip_and_errors():
+    v = Vocabulary.from_grammar()
+    for text in ("push the red cube left", "put the blue cylinder in front of the red cube"):
+        ids = v.encode(text, 12)
+        assert len(ids) == 12 and v.decode(ids) == text
+    assert v.decode(v.encode(NONE_TEXT, 12)) == NONE_TEXT
+    with pytest.raises(LcrlError, match="vocabulary"):
+        v.encode("push the red banana left", 12)
+    with pytest.raises(LcrlError, match="longer"):
+        v.encode("push the red cube left", 4)
+
+
+def test_metrics():
+    assert bleu4("push the red cube left", ["push the red cube left"]) == pytest.approx(1.0)
+    assert bleu4("lift", ["push the red cube left"]) == 0.0
+    one_word_off = bleu4("push the red cube right", ["push the red cube left"])
+    assert 0.3 < one_word_off < 1.0
+    # multiple references: the best matching n-grams count
+    assert bleu4("reach the red cube", ["push the red cube left", "reach the red cube"]) == (
+        pytest.approx(1.0)
+    )
+    rng = np.random.default_rng(0)
+    s, y = rng.normal(size=200), rng.random(200) < 0.4
+    s[y] += 1.0
+    brute = np.mean([(a > b) + 0.5 * (a == b) for a in s[y] for b in s[~y]])
+    assert roc_auc(s, y) == pytest.approx(brute)
+    assert roc_auc(np.array([1, 1, 1.0]), np.array([1, 0, 1], bool)) == pytest.approx(0.5)
+    assert np.isnan(roc_auc(np.ones(3), np.ones(3, bool)))
+    lab = Instruction("push", "red", "cube", direction="left")
+    gen = Instruction("push", "red", "cylinder", direction="left")
+    assert slot_matches(gen, lab) == {"verb": True, "object": False, "direction": True}
+    assert slot_matches(None, lab) == {"verb": False, "object": False, "direction": False}
+
+
+def test_training_learns_and_checkpoints_load(trained, dataset):
+    lc = LearnedCaptioner.load(trained)
+    assert lc.captioner is not None and lc.reward is not None
+    with CaptionDataset(dataset) as data:
+        results = evaluate_models(lc, data)
+        assert results["episodes"] == 16  # the held-out 20% of 80 episodes
+        seen = results["seen"]
+        # Chance is about 1 in 30 instructions; the reward model sees balanced pairs with
+        # hard negatives (same object, other instruction).
+        assert seen["exact_match"] >= 0.1
+        assert seen["auc"] >= 0.7
+        assert set(seen["slot_accuracy"]) >= {"verb", "object"}
+        # inference on raw frames: captions are vocabulary sentences, scores probabilities
+        f, c = data.frames[0:3], data.frames[5:8]
+        p0, p = data.proprio[0:3], data.proprio[5:8]
+        caps = lc.caption(f, c, p0, p)
+        assert len(caps) == 3 and all(isinstance(t, str) and lp <= 0 for t, lp in caps)
+        words = set(lc.vocab.words)
+        assert all(set(t.split()) <= words for t, _ in caps)
+        beams = lc.caption(f, c, p0, p, beam=3)
+        assert len(beams) == 3
+        probs = lc.score(["reach the red cube", "shove the blue block left", "hello"], f, c, p0, p)
+        assert probs.shape == (3,) and np.all((probs >= 0) & (probs <= 1))
+        with pytest.raises(LcrlError, match="frame pairs"):
+            lc.score(["reach the red cube"], f, c, p0, p)
+        with pytest.raises(LcrlError, match="uint8 pairs"):
+            lc.caption(f[:, :16], c[:, :16], p0, p)
+        with pytest.raises(LcrlError, match="proprioception"):
+            lc.caption(f, c)
+
+
+def test_beam_search_agrees_with_greedy_at_width_one(trained, dataset):
+    lc = LearnedCaptioner.load(trained)
+    with CaptionDataset(dataset) as data:
+        idx = np.arange(10, 20)
+        first = data.read_frames(data.first_of(idx))
+        cur = data.read_frames(idx)
+        args = (first, cur, data.proprio[data.first_of(idx)], data.proprio[idx])
+        greedy = lc.caption(*args)
+        beam1 = lc.caption(*args, beam=1)
+        assert [t for t, _ in greedy] == [t for t, _ in beam1]
+        np.testing.assert_allclose([s for _, s in greedy], [s for _, s in beam1], atol=1e-4)
+
+
+def test_errors(trained, dataset, tmp_path):
+    with pytest.raises(LcrlError, match="models must be"):
+        train_models(CaptionTrainConfig(data=str(dataset), out=str(tmp_path), models=("x",)))
+    with pytest.raises(LcrlError, match="already holds"):
+        train_models(CaptionTrainConfig(data=str(dataset), out=str(trained), steps=1))
+    with pytest.raises(LcrlError, match="no caption dataset"):
+        train_models(CaptionTrainConfig(data=str(tmp_path / "none.h5"), out=str(tmp_path / "o")))
+    with pytest.raises(LcrlError):
+        LearnedCaptioner.load(tmp_path / "missing")
+    other = tmp_path / "big.h5"
+    collect(CollectConfig(out=str(other), episodes=2, image_size=48, progress=False))
+    lc = LearnedCaptioner.load(trained)
+    with CaptionDataset(other) as data, pytest.raises(LcrlError, match="32x32x3 frames"):
+        evaluate_models(lc, data)
+
+
+def test_cli_train_and_eval(dataset, tmp_path, capsys, one_thread):
+    out = tmp_path / "cli"
+    args = ["caption", "train", "--data", str(dataset), "--out", str(out), "--steps", "5"]
+    args += ["--models", "reward", "--model.channels", "8", "8", "8", "8", "--no-progress"]
+    main(args)
+    text = capsys.readouterr().out
+    assert "reward model AUC" in text and "exact match" not in text
+    js = tmp_path / "r.json"
+    main(["caption", "eval", str(out), "--json", str(js)])
+    assert "seen" in json.loads(js.read_text())
+    lc = LearnedCaptioner.load(out)
+    with pytest.raises(LcrlError, match="no captioner"):
+        lc.caption(np.zeros((1, 32, 32, 3), np.uint8), np.zeros((1, 32, 32, 3), np.uint8))
+    with pytest.raises(SystemExit) as e:
+        main(["caption", "eval", str(tmp_path / "nothing")])
+    assert e.value.code == 2
