@@ -672,6 +672,30 @@ class LearnedCaptioner:
         ctx = self.reward.encoder(*self._inputs(first, current, p0, p))
         return torch.sigmoid(self.reward(ctx, self.encode_texts(texts))).cpu().numpy()
 
+    @torch.no_grad()
+    def score_matrix(
+        self,
+        texts: Sequence[str],
+        first: np.ndarray,
+        current: np.ndarray,
+        p0: np.ndarray | None = None,
+        p: np.ndarray | None = None,
+    ) -> np.ndarray:
+        """``(len(current), len(texts))`` probabilities: every instruction against every
+        frame pair (the frames are encoded once)."""
+        if self.reward is None:
+            raise LcrlError(
+                "this checkpoint has no reward model (it was trained with --models captioner)"
+            )
+        self.reward.eval()
+        ctx = self.reward.encoder(*self._inputs(first, current, p0, p))
+        emb = self.encode_texts(texts)
+        n, m = ctx.shape[0], emb.shape[0]
+        logits = self.reward(
+            ctx.repeat_interleave(m, 0), emb.repeat(n, 1)
+        )  # row-major: frame i, text k at i * m + k
+        return torch.sigmoid(logits).view(n, m).cpu().numpy()
+
     # -- saving
     def save(self, directory: str | Path) -> Path:
         modules: dict[str, nn.Module] = {}
@@ -1047,3 +1071,100 @@ def save_results(results: dict[str, Any], path: str | Path) -> Path:
     path.parent.mkdir(parents=True, exist_ok=True)
     path.write_text(json.dumps(results, indent=1))
     return path
+
+
+# --------------------------------------------------------------------------- relabelling
+
+
+class LearnedLabeller:
+    """Labels a stored episode with the learned models, once per episode.
+
+    ``labels`` are the relabelling candidates of each observation (what the learned
+    captioner says the change since the first frame achieved, every beam caption whose
+    log-likelihood is at least ``min_logprob``, restricted to the training instructions);
+    ``achieved`` are the instructions the learned reward model judges satisfied at each
+    observation (probability at least ``threshold``), scored for every candidate of the
+    episode and its own instruction in one batch.
+
+    Args:
+        models: the loaded checkpoint.
+        table: the run's instruction table; ids ``< num_train`` may be labels.
+        num_train: number of training instructions at the front of ``table``.
+        captioner: use the learned captioner for ``labels`` (else the caller's rule
+            labels are kept).
+        reward: use the learned reward model for ``achieved``.
+        min_logprob: captions less likely than this are skipped.
+        beam: beam width (0 or 1: greedy, one caption per observation).
+        threshold: reward-model probability that counts as satisfied.
+    """
+
+    def __init__(
+        self,
+        models: LearnedCaptioner,
+        table: Sequence[str],
+        num_train: int,
+        captioner: bool = True,
+        reward: bool = True,
+        min_logprob: float = -1.0,
+        beam: int = 3,
+        threshold: float = 0.5,
+    ) -> None:
+        if captioner and models.captioner is None:
+            raise LcrlError("learned relabelling needs a checkpoint with a captioner")
+        if reward and models.reward is None:
+            raise LcrlError("learned rewards need a checkpoint with a reward model")
+        self.models = models
+        self.table = list(table)
+        self.train_ids = {t: i for i, t in enumerate(self.table[:num_train])}
+        self.use_captioner, self.use_reward = captioner, reward
+        self.min_logprob, self.beam, self.threshold = float(min_logprob), int(beam), threshold
+        self.skipped = 0  # captions dropped by the threshold
+        self.kept = 0
+
+    @property
+    def frame_shape(self) -> tuple[int, ...]:
+        return self.models.frame_shape
+
+    def labels(self, frames: np.ndarray, proprio: np.ndarray) -> list[list[int]]:
+        """Training-instruction ids the captioner reads in each observation."""
+        first = np.repeat(frames[:1], len(frames), 0)
+        p0 = np.repeat(proprio[:1], len(proprio), 0)
+        lc = self.models
+        if self.beam > 1:
+            if lc.captioner is None:
+                raise LcrlError("no captioner")
+            lc.captioner.eval()
+            with torch.no_grad():
+                ctx = lc.captioner.encoder(*lc._inputs(first, frames, p0, proprio))
+                beams = lc.captioner.beam(ctx, self.beam)
+            per_obs = [[(lc.vocab.decode(ids), sc) for ids, sc in b] for b in beams]
+        else:
+            per_obs = [[c] for c in lc.caption(first, frames, p0, proprio)]
+        out = []
+        for caps in per_obs:
+            ids = []
+            for text, score in caps:
+                if text == NONE_TEXT or text not in self.train_ids:
+                    continue
+                if score < self.min_logprob:
+                    self.skipped += 1
+                    continue
+                self.kept += 1
+                ids.append(self.train_ids[text])
+            out.append(sorted(set(ids)))
+        out[0] = []  # nothing is achieved by the first observation relative to itself
+        return out
+
+    def achieved(
+        self, frames: np.ndarray, proprio: np.ndarray, candidates: Sequence[int]
+    ) -> list[list[int]]:
+        """For each observation, the candidate ids the reward model judges satisfied."""
+        cands = sorted(set(int(c) for c in candidates))
+        if not cands:
+            return [[] for _ in range(len(frames))]
+        first = np.repeat(frames[:1], len(frames), 0)
+        p0 = np.repeat(proprio[:1], len(proprio), 0)
+        probs = self.models.score_matrix([self.table[c] for c in cands], first, frames, p0, proprio)
+        hit = probs >= self.threshold
+        hit[0] = False
+        return [[cands[k] for k in np.flatnonzero(row)] for row in hit]

@@ -251,7 +251,10 @@ class LabelGoals:
 
     The episode passed to :meth:`write` needs ``goal_id`` (an int, the episode's
     instruction) and ``labels``: ``T + 1`` sequences of ids, ``labels[j]`` being what the
-    episode had achieved at observation ``j`` (``labels[0]`` is normally empty). Ids at or
+    episode had achieved at observation ``j`` (``labels[0]`` is normally empty). An
+    optional ``achieved`` (same form) gives the ids that earn reward at each observation
+    when that judge differs from the one proposing relabelling goals (a learned reward
+    model next to a learned captioner); by default the labels are the rewards. Ids at or
     above ``num_relabel`` are recorded for rewards but never used as relabelled goals: put
     the training instructions first in the table so that held-out instructions can be
     recognised without ever being trained on.
@@ -334,6 +337,7 @@ class LabelGoals:
     def write(self, start: int, episode: Mapping[str, Any]) -> None:
         """Store an episode's goal id and per-observation labels."""
         labels = episode["labels"]
+        achieved = episode.get("achieved", labels)
         n = len(labels)
         expected = len(episode["action"]) + 1
         if n != expected:
@@ -346,14 +350,18 @@ class LabelGoals:
         self._labels[sl] = -1
         self._nlab[sl] = 0
         self._bits[sl] = 0
+        if len(achieved) != n:
+            raise LcrlError(f"achieved has {len(achieved)} entries; expected T + 1 = {n}")
         rank = np.zeros(n, np.int32)
         count = 0
         for j, lab in enumerate(labels):
             rank[j] = count
             ids = np.unique(np.asarray(lab, np.int64))
-            if ids.size and (ids.min() < 0 or ids.max() >= self.num_goals):
-                raise LcrlError(f"label ids must be in [0, {self.num_goals}), got {ids}")
-            np.bitwise_or.at(self._bits[start + j], ids >> 3, (1 << (ids & 7)).astype(np.uint8))
+            hit = np.unique(np.asarray(achieved[j], np.int64)) if achieved is not labels else ids
+            for arr in (ids, hit):
+                if arr.size and (arr.min() < 0 or arr.max() >= self.num_goals):
+                    raise LcrlError(f"label ids must be in [0, {self.num_goals}), got {arr}")
+            np.bitwise_or.at(self._bits[start + j], hit >> 3, (1 << (hit & 7)).astype(np.uint8))
             usable = ids[ids < self.num_relabel]
             if usable.size > self.max_labels:
                 usable = self._rng.choice(usable, self.max_labels, replace=False)

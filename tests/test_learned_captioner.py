@@ -164,3 +164,89 @@ def test_cli_train_and_eval(dataset, tmp_path, capsys, one_thread):
     with pytest.raises(SystemExit) as e:
         main(["caption", "eval", str(tmp_path / "nothing")])
     assert e.value.code == 2
+
+
+def _small_run(out, checkpoint, **relabel):
+    import dataclasses
+
+    from train.config import PRESETS, RelabelConfig
+
+    base = PRESETS["lang2d"][1]
+    return dataclasses.replace(
+        base,
+        out=str(out),
+        total_steps=300,
+        learning_starts=100,
+        batch_size=32,
+        eval_every=0,
+        eval_episodes=2,
+        checkpoint_every=0,
+        progress=False,
+        tensorboard=False,
+        scripted_fraction=0.5,
+        buffer=dataclasses.replace(base.buffer, capacity=2000),
+        agent=dataclasses.replace(
+            base.agent, net=dataclasses.replace(base.agent.net, hidden=(32, 32), text_dim=8)
+        ),
+        relabel=RelabelConfig(checkpoint=str(checkpoint), **relabel),
+    )
+
+
+def test_training_with_learned_captioner_and_reward(trained, tmp_path, one_thread):
+    from train.loop import Trainer
+
+    cfg = _small_run(
+        tmp_path / "run", trained, captioner="learned", reward="learned", min_logprob=-1e9
+    )
+    trainer = Trainer(cfg)
+    trainer.run()
+    lab = trainer.task.labeller
+    assert lab is not None and lab.use_captioner and lab.use_reward
+    assert lab.kept + lab.skipped > 0  # the captioner read the episodes' frames
+    gs = trainer.buffer.goal_space
+    n = trainer.buffer.size
+    assert gs._total[:n].max() > 0  # some stored episode has learned labels to relabel with
+
+
+def test_labeller_thresholds_and_candidates(trained, dataset):
+    from captioner.learned import LearnedLabeller
+
+    lc = LearnedCaptioner.load(trained)
+    with CaptionDataset(dataset) as data:
+        ep = max(range(data.num_episodes), key=lambda e: sum(map(len, data.episode(e)["labels"])))
+        e = data.episode(ep)
+        frames, proprio = e["frames"], e["proprio"]
+        table = data.instructions
+        num_train = data.instruction_set.index("heldout")
+        everything = LearnedLabeller(lc, table, num_train, min_logprob=-1e9, beam=3)
+        labels = everything.labels(frames, proprio)
+        assert len(labels) == len(frames) and labels[0] == []
+        assert any(labels) and all(0 <= i < num_train for ids in labels for i in ids)
+        nothing = LearnedLabeller(lc, table, num_train, min_logprob=1.0, beam=3)
+        assert not any(nothing.labels(frames, proprio)) and nothing.skipped > 0
+        greedy = LearnedLabeller(lc, table, num_train, min_logprob=-1e9, beam=0)
+        assert all(len(ids) <= 1 for ids in greedy.labels(frames, proprio))
+        cands = sorted({i for ids in labels for i in ids})
+        achieved = everything.achieved(frames, proprio, cands)
+        assert achieved[0] == [] and all(set(a) <= set(cands) for a in achieved)
+        strict = LearnedLabeller(lc, table, num_train, threshold=1.01)
+        assert not any(strict.achieved(frames, proprio, cands))
+
+
+def test_learned_relabelling_settings_are_checked(trained, tmp_path):
+    import dataclasses
+
+    from train.config import PRESETS, RelabelConfig
+    from train.loop import Trainer
+
+    with pytest.raises(LcrlError, match=r"relabel\.checkpoint"):
+        Trainer(_small_run(tmp_path / "a", "", captioner="learned"))
+    with pytest.raises(LcrlError, match=r"relabel\.reward"):
+        Trainer(_small_run(tmp_path / "b", trained, reward="clip"))
+    state = dataclasses.replace(
+        PRESETS["state2d"][1],
+        out=str(tmp_path / "c"),
+        relabel=RelabelConfig(captioner="learned", checkpoint=str(trained)),
+    )
+    with pytest.raises(LcrlError, match="language goals"):
+        Trainer(state)

@@ -38,6 +38,35 @@ class BufferConfig:
     goals): values travel back along sparse-reward paths n times faster."""
 
 
+RELABELLERS = ("rule", "learned")
+
+
+@dataclass
+class RelabelConfig:
+    """Who says what a language-goal episode achieved: the rule captioner (privileged
+    state) or the learned models of ``lcrl caption train`` (camera frames)."""
+
+    captioner: str = "rule"
+    """Relabelling candidates: ``rule`` or ``learned`` (the learned captioner's captions of
+    each step, read from the camera frames)."""
+    reward: str = "rule"
+    """Rewards of stored transitions: ``rule`` or ``learned`` (the learned reward model,
+    scored once per stored episode for every candidate)."""
+    checkpoint: str = ""
+    """The learned models' checkpoint (``lcrl caption train --out``)."""
+    min_logprob: float = -1.0
+    """Learned captions whose log-likelihood is below this are skipped."""
+    beam: int = 3
+    """Beam width of the learned captioner (each step keeps every beam caption above
+    ``min_logprob``; 0 or 1: one greedy caption)."""
+    threshold: float = 0.5
+    """Reward-model probability that counts as satisfied."""
+
+    @property
+    def learned(self) -> bool:
+        return "learned" in (self.captioner, self.reward)
+
+
 @dataclass
 class TrainConfig:
     """One training run: environment, learner, schedule, evaluation and outputs."""
@@ -58,6 +87,8 @@ class TrainConfig:
     """Networks, normalisation, device and seed of the learner."""
     buffer: BufferConfig = field(default_factory=BufferConfig)
     """Replay buffer and relabelling."""
+    relabel: RelabelConfig = field(default_factory=RelabelConfig)
+    """Rule or learned captioner and reward model (language goals)."""
     text_encoder: TextEncoderConfig = field(default_factory=TextEncoderConfig)
     """Frozen text encoder for language goals."""
     total_steps: int = 100_000
@@ -139,6 +170,16 @@ class TrainConfig:
             raise LcrlError(f"scripted_fraction must be in [0, 1], got {self.scripted_fraction}")
         if self.scripted_noise < 0:
             raise LcrlError(f"scripted_noise must be >= 0, got {self.scripted_noise}")
+        for name in ("captioner", "reward"):
+            if getattr(self.relabel, name) not in RELABELLERS:
+                raise LcrlError(
+                    f"relabel.{name} must be one of {RELABELLERS}, got "
+                    f"{getattr(self.relabel, name)!r}"
+                )
+        if self.relabel.learned and not self.relabel.checkpoint:
+            raise LcrlError(
+                "learned relabelling needs --relabel.checkpoint (train one with lcrl caption train)"
+            )
         if self.keep_checkpoints < 1:
             raise LcrlError("keep_checkpoints must be at least 1")
 
@@ -183,6 +224,7 @@ _NESTED: dict[tuple[str, str], type] = {
     ("TrainConfig", "dqn"): DQNConfig,
     ("TrainConfig", "agent"): AgentOptions,
     ("TrainConfig", "buffer"): BufferConfig,
+    ("TrainConfig", "relabel"): RelabelConfig,
     ("TrainConfig", "text_encoder"): TextEncoderConfig,
     ("AgentOptions", "net"): NetConfig,
 }

@@ -11,6 +11,7 @@ unfinished episode of an interrupted run is discarded and collected again on res
 from __future__ import annotations
 
 import csv
+import dataclasses
 import json
 import math
 import shutil
@@ -92,8 +93,29 @@ class Trainer:
             for name in ("latest.json", "progress.csv", "eval.csv", "report.md", "curves.png"):
                 (self.out / name).unlink(missing_ok=True)
         self.cfg = cfg
-        self.env = make_env(cfg.env, "train", training=True)
+        models = _learned_models(cfg)
+        env_cfg = cfg.env
+        if models is not None:  # the training env renders the frames the models read
+            size = models.frame_shape[0]
+            env_cfg = dataclasses.replace(
+                cfg.env, extra={**cfg.env.extra, "image": True, "image_size": size}
+            )
+        self.env = make_env(env_cfg, "train", training=True)
         self.task = build_task(cfg, self.env, ckpt)
+        if models is not None:
+            from captioner.learned import LearnedLabeller
+
+            r = cfg.relabel
+            self.task.labeller = LearnedLabeller(
+                models,
+                self.task.table,
+                self.task.num_train,
+                captioner=r.captioner == "learned",
+                reward=r.reward == "learned",
+                min_logprob=r.min_logprob,
+                beam=r.beam,
+                threshold=r.threshold,
+            )
         self.problem = self.task.problem()
         self.algo = cfg.resolved_algo(self.problem.discrete)
         self.agent: Agent = build_agent(self.algo, self.problem, cfg, self.task.goal_space.embed)
@@ -392,6 +414,28 @@ class Trainer:
         if ckpt.has_arrays():
             self.buffer.load_arrays(ckpt.arrays())
         print(f"resumed {self.out} at step {self.step} ({self.episodes} episodes)")
+
+
+def _learned_models(cfg: TrainConfig) -> Any:
+    """The learned captioner / reward model a config asks for (None: rule captioner)."""
+    if not cfg.relabel.learned:
+        return None
+    from train.tasks import is_language
+
+    if not is_language(cfg.env):
+        raise LcrlError("learned relabelling is for language goals (lang2d, robosuite)")
+    if cfg.env.image_obs:
+        raise LcrlError("learned relabelling with image observations is not supported yet")
+    from captioner.learned import LearnedCaptioner
+
+    models = LearnedCaptioner.load(cfg.relabel.checkpoint, device=cfg.agent.device)
+    trained_on = models.meta.get("dataset_meta", {}).get("env")
+    if trained_on is not None and trained_on != cfg.env.kind:
+        raise LcrlError(
+            f"the learned models in {cfg.relabel.checkpoint} read {trained_on!r} frames; this "
+            f"run's env is {cfg.env.kind!r}"
+        )
+    return models
 
 
 def _next(step: int, every: int) -> float:

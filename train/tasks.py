@@ -457,18 +457,45 @@ class LanguageTask(Task):
             raise LcrlError(f"instruction {text!r} is not in the instruction table")
         return self.ids[text]
 
+    #: Learned captioner / reward model (:class:`captioner.learned.LearnedLabeller`) that
+    #: labels stored episodes from camera frames; None: the rule captioner does.
+    labeller: Any = None
+
     def step_record(self, obs: Mapping[str, Any], env: gym.Env) -> Any:
-        """The scene after each step (captioned at the end of the episode)."""
-        return self.wrapper.env.unwrapped.scene()
+        """The scene after each step (captioned at the end of the episode), with the
+        camera frame and the robot's state when a learned labeller reads them."""
+        scene = self.wrapper.env.unwrapped.scene()
+        if self.labeller is None:
+            return scene
+        if "image" not in obs:
+            raise LcrlError("learned relabelling needs camera frames: the env gives no image")
+        start = int(slot_layout_start(self.wrapper))
+        return scene, np.asarray(obs["image"]), np.asarray(obs["observation"][:start], np.float32)
 
     def episode_fields(self, records: list[Any], goal: Any, env: gym.Env) -> dict[str, Any]:
-        """The episode's instruction id and the training instructions each step satisfies."""
-        s0 = records[0]
+        """The episode's instruction id and the training instructions each step satisfies
+        (rule captioner), or what the learned captioner reads in the frames and what the
+        learned reward model judges achieved."""
+        lab = self.labeller
+        scenes = records if lab is None else [r[0] for r in records]
+        s0 = scenes[0]
         labels: list[list[int]] = [[]]
-        for s in records[1:]:
+        for s in scenes[1:]:
             texts = (ins.text for ins in self.captioner.caption(s0, s))
             labels.append([self.train_ids[t] for t in texts if t in self.train_ids])
-        return {"goal_id": int(goal), "labels": labels}
+        out: dict[str, Any] = {"goal_id": int(goal), "labels": labels}
+        if lab is None:
+            return out
+        frames = np.stack([r[1] for r in records])
+        proprio = np.stack([r[2] for r in records])
+        if lab.use_captioner:
+            out["labels"] = lab.labels(frames, proprio)
+        if lab.use_reward:
+            cands = {i for ids in out["labels"] for i in ids} | {int(goal)}
+            out["achieved"] = lab.achieved(frames, proprio, sorted(cands))
+        elif lab.use_captioner:
+            out["achieved"] = labels  # learned candidates, rule rewards
+        return out
 
     def embed_goals(self, goals: np.ndarray) -> np.ndarray:
         """Instruction ids as text embeddings."""
@@ -523,6 +550,13 @@ class ScriptedActor:
         low, high = self.task.low, self.task.high
         # the controllers speak the env's action units; the buffer stores policy units
         return np.clip(2.0 * (a - low) / (high - low) - 1.0, -1.0, 1.0).astype(np.float32)
+
+
+def slot_layout_start(env: gym.Env) -> int:
+    """How many agent values lead the env's ``observation`` (the robot's own state)."""
+    from envs.features import slot_layout
+
+    return slot_layout(env)[0]
 
 
 def find_language_wrapper(env: gym.Env) -> Any:
