@@ -83,3 +83,16 @@ def save_markdown(name: str, title: str, body: str, info: dict[str, Any]) -> Pat
 def caption(fig: Any, info: dict[str, Any]) -> None:
     """Put the command and machine under a matplotlib figure."""
     fig.text(0.01, 0.01, f"{command()}\n{machine_line(info)}", fontsize=6, va="bottom")
+
+
+def save_figure(name: str, fig: Any, info: dict[str, Any]) -> Path:
+    """Caption a matplotlib figure with the command and machine, write
+    ``results/<name>.png`` and close it."""
+    import matplotlib.pyplot as plt
+
+    caption(fig, info)
+    RESULTS_DIR.mkdir(parents=True, exist_ok=True)
+    path = RESULTS_DIR / f"{name}.png"
+    fig.savefig(path, dpi=120)
+    plt.close(fig)
+    return path

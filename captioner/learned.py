@@ -908,7 +908,11 @@ def evaluate_models(
     ``heldout_combinations`` (observations that achieved a held-out combination), each
     with captioner ``exact_match``, ``slot_accuracy`` per slot group, ``bleu4``, and the
     reward model's ``precision``, ``recall`` and ``auc``; plus ``none_accuracy`` (the
-    captioner says ``<none>`` where nothing was achieved).
+    captioner says ``<none>`` where nothing was achieved). The reward model's ``auc``
+    ranks each satisfied instruction against an unsatisfied one of the same family on the
+    same frames (about the same object where the family allows: the instruction alone
+    decides); ``auc_with_idle`` adds observations that achieved nothing, paired with any
+    instruction, to the negatives.
     """
     lc.check_dataset(data)
     if episodes is None:
@@ -981,28 +985,31 @@ def evaluate_models(
                 if name != "seen"
                 else [t for t in names if t not in heldout_names]
             )
-            by_obj: dict[tuple[str, str], list[str]] = {}
+            by_family: dict[str, list[str]] = {}
             for t in pool:
-                by_obj.setdefault(_parse(t).obj, []).append(t)
+                by_family.setdefault(t.split()[0], []).append(t)
             for j, lab in items:
                 mine = [t for t in lab if (t in heldout_names) == (name != "seen")]
                 if not mine:
                     continue
                 pos_idx.append(j)
                 pos_txt.append(mine[rng.integers(len(mine))])
-                # a hard negative: same object, not satisfied
-                obj = _parse(pos_txt[-1]).obj
-                cands = [t for t in by_obj.get(obj, []) if t not in lab] or [
-                    t for t in pool if t not in lab
-                ]
+                # A hard negative for the same frames: an unsatisfied instruction of the
+                # same family, about the same object when the family allows (push the red
+                # cube right, not left), so that the instruction alone decides.
+                pos = _parse(pos_txt[-1])
+                same = [t for t in by_family[pos.family] if t not in lab]
+                close = [t for t in same if _parse(t).obj == pos.obj]
+                cands = close or same
                 if cands:
                     neg_idx.append(j)
                     neg_txt.append(cands[rng.integers(len(cands))])
+            n_hard = len(neg_idx)
             for j in (
                 rng.choice(empty, min(len(empty), len(pos_idx) // 2), replace=False)
                 if empty
                 else []
-            ):
+            ):  # observations that achieved nothing, with any instruction
                 neg_idx.append(int(j))
                 neg_txt.append(pool[rng.integers(len(pool))])
             all_idx = pos_idx + neg_idx
@@ -1028,7 +1035,9 @@ def evaluate_models(
             res["reward_pairs"] = len(y)
             res["precision"] = float(tp / max(int(pred.sum()), 1))
             res["recall"] = float(tp / max(int(y.sum()), 1))
-            res["auc"] = roc_auc(sc, y)
+            hard = np.concatenate([np.ones(len(pos_idx), bool), np.arange(len(neg_idx)) < n_hard])
+            res["auc"] = roc_auc(sc[hard], y[hard])
+            res["auc_with_idle"] = roc_auc(sc, y)
         results[name] = res
     if lc.captioner is not None and empty:
         sample = (
