@@ -622,7 +622,41 @@ class LearnedCaptioner:
         return torch.as_tensor(self._encoder.encode(list(texts)), device=self.device)
 
     # -- inference
+    def _context(self, model: str, *frames: Any) -> torch.Tensor:
+        net = self.captioner if model == "captioner" else self.reward
+        if net is None:
+            other = "reward" if model == "captioner" else "captioner"
+            raise LcrlError(
+                f"this checkpoint has no {model} (it was trained with --models {other})"
+            )
+        net.eval()
+        return net.encoder(*self._inputs(*frames))
+
     @torch.no_grad()
+    def captions(
+        self,
+        first: np.ndarray,
+        current: np.ndarray,
+        p0: np.ndarray | None = None,
+        p: np.ndarray | None = None,
+        beam: int = 0,
+    ) -> list[list[tuple[str, float]]]:
+        """Captions and their log-likelihoods per frame pair, best first: one greedy
+        caption, or up to ``beam`` from a beam search (``beam > 1``). ``<none>``: nothing
+        achieved."""
+        ctx = self._context("captioner", first, current, p0, p)
+        assert self.captioner is not None
+        if beam > 1:
+            return [
+                [(self.vocab.decode(ids), float(sc)) for ids, sc in beams]
+                for beams in self.captioner.beam(ctx, beam)
+            ]
+        ids, logp = self.captioner.greedy(ctx)
+        return [
+            [(self.vocab.decode(row), float(lp))]
+            for row, lp in zip(ids.tolist(), logp.tolist(), strict=True)
+        ]
+
     def caption(
         self,
         first: np.ndarray,
@@ -631,24 +665,9 @@ class LearnedCaptioner:
         p: np.ndarray | None = None,
         beam: int = 0,
     ) -> list[tuple[str, float]]:
-        """Best caption and its log-likelihood per frame pair (``<none>``: nothing
-        achieved). ``beam > 0`` decodes by beam search of that width."""
-        if self.captioner is None:
-            raise LcrlError(
-                "this checkpoint has no captioner (it was trained with --models reward)"
-            )
-        self.captioner.eval()
-        ctx = self.captioner.encoder(*self._inputs(first, current, p0, p))
-        if beam > 0:
-            out = []
-            for beams in self.captioner.beam(ctx, beam):
-                ids, score = beams[0] if beams else ([EOS], float("-inf"))
-                out.append((self.vocab.decode(ids), float(score)))
-            return out
-        ids, logp = self.captioner.greedy(ctx)
+        """The best caption and its log-likelihood per frame pair (see :meth:`captions`)."""
         return [
-            (self.vocab.decode(row), float(lp))
-            for row, lp in zip(ids.tolist(), logp.tolist(), strict=True)
+            c[0] if c else ("", float("-inf")) for c in self.captions(first, current, p0, p, beam)
         ]
 
     @torch.no_grad()
@@ -662,14 +681,9 @@ class LearnedCaptioner:
     ) -> np.ndarray:
         """Probability that each ``texts[i]`` is satisfied by the change from
         ``first[i]`` to ``current[i]``."""
-        if self.reward is None:
-            raise LcrlError(
-                "this checkpoint has no reward model (it was trained with --models captioner)"
-            )
         if len(texts) != len(first):
             raise LcrlError(f"{len(texts)} instructions for {len(first)} frame pairs")
-        self.reward.eval()
-        ctx = self.reward.encoder(*self._inputs(first, current, p0, p))
+        ctx = self._context("reward model", first, current, p0, p)
         return torch.sigmoid(self.reward(ctx, self.encode_texts(texts))).cpu().numpy()
 
     @torch.no_grad()
@@ -683,17 +697,11 @@ class LearnedCaptioner:
     ) -> np.ndarray:
         """``(len(current), len(texts))`` probabilities: every instruction against every
         frame pair (the frames are encoded once)."""
-        if self.reward is None:
-            raise LcrlError(
-                "this checkpoint has no reward model (it was trained with --models captioner)"
-            )
-        self.reward.eval()
-        ctx = self.reward.encoder(*self._inputs(first, current, p0, p))
+        ctx = self._context("reward model", first, current, p0, p)
         emb = self.encode_texts(texts)
         n, m = ctx.shape[0], emb.shape[0]
-        logits = self.reward(
-            ctx.repeat_interleave(m, 0), emb.repeat(n, 1)
-        )  # row-major: frame i, text k at i * m + k
+        # row-major: frame i against text k at i * m + k
+        logits = self.reward(ctx.repeat_interleave(m, 0), emb.repeat(n, 1))
         return torch.sigmoid(logits).view(n, m).cpu().numpy()
 
     # -- saving
@@ -1138,17 +1146,7 @@ class LearnedLabeller:
         """Training-instruction ids the captioner reads in each observation."""
         first = np.repeat(frames[:1], len(frames), 0)
         p0 = np.repeat(proprio[:1], len(proprio), 0)
-        lc = self.models
-        if self.beam > 1:
-            if lc.captioner is None:
-                raise LcrlError("no captioner")
-            lc.captioner.eval()
-            with torch.no_grad():
-                ctx = lc.captioner.encoder(*lc._inputs(first, frames, p0, proprio))
-                beams = lc.captioner.beam(ctx, self.beam)
-            per_obs = [[(lc.vocab.decode(ids), sc) for ids, sc in b] for b in beams]
-        else:
-            per_obs = [[c] for c in lc.caption(first, frames, p0, proprio)]
+        per_obs = self.models.captions(first, frames, p0, proprio, beam=self.beam)
         out = []
         for caps in per_obs:
             ids = []

@@ -127,9 +127,17 @@ def test_beam_search_agrees_with_greedy_at_width_one(trained, dataset):
         cur = data.read_frames(idx)
         args = (first, cur, data.proprio[data.first_of(idx)], data.proprio[idx])
         greedy = lc.caption(*args)
-        beam1 = lc.caption(*args, beam=1)
-        assert [t for t, _ in greedy] == [t for t, _ in beam1]
+        with torch.no_grad():
+            ctx = lc.captioner.encoder(*lc._inputs(*args))
+            beam1 = [b[0] for b in lc.captioner.beam(ctx, 1)]
+        assert [t for t, _ in greedy] == [lc.vocab.decode(ids) for ids, _ in beam1]
         np.testing.assert_allclose([s for _, s in greedy], [s for _, s in beam1], atol=1e-4)
+        # wider beams: up to 4 distinct finished captions per pair, best first
+        wide = lc.captions(*args, beam=4)
+        for row in wide:
+            scores = [sc for _, sc in row]
+            assert 1 <= len(row) <= 4 and scores == sorted(scores, reverse=True)
+            assert len({t for t, _ in row}) == len(row)
 
 
 def test_errors(trained, dataset, tmp_path):
