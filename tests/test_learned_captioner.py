@@ -7,6 +7,7 @@ import json
 import numpy as np
 import pytest
 import torch
+from helpers import tiny
 
 from captioner.dataset import CaptionDataset, CollectConfig, collect
 from captioner.grammar import Instruction
@@ -175,29 +176,10 @@ def test_cli_train_and_eval(dataset, tmp_path, capsys, one_thread):
 
 
 def _small_run(out, checkpoint, **relabel):
-    import dataclasses
+    from train.config import RelabelConfig
 
-    from train.config import PRESETS, RelabelConfig
-
-    base = PRESETS["lang2d"][1]
-    return dataclasses.replace(
-        base,
-        out=str(out),
-        total_steps=300,
-        learning_starts=100,
-        batch_size=32,
-        eval_every=0,
-        eval_episodes=2,
-        checkpoint_every=0,
-        progress=False,
-        tensorboard=False,
-        scripted_fraction=0.5,
-        buffer=dataclasses.replace(base.buffer, capacity=2000),
-        agent=dataclasses.replace(
-            base.agent, net=dataclasses.replace(base.agent.net, hidden=(32, 32), text_dim=8)
-        ),
-        relabel=RelabelConfig(checkpoint=str(checkpoint), **relabel),
-    )
+    relabel_cfg = RelabelConfig(checkpoint=str(checkpoint), **relabel)
+    return tiny("lang2d", out, scripted_fraction=0.5, eval_episodes=2, relabel=relabel_cfg)
 
 
 def test_training_with_learned_captioner_and_reward(trained, tmp_path, one_thread):

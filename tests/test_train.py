@@ -6,7 +6,6 @@ file takes well under a minute on a small CPU.
 
 from __future__ import annotations
 
-import copy
 import csv
 import dataclasses
 import json
@@ -18,12 +17,12 @@ import numpy as np
 import pytest
 import safetensors.torch
 import torch
+from helpers import tiny
 
 from lcrl.checkpoint import find_latest, load_checkpoint
 from lcrl.errors import LcrlError
-from lcrl.nets import NetConfig
 from train.cli import main
-from train.config import PRESETS, TrainConfig
+from train.config import PRESETS
 from train.evaluate import evaluate, load_policy, run_episode
 from train.loop import Trainer
 
@@ -61,27 +60,6 @@ def text_encoder(one_thread):
     from lcrl.text_encoder import FrozenTextEncoder
 
     return FrozenTextEncoder()
-
-
-def tiny(preset: str, out: Path, **overrides) -> TrainConfig:
-    """A preset shrunk to a few hundred steps and 32-unit networks."""
-    base = copy.deepcopy(PRESETS[preset][1])
-    cfg = dataclasses.replace(
-        base,
-        out=str(out),
-        total_steps=300,
-        learning_starts=100,
-        batch_size=32,
-        eval_every=0,
-        eval_episodes=3,
-        checkpoint_every=0,
-        log_every=100,
-        progress=False,
-        tensorboard=False,
-        buffer=dataclasses.replace(base.buffer, capacity=2000),
-        agent=dataclasses.replace(base.agent, net=NetConfig(hidden=(32, 32), text_dim=8)),
-    )
-    return dataclasses.replace(cfg, **overrides)
 
 
 def read_csv(path: Path) -> tuple[list[str], list[dict[str, str]]]:

@@ -1,0 +1,32 @@
+"""Helpers shared by the test modules (imported as ``helpers``: pytest puts this folder on
+the import path)."""
+
+from __future__ import annotations
+
+import copy
+import dataclasses
+from pathlib import Path
+
+from lcrl.nets import NetConfig
+from train.config import PRESETS, TrainConfig
+
+
+def tiny(preset: str, out: Path, **overrides) -> TrainConfig:
+    """A preset shrunk to a few hundred steps and 32-unit networks."""
+    base = copy.deepcopy(PRESETS[preset][1])
+    cfg = dataclasses.replace(
+        base,
+        out=str(out),
+        total_steps=300,
+        learning_starts=100,
+        batch_size=32,
+        eval_every=0,
+        eval_episodes=3,
+        checkpoint_every=0,
+        log_every=100,
+        progress=False,
+        tensorboard=False,
+        buffer=dataclasses.replace(base.buffer, capacity=2000),
+        agent=dataclasses.replace(base.agent, net=NetConfig(hidden=(32, 32), text_dim=8)),
+    )
+    return dataclasses.replace(cfg, **overrides)
