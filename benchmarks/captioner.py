@@ -17,6 +17,7 @@ checkpoint go to ``runs/bench/``.
 from __future__ import annotations
 
 import argparse
+import json
 import sys
 import time
 from pathlib import Path
@@ -29,7 +30,7 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
-from benchmarks.common import machine, save_figure, save_json, save_markdown
+from benchmarks.common import RESULTS_DIR, machine, save_figure, save_json, save_markdown
 from captioner.dataset import CaptionDataset, CollectConfig, collect
 from captioner.learned import (
     CaptionTrainConfig,
@@ -51,13 +52,28 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--threads", type=int, default=1)
     parser.add_argument("--device", default="cpu")
     parser.add_argument("--recollect", action="store_true", help="collect even if cached")
+    parser.add_argument(
+        "--eval-only",
+        action="store_true",
+        help="evaluate the checkpoint of a previous run again (no collection, no training)",
+    )
     args = parser.parse_args(argv)
     info = machine()
     name = f"captioner-{args.env}"
     data_path = Path(f"runs/bench/captions-{args.env}-{args.episodes}-{args.image_size}.h5")
+    ckpt = Path(f"runs/bench/{name}")
+    previous = RESULTS_DIR / f"{name}.json"
     timings = {}
+    if args.eval_only:
+        if not (ckpt / "meta.json").exists() or not previous.exists():
+            parser.error(f"--eval-only needs a previous run ({ckpt}, {previous})")
+        old = json.loads(previous.read_text())
+        timings = {k: v for k, v in old["timings_s"].items() if k != "eval_s"}
+        args.steps, args.batch_size = old["settings"]["steps"], old["settings"]["batch_size"]
     t0 = time.perf_counter()
-    if args.recollect or not data_path.exists():
+    if args.eval_only:
+        pass
+    elif args.recollect or not data_path.exists():
         collect(
             CollectConfig(
                 out=str(data_path),
@@ -67,24 +83,25 @@ def main(argv: list[str] | None = None) -> int:
                 overwrite=True,
             )
         )
-    timings["collect_s"] = time.perf_counter() - t0
+    if not args.eval_only:
+        timings["collect_s"] = time.perf_counter() - t0
     with CaptionDataset(data_path) as data:
         print(data.summary())
         counts = data.counts()
-    ckpt = Path(f"runs/bench/{name}")
-    t0 = time.perf_counter()
-    train_models(
-        CaptionTrainConfig(
-            data=str(data_path),
-            out=str(ckpt),
-            steps=args.steps,
-            batch_size=args.batch_size,
-            threads=args.threads,
-            device=args.device,
-            overwrite=True,
+    if not args.eval_only:
+        t0 = time.perf_counter()
+        train_models(
+            CaptionTrainConfig(
+                data=str(data_path),
+                out=str(ckpt),
+                steps=args.steps,
+                batch_size=args.batch_size,
+                threads=args.threads,
+                device=args.device,
+                overwrite=True,
+            )
         )
-    )
-    timings["train_s"] = time.perf_counter() - t0
+        timings["train_s"] = time.perf_counter() - t0
     lc = LearnedCaptioner.load(ckpt, device=args.device)
     results = {}
     with CaptionDataset(data_path) as data:
@@ -93,6 +110,11 @@ def main(argv: list[str] | None = None) -> int:
         timings["eval_s"] = time.perf_counter() - t0
         if args.beam > 1:
             results[f"beam{args.beam}"] = evaluate_models(lc, data, beam=args.beam)
+        # the same figures on training episodes: the gap is how much the models memorise
+        val = set(lc.meta["val_episodes"])
+        train_eps = np.asarray([e for e in range(data.num_episodes) if e not in val])
+        sample = np.sort(np.random.default_rng(0).choice(train_eps, len(val), replace=False))
+        results["greedy, training episodes"] = evaluate_models(lc, data, episodes=sample)
     for k, v in results.items():
         print(f"[{k}]\n{format_results(v)}")
     payload = {
@@ -132,7 +154,8 @@ def _table(p: dict) -> str:
         f"Dataset: {d['episodes']} episodes ({d['episodes_per_source']}), "
         f"{d['observations']} frames, {d['labelled_observations']} with labels. Models "
         f"trained {p['settings']['steps']} steps each at batch {p['settings']['batch_size']} "
-        f"on 80% of the episodes; figures on the other 20%.",
+        f"on 80% of the episodes; figures on the other 20% (and, to show what the models "
+        "memorise, on as many training episodes).",
         "",
         "| observations | decoding | n | exact match | verb | object | direction | relation "
         "| reference | BLEU-4 | reward AUC | reward precision / recall |",
