@@ -30,14 +30,6 @@ TINY = CaptionModelConfig(channels=(16, 16, 16, 16), features=64, hidden=64, emb
 
 
 @pytest.fixture(scope="module")
-def one_thread():
-    before = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(before)
-
-
-@pytest.fixture(scope="module")
 def dataset(tmp_path_factory):
     path = tmp_path_factory.mktemp("lc") / "d.h5"
     collect(

@@ -46,12 +46,8 @@ TINY_CLI = [
 
 # --- fixtures and helpers ----------------------------------------------------------------
 @pytest.fixture(scope="module", autouse=True)
-def one_thread():
-    """Tiny updates are 100x slower when two threads fight other processes for 2 cores."""
-    before = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(before)
+def _single_thread(one_thread):
+    """Every test of this module runs on one torch thread (``one_thread`` in conftest)."""
 
 
 @pytest.fixture(scope="module")
