@@ -428,6 +428,9 @@ class CaptionTrainConfig:
     none_fraction: float = 0.25
     """Captioner: fraction of each batch drawn from observations that achieved nothing
     (target ``<none>``)."""
+    augment_pad: int = 0
+    """Random-shift augmentation of training frame pairs: pad by this many edge pixels and
+    crop back at a random offset, the same for both frames of a pair (0: off)."""
     hard_negative_fraction: float = 0.5
     """Reward model: fraction of the negatives that share the object or the family of an
     instruction the observation satisfies (the rest are any other instruction)."""
@@ -455,6 +458,8 @@ class CaptionTrainConfig:
         for name in ("steps", "batch_size"):
             if getattr(self, name) <= 0:
                 raise LcrlError(f"{name} must be positive")
+        if self.augment_pad < 0:
+            raise LcrlError("augment_pad must be >= 0")
         for name in ("none_fraction", "hard_negative_fraction"):
             if not 0.0 <= getattr(self, name) <= 1.0:
                 raise LcrlError(f"{name} must be in [0, 1]")
@@ -798,6 +803,7 @@ def train_models(cfg: CaptionTrainConfig) -> Path:
         torch.set_num_threads(cfg.threads)
     torch.manual_seed(cfg.seed)
     rng = np.random.default_rng(cfg.seed)
+    gen = torch.Generator(device=cfg.device).manual_seed(cfg.seed)
     device = torch.device(cfg.device)
     data = CaptionDataset(cfg.data)
     try:
@@ -842,7 +848,7 @@ def train_models(cfg: CaptionTrainConfig) -> Path:
                     [none_row if t is None else t for t in targets], device=device
                 )
                 seq = tokens[rows]
-                ctx = model.encoder(*pairs.tensors(idx, device))
+                ctx = model.encoder(*_augment(pairs.tensors(idx, device), cfg.augment_pad, gen))
                 logits = model(ctx, seq[:, :-1])
                 loss = F.cross_entropy(
                     logits.reshape(-1, logits.shape[-1]), seq[:, 1:].reshape(-1), ignore_index=PAD
@@ -871,7 +877,7 @@ def train_models(cfg: CaptionTrainConfig) -> Path:
             bar = tqdm(range(cfg.steps), disable=not cfg.progress, desc="reward model")
             for _ in bar:
                 idx, ids, y = sampler.reward_batch(cfg.batch_size, cfg.hard_negative_fraction)
-                ctx = model_r.encoder(*pairs.tensors(idx, device))
+                ctx = model_r.encoder(*_augment(pairs.tensors(idx, device), cfg.augment_pad, gen))
                 logit = model_r(ctx, emb[torch.as_tensor(ids, device=device)])
                 loss = F.binary_cross_entropy_with_logits(logit, torch.as_tensor(y, device=device))
                 opt.zero_grad()
@@ -888,6 +894,20 @@ def train_models(cfg: CaptionTrainConfig) -> Path:
         return lc.save(out)
     finally:
         data.close()
+
+
+def _augment(
+    inputs: tuple[torch.Tensor, ...], pad: int, gen: torch.Generator
+) -> tuple[torch.Tensor, ...]:
+    """Shift both frames of each pair by one random offset (DrQ's random shift)."""
+    if pad <= 0:
+        return inputs
+    from lcrl.nets import random_shift
+
+    first, current, p0, p = inputs
+    both = random_shift(torch.cat([first, current], -1), pad, gen)
+    c = first.shape[-1]
+    return both[..., :c], both[..., c:], p0, p
 
 
 def _parse(text: str) -> Instruction:

@@ -232,3 +232,18 @@ def test_learned_relabelling_settings_are_checked(trained, tmp_path):
     )
     with pytest.raises(LcrlError, match="language goals"):
         Trainer(state)
+
+
+def test_random_shift_moves_both_frames_of_a_pair_together():
+    from captioner.learned import _augment
+
+    gen = torch.Generator().manual_seed(0)
+    frames = torch.randint(0, 255, (8, 16, 16, 3), dtype=torch.uint8, generator=gen)
+    p = torch.zeros(8, 2)
+    same = _augment((frames, frames.clone(), p, p), 3, gen)
+    assert same[0].shape == (8, 16, 16, 3)
+    torch.testing.assert_close(same[0], same[1])  # one offset per pair
+    assert not torch.equal(same[0], frames.float())  # and it did shift
+    assert _augment((frames, frames, p, p), 0, gen)[0] is frames
+    with pytest.raises(LcrlError, match="augment_pad"):
+        train_models(CaptionTrainConfig(augment_pad=-1))
