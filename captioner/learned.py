@@ -866,7 +866,6 @@ def train_models(cfg: CaptionTrainConfig) -> Path:
                 for t, s in zip(data.instructions, data.instruction_set, strict=True)
                 if s == "train"
             ]
-            lc.text_model = cfg.text_model
             emb = lc.encode_texts(data.instructions)
             model_r = RewardModel(data.frame_shape, lc.proprio_dim, emb.shape[1], mcfg).to(device)
             model_r.set_text_stats(lc.encode_texts(seen_texts).cpu().numpy())
@@ -1157,10 +1156,6 @@ class LearnedLabeller:
         self.min_logprob, self.beam, self.threshold = float(min_logprob), int(beam), threshold
         self.skipped = 0  # captions dropped by the threshold
         self.kept = 0
-
-    @property
-    def frame_shape(self) -> tuple[int, ...]:
-        return self.models.frame_shape
 
     def labels(self, frames: np.ndarray, proprio: np.ndarray) -> list[list[int]]:
         """Training-instruction ids the captioner reads in each observation."""
