@@ -9,6 +9,10 @@ target). Run from the repository root::
 
     python benchmarks/captioner.py                      # 2D tabletop, 64x64 frames
     python benchmarks/captioner.py --episodes 300 --steps 500   # a quick look
+    python benchmarks/captioner.py --encoder flatten --augment-pad 0   # the plain CNN
+
+The two models train side by side, one process and one thread each (``--serial``: one
+after the other in this process).
 
 Writes ``benchmarks/results/captioner-<env>.{json,md,png}``; the dataset and the
 checkpoint go to ``runs/bench/``.
@@ -17,9 +21,13 @@ checkpoint go to ``runs/bench/``.
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
+import multiprocessing
+import shutil
 import sys
 import time
+from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
 
 import matplotlib
@@ -33,6 +41,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 from benchmarks.common import RESULTS_DIR, machine, save_figure, save_json, save_markdown
 from captioner.dataset import CaptionDataset, CollectConfig, collect
 from captioner.learned import (
+    CaptionModelConfig,
     CaptionTrainConfig,
     LearnedCaptioner,
     evaluate_models,
@@ -44,9 +53,12 @@ from captioner.learned import (
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--env", default="lang2d", choices=("lang2d", "robosuite"))
-    parser.add_argument("--episodes", type=int, default=1500)
+    parser.add_argument("--episodes", type=int, default=3000)
     parser.add_argument("--image-size", type=int, default=64)
-    parser.add_argument("--steps", type=int, default=3000)
+    parser.add_argument("--steps", type=int, default=4000)
+    parser.add_argument("--encoder", default="spatial", choices=("spatial", "flatten"))
+    parser.add_argument("--augment-pad", type=int, default=4)
+    parser.add_argument("--serial", action="store_true", help="train the models one by one")
     parser.add_argument("--batch-size", type=int, default=64)
     parser.add_argument("--beam", type=int, default=3, help="beam width of a second pass")
     parser.add_argument("--threads", type=int, default=1)
@@ -69,7 +81,8 @@ def main(argv: list[str] | None = None) -> int:
             parser.error(f"--eval-only needs a previous run ({ckpt}, {previous})")
         old = json.loads(previous.read_text())
         timings = {k: v for k, v in old["timings_s"].items() if k != "eval_s"}
-        args.steps, args.batch_size = old["settings"]["steps"], old["settings"]["batch_size"]
+        for key in ("steps", "batch_size", "encoder", "augment_pad"):
+            setattr(args, key, old["settings"].get(key, getattr(args, key)))
     t0 = time.perf_counter()
     if args.eval_only:
         pass
@@ -90,17 +103,21 @@ def main(argv: list[str] | None = None) -> int:
         counts = data.counts()
     if not args.eval_only:
         t0 = time.perf_counter()
-        train_models(
-            CaptionTrainConfig(
-                data=str(data_path),
-                out=str(ckpt),
-                steps=args.steps,
-                batch_size=args.batch_size,
-                threads=args.threads,
-                device=args.device,
-                overwrite=True,
-            )
+        cfg = CaptionTrainConfig(
+            data=str(data_path),
+            out=str(ckpt),
+            steps=args.steps,
+            batch_size=args.batch_size,
+            augment_pad=args.augment_pad,
+            model=CaptionModelConfig(encoder=args.encoder),
+            threads=args.threads,
+            device=args.device,
+            overwrite=True,
         )
+        if args.serial:
+            train_models(cfg)
+        else:
+            train_side_by_side(cfg)
         timings["train_s"] = time.perf_counter() - t0
     lc = LearnedCaptioner.load(ckpt, device=args.device)
     results = {}
@@ -133,6 +150,35 @@ def main(argv: list[str] | None = None) -> int:
     return 0
 
 
+def _train_one(cfg: CaptionTrainConfig) -> str:
+    return str(train_models(cfg))
+
+
+def train_side_by_side(cfg: CaptionTrainConfig) -> Path:
+    """Train each model in its own process (one thread each), then save them together."""
+    ctx = multiprocessing.get_context("spawn")
+    parts = {
+        m: dataclasses.replace(cfg, models=(m,), out=f"{cfg.out}-{m}", progress=False, threads=1)
+        for m in cfg.models
+    }
+    with ProcessPoolExecutor(len(parts), mp_context=ctx) as pool:
+        done = dict(zip(parts, pool.map(_train_one, parts.values()), strict=True))
+    models = {m: LearnedCaptioner.load(path) for m, path in done.items()}
+    merged = models[cfg.models[0]]
+    for m, lc in models.items():
+        if m == "reward":
+            merged.reward = lc.reward
+            merged.meta["text_dim"] = lc.meta["text_dim"]
+        else:
+            merged.captioner = lc.captioner
+        merged.meta["history"].update(lc.meta["history"])
+    merged.meta["train"]["models"] = list(cfg.models)
+    out = merged.save(cfg.out)
+    for path in done.values():
+        shutil.rmtree(path, ignore_errors=True)
+    return out
+
+
 def _row(group: str, decoding: str, r: dict) -> str:
     slots = r.get("slot_accuracy", {})
     cells = [
@@ -154,8 +200,9 @@ def _table(p: dict) -> str:
         f"Dataset: {d['episodes']} episodes ({d['episodes_per_source']}), "
         f"{d['observations']} frames, {d['labelled_observations']} with labels. Models "
         f"trained {p['settings']['steps']} steps each at batch {p['settings']['batch_size']} "
-        f"on 80% of the episodes; figures on the other 20% (and, to show what the models "
-        "memorise, on as many training episodes).",
+        f"({p['settings'].get('encoder', 'flatten')} encoder, random-shift augmentation "
+        f"pad {p['settings'].get('augment_pad', 0)}) on 80% of the episodes; figures on the "
+        "other 20% (and, to show what the models memorise, on as many training episodes).",
         "",
         "| observations | decoding | n | exact match | verb | object | direction | relation "
         "| reference | BLEU-4 | reward AUC | reward precision / recall |",

@@ -38,6 +38,7 @@ from __future__ import annotations
 import argparse
 import csv
 import dataclasses
+import json
 import multiprocessing
 import shutil
 import sys
@@ -54,9 +55,12 @@ import matplotlib.pyplot as plt
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
 from benchmarks.common import caption, machine, save_json, save_markdown
-from train.config import PRESETS, BufferConfig, TrainConfig
+from train.config import PRESETS, BufferConfig, RelabelConfig, TrainConfig
 from train.loop import Trainer
 from train.tasks import EnvConfig
+
+#: The learned captioner and reward model of ``python benchmarks/captioner.py``.
+LEARNED_CHECKPOINT = "runs/bench/captioner-lang2d"
 
 SUITES: dict[str, dict[str, Any]] = {
     "fetch-reach": {
@@ -75,6 +79,27 @@ SUITES: dict[str, dict[str, Any]] = {
         "eval_every": 10_000,
         "eval_episodes": 100,
         "target": ("her", "train", 0.80, 100_000),
+    },
+    "lang2d-learned": {
+        "title": "Language HER on the 2D tabletop: rule vs learned relabelling (reach, push)",
+        "runs": {
+            "her": ("lang2d", {}),
+            "learned": (
+                "lang2d",
+                {"relabel": RelabelConfig("learned", "learned", LEARNED_CHECKPOINT)},
+            ),
+            "learned-captions": (
+                "lang2d",
+                {"relabel": RelabelConfig("learned", "captioner", LEARNED_CHECKPOINT)},
+            ),
+            "no-her": ("lang2d", {"buffer": BufferConfig(k=0)}),
+        },
+        "steps": 50_000,
+        "eval_every": 10_000,
+        "eval_episodes": 100,
+        "target": ("learned", "train", 0.60, 50_000),
+        "needs": LEARNED_CHECKPOINT,
+        "reuse": "lang2d",
     },
     "lang2d-rl": {
         "title": "Language HER on the 2D tabletop (reach, push), no scripted episodes",
@@ -151,15 +176,15 @@ def _one_thread() -> None:
     torch.set_num_threads(1)
 
 
-def run_one(
+def run_config(
     preset: str,
     overrides: dict[str, Any],
     out: Path,
     suite: dict[str, Any],
     steps: int | None,
     seed: int,
-) -> dict[str, Any]:
-    """Train one configuration and return its evaluation curve."""
+) -> TrainConfig:
+    """The training config of one run of a suite."""
     cfg: TrainConfig = dataclasses.replace(PRESETS[preset][1], **overrides)
     cfg = dataclasses.replace(
         cfg,
@@ -172,7 +197,59 @@ def run_one(
         seed=seed,
         total_steps=steps or cfg.total_steps,
     )
-    cfg.agent.seed = seed
+    cfg.agent = dataclasses.replace(cfg.agent, seed=seed)
+    return cfg
+
+
+#: Config fields that do not change what a run learns up to a given step.
+NOT_LEARNING = ("out", "total_steps", "progress", "overwrite", "resume", "tensorboard")
+
+
+def reusable(cfg: TrainConfig, folder: Path) -> list[dict[str, float]] | None:
+    """The evaluation curve of a finished run in ``folder`` trained with the same config
+    as ``cfg`` (apart from :data:`NOT_LEARNING`) for at least ``cfg.total_steps`` steps,
+    cut at that budget; None if there is no such run."""
+    saved_path, eval_path = folder / "config.json", folder / "eval.csv"
+    if not saved_path.exists() or not eval_path.exists():
+        return None
+    saved = json.loads(saved_path.read_text())
+    wanted = json.loads(json.dumps(dataclasses.asdict(cfg)))
+    for key in NOT_LEARNING:
+        saved.pop(key, None)
+        wanted.pop(key, None)
+    saved = {k: v for k, v in saved.items() if k in wanted}  # derived fields (resolved_algo)
+    _fill_defaults(saved, wanted, json.loads(json.dumps(dataclasses.asdict(TrainConfig()))))
+    if saved != wanted or int(json.loads(saved_path.read_text())["total_steps"]) < cfg.total_steps:
+        return None
+    curve = read_eval(folder)
+    if not curve or curve[-1]["step"] < cfg.total_steps:
+        return None
+    # the evaluation that ends the budget is the first at or after it
+    end = next(i for i, r in enumerate(curve) if r["step"] >= cfg.total_steps)
+    return curve[: end + 1]
+
+
+def _fill_defaults(saved: dict[str, Any], wanted: dict[str, Any], default: Any) -> None:
+    """Options added after a run was saved count as the defaults it ran with."""
+    for key, value in wanted.items():
+        base = default.get(key) if isinstance(default, dict) else None
+        if key not in saved:
+            if isinstance(default, dict) and key in default and value == base:
+                saved[key] = value
+        elif isinstance(value, dict) and isinstance(saved[key], dict):
+            _fill_defaults(saved[key], value, base)
+
+
+def run_one(
+    preset: str,
+    overrides: dict[str, Any],
+    out: Path,
+    suite: dict[str, Any],
+    steps: int | None,
+    seed: int,
+) -> dict[str, Any]:
+    """Train one configuration and return its evaluation curve."""
+    cfg = run_config(preset, overrides, out, suite, steps, seed)
     shutil.rmtree(out, ignore_errors=True)
     t0 = time.perf_counter()
     Trainer(cfg).run()
@@ -227,8 +304,20 @@ def main(argv: list[str] | None = None) -> int:
         help="train nothing: rebuild the results from the evaluations already in runs/bench/ "
         "(e.g. of a run stopped early)",
     )
+    parser.add_argument(
+        "--reuse",
+        action="store_true",
+        help="read runs that the suite's 'reuse' suite already trained with the same config "
+        "(runs/bench/<that suite>-<run>), cut at this budget, instead of training them again",
+    )
     args = parser.parse_args(argv)
     suite = dict(SUITES[args.suite])
+    needs = suite.get("needs")
+    if needs and not args.report_only and not (Path(needs) / "meta.json").exists():
+        raise SystemExit(
+            f"the {args.suite} suite needs the learned models in {needs}: run "
+            "python benchmarks/captioner.py first"
+        )
     if args.eval_episodes:
         suite["eval_episodes"] = args.eval_episodes
     info = machine()
@@ -246,6 +335,23 @@ def main(argv: list[str] | None = None) -> int:
         )
         for name, (preset, overrides) in suite["runs"].items()
     }
+    if args.reuse and suite.get("reuse") and not args.report_only:
+        for name in list(jobs):
+            folder = Path("runs/bench") / f"{suite['reuse']}-{name}"
+            curve = reusable(run_config(*jobs[name]), folder)
+            if curve is None:
+                print(f"== {name}: no finished run with the same config in {folder}")
+                continue
+            print(f"== {name}: reusing {folder} up to step {int(curve[-1]['step'])}")
+            preset, overrides = jobs.pop(name)[:2]
+            results[name] = {
+                "preset": preset,
+                "k": read_run(preset, overrides, folder)["k"],
+                "seconds": None,
+                "curve": curve,
+                "total_steps": int(curve[-1]["step"]),
+                "reused_from": str(folder),
+            }
     if args.report_only:
         results = {name: read_run(*job[:2], job[2]) for name, job in jobs.items()}
     elif args.parallel and len(jobs) > 1:
@@ -253,11 +359,12 @@ def main(argv: list[str] | None = None) -> int:
         ctx = multiprocessing.get_context("spawn")
         with ProcessPoolExecutor(len(jobs), mp_context=ctx, initializer=_one_thread) as pool:
             futures = {name: pool.submit(run_one, *job) for name, job in jobs.items()}
-            results = {name: f.result() for name, f in futures.items()}
+            results.update({name: f.result() for name, f in futures.items()})
     else:
         for name, job in jobs.items():
             print(f"== {name}: preset {job[0]} {job[1] or ''}", flush=True)
             results[name] = run_one(*job)
+    results = {name: results[name] for name in suite["runs"] if name in results}
     run_name, set_name, threshold, budget = suite["target"]
     curve = results[run_name]["curve"]
     key = f"{set_name}/success"
@@ -301,6 +408,12 @@ def main(argv: list[str] | None = None) -> int:
         f"({run_name}): {verdict}."
     )
     for name, res in results.items():
+        if res.get("reused_from"):
+            lines.append(
+                f"- {name}: read from {res['reused_from']} (trained by `learning_curves.py "
+                f"{suite['reuse']}` with the same config), cut at step {res['total_steps']:,}"
+            )
+            continue
         if res["seconds"] is None:
             lines.append(
                 f"- {name}: evaluated up to step {res['total_steps']:,} (rebuilt from "

@@ -5,15 +5,21 @@ optionally the robot's proprioception at both; they learn from a caption dataset
 (:mod:`captioner.dataset`) labelled by the rule captioner, so that relabelling can later
 run where no privileged state exists.
 
-* :class:`Captioner`: a small CNN over the two frames stacked on the channel axis, then a
-  GRU that writes the instruction word by word over the grammar's vocabulary (so it can
-  produce word combinations it never saw as a whole). An observation that achieved
+* :class:`FramePairEncoder`: by default (``spatial``) convolutions over the first frame,
+  the current frame, their difference and two coordinate channels, pooled by each
+  channel's maximum and its spatial-softmax keypoint. Pooling instead of a flattened map
+  makes "the red cube moved left" read the same wherever on the table it happens; on the
+  2D tabletop it halved the gap between training and held-out episodes (see the README).
+* :class:`Captioner`: the encoder, then a GRU that writes the instruction word by word
+  over the grammar's vocabulary (so it can produce word combinations it never saw as a
+  whole). An observation that achieved
   nothing is captioned ``<none>``. Greedy and beam decoding; a caption's log-likelihood is
   returned with it, so unsure captions can be dropped by a threshold.
 * :class:`RewardModel`: the probability that an instruction is satisfied by the change
   from the first frame to the current one. The instruction enters as the frozen text
   encoder's embedding (standardised over the training instructions), so any free text
-  can be scored.
+  can be scored; it scales and shifts the channels of the late convolutions (FiLM), so it
+  chooses what to look for before the map is pooled.
 
 Training (:func:`train_models`) uses the dataset's training episodes; held-out
 instructions (the split's held-out word combinations) are never used as targets, positives
@@ -116,9 +122,16 @@ class Vocabulary:
 class CaptionModelConfig:
     """Sizes of the captioner and the reward model."""
 
-    channels: tuple[int, ...] = (32, 64, 64, 64)
-    """Channels of the 3x3 convolutions over the stacked frame pair (the first three have
-    stride 2)."""
+    encoder: str = "spatial"
+    """Frame-pair encoder: ``spatial`` (convolutions over the first frame, the current
+    frame, their difference and two coordinate channels, pooled by a per-channel maximum
+    and a spatial softmax, so that what moved is read the same wherever it is) or
+    ``flatten`` (the feature map flattened into a linear layer: more parameters, tends to
+    memorise its training episodes)."""
+    channels: tuple[int, ...] = (32, 32, 64, 64)
+    """Channels of the 3x3 convolutions. ``spatial``: strides 2, 1, 2, 1, ...; the reward
+    model conditions the second half of them on the instruction (FiLM). ``flatten``: the
+    first three have stride 2."""
     features: int = 256
     """Width of the frame-pair features."""
     use_proprio: bool = True
@@ -132,22 +145,69 @@ class CaptionModelConfig:
     max_len: int = 12
     """Captions are at most ``max_len - 2`` words."""
 
+    def validate(self) -> None:
+        if self.encoder not in ENCODERS:
+            raise LcrlError(f"model.encoder must be one of {ENCODERS}, got {self.encoder!r}")
+        if not self.channels or any(int(c) <= 0 for c in self.channels):
+            raise LcrlError(f"model.channels must be positive widths, got {self.channels}")
+        if self.encoder == "spatial" and len(self.channels) < 2:
+            raise LcrlError("the spatial encoder needs at least two convolutions")
+
+
+ENCODERS: tuple[str, ...] = ("spatial", "flatten")
+
+
+def spatial_softmax(h: torch.Tensor, temperature: torch.Tensor) -> torch.Tensor:
+    """Expected image coordinates ``(B, 2C)`` in [-1, 1] of each channel's softmax over
+    the positions of ``h`` ``(B, C, H, W)``."""
+    b, c, hh, ww = h.shape
+    attn = torch.softmax(h.flatten(2) / temperature, -1).view(b, c, hh, ww)
+    ys = torch.linspace(-1.0, 1.0, hh, device=h.device, dtype=h.dtype)
+    xs = torch.linspace(-1.0, 1.0, ww, device=h.device, dtype=h.dtype)
+    return torch.cat([(attn.sum(3) * ys).sum(2), (attn.sum(2) * xs).sum(2)], -1)
+
 
 class FramePairEncoder(nn.Module):
-    """CNN over (first frame, current frame) stacked as 6 channels, plus proprioception."""
+    """(first frame, current frame) plus proprioception -> frame-pair features.
+
+    ``spatial``: the two frames, their difference and two coordinate channels go through
+    :meth:`early` (text-independent) and :meth:`late` convolutions (which the reward model
+    modulates with the instruction), then :meth:`pool` takes each channel's maximum and its
+    spatial-softmax keypoint. ``flatten``: the stacked frames' feature map is flattened
+    into a linear layer.
+    """
 
     def __init__(self, frame_shape: Sequence[int], proprio_dim: int, cfg: CaptionModelConfig):
         super().__init__()
+        cfg.validate()
         h, w, c = (int(v) for v in frame_shape)
-        layers: list[nn.Module] = []
-        ch = 2 * c
-        for i, out in enumerate(cfg.channels):
-            layers += [nn.Conv2d(ch, out, 3, stride=2 if i < 3 else 1, padding=1), nn.ReLU()]
-            ch = out
-        self.convs = nn.Sequential(*layers)
-        with torch.no_grad():
-            flat = self.convs(torch.zeros(1, 2 * c, h, w)).numel()
+        self.kind = cfg.encoder
         self.proprio_dim = proprio_dim if cfg.use_proprio else 0
+        chans = [int(v) for v in cfg.channels]
+        if self.kind == "flatten":
+            layers: list[nn.Module] = []
+            ch = 2 * c
+            for i, out in enumerate(chans):
+                layers += [nn.Conv2d(ch, out, 3, stride=2 if i < 3 else 1, padding=1), nn.ReLU()]
+                ch = out
+            self.convs = nn.Sequential(*layers)
+            with torch.no_grad():
+                flat = self.convs(torch.zeros(1, 2 * c, h, w)).numel()
+        else:
+            self.split = len(chans) // 2
+            ch = 3 * c + 2
+            convs = []
+            for i, out in enumerate(chans):
+                convs.append(nn.Conv2d(ch, out, 3, stride=2 if i % 2 == 0 else 1, padding=1))
+                ch = out
+            self.convs = nn.ModuleList(convs)
+            self.late_channels = chans[self.split :]
+            self.log_temperature = nn.Parameter(torch.zeros(()))
+            with torch.no_grad():
+                z = torch.zeros(1, h, w, c, dtype=torch.uint8)
+                self.early_shape = tuple(self.early(z, z).shape[1:])
+                self.map_shape = tuple(self.late(self.early(z, z)).shape[1:])
+            flat = 3 * self.map_shape[0]
         self.head = nn.Sequential(
             nn.Linear(flat + 2 * self.proprio_dim, cfg.features),
             nn.LayerNorm(cfg.features),
@@ -155,9 +215,50 @@ class FramePairEncoder(nn.Module):
         )
         self.out_dim = cfg.features
 
+    @staticmethod
+    def _frames(first: torch.Tensor, current: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        a = first.permute(0, 3, 1, 2).float() / 255.0
+        b = current.permute(0, 3, 1, 2).float() / 255.0
+        return a, b
+
+    def early(self, first: torch.Tensor, current: torch.Tensor) -> torch.Tensor:
+        """Spatial encoder: the text-independent first half of the convolutions."""
+        a, b = self._frames(first, current)
+        n, _, hh, ww = a.shape
+        ys = torch.linspace(-1.0, 1.0, hh, device=a.device).view(1, 1, hh, 1).expand(n, 1, hh, ww)
+        xs = torch.linspace(-1.0, 1.0, ww, device=a.device).view(1, 1, 1, ww).expand(n, 1, hh, ww)
+        x = torch.cat([a - 0.5, b - 0.5, 2.0 * (b - a), ys, xs], 1)
+        for conv in self.convs[: self.split]:
+            x = F.relu(conv(x))
+        return x
+
+    def late(self, x: torch.Tensor, film: Sequence[torch.Tensor] | None = None) -> torch.Tensor:
+        """Spatial encoder: the second half of the convolutions, each output optionally
+        scaled and shifted per channel (``film``: one ``(B, 2C)`` tensor per layer); the
+        last output is left before its ReLU (the pooling applies it)."""
+        late = self.convs[self.split :]
+        for i, conv in enumerate(late):
+            x = conv(x)
+            if film is not None:
+                gamma, beta = film[i].chunk(2, -1)
+                x = x * (1.0 + gamma[:, :, None, None]) + beta[:, :, None, None]
+            if i < len(late) - 1:
+                x = F.relu(x)
+        return x
+
+    def pool(self, h: torch.Tensor, p0: torch.Tensor, p: torch.Tensor) -> torch.Tensor:
+        """Spatial encoder: per-channel maximum and keypoint of the last map, then the head."""
+        temp = self.log_temperature.exp()
+        z = torch.cat([F.relu(h.amax((2, 3))), spatial_softmax(h, temp)], -1)
+        if self.proprio_dim:
+            z = torch.cat([z, p0, p], -1)
+        return self.head(z)
+
     def forward(
         self, first: torch.Tensor, current: torch.Tensor, p0: torch.Tensor, p: torch.Tensor
     ) -> torch.Tensor:
+        if self.kind == "spatial":
+            return self.pool(self.late(self.early(first, current)), p0, p)
         x = torch.cat([first, current], -1).permute(0, 3, 1, 2).float() / 255.0 - 0.5
         z = self.convs(x).flatten(1)
         if self.proprio_dim:
@@ -251,7 +352,14 @@ class Captioner(nn.Module):
 
 
 class RewardModel(nn.Module):
-    """(instruction embedding, frame pair) -> logit of "the instruction is satisfied"."""
+    """(instruction embedding, frame pair) -> logit of "the instruction is satisfied".
+
+    With the ``spatial`` encoder the instruction modulates the late convolutions (FiLM,
+    per channel), so it picks what to look for before the map is pooled; the frame pair's
+    "context" is then the early feature map and the proprioception, flattened, which
+    :meth:`context` computes once per frame pair for any number of instructions. With
+    ``flatten`` the pooled frame features are modulated instead.
+    """
 
     def __init__(
         self,
@@ -265,7 +373,14 @@ class RewardModel(nn.Module):
         self.register_buffer("text_mean", torch.zeros(text_dim))
         self.register_buffer("text_std", torch.ones(text_dim))
         self.text = nn.Linear(text_dim, cfg.text_features)
-        self.film = nn.Linear(cfg.text_features, 2 * cfg.features)
+        if self.encoder.kind == "spatial":
+            widths = [2 * c for c in self.encoder.late_channels]
+        else:
+            widths = [2 * cfg.features]
+        self.film = nn.Linear(cfg.text_features, sum(widths))
+        nn.init.zeros_(self.film.weight)
+        nn.init.zeros_(self.film.bias)
+        self.widths = widths
         self.mlp = nn.Sequential(
             nn.Linear(cfg.features + cfg.text_features, cfg.hidden),
             nn.ReLU(),
@@ -280,10 +395,31 @@ class RewardModel(nn.Module):
         self.text_mean.copy_(e.mean(0))
         self.text_std.copy_(e.std(0).clamp_min(1e-3))
 
+    def context(
+        self, first: torch.Tensor, current: torch.Tensor, p0: torch.Tensor, p: torch.Tensor
+    ) -> torch.Tensor:
+        """What :meth:`forward` needs of a frame pair, as one ``(B, D)`` tensor."""
+        enc = self.encoder
+        if enc.kind != "spatial":
+            return enc(first, current, p0, p)
+        parts = [enc.early(first, current).flatten(1)]
+        if enc.proprio_dim:
+            parts += [p0, p]
+        return torch.cat(parts, -1)
+
     def forward(self, ctx: torch.Tensor, text: torch.Tensor) -> torch.Tensor:
         t = F.relu(self.text((text - self.text_mean) / self.text_std))
-        gamma, beta = self.film(t).chunk(2, -1)
-        z = ctx * (1.0 + gamma) + beta  # the instruction picks which frame features matter
+        film = list(self.film(t).split(self.widths, -1))
+        enc = self.encoder
+        if enc.kind == "spatial":
+            n = int(np.prod(enc.early_shape))
+            x = ctx[:, :n].view(-1, *enc.early_shape)
+            pd = enc.proprio_dim
+            p0, p = ctx[:, n : n + pd], ctx[:, n + pd :]
+            z = enc.pool(enc.late(x, film), p0, p)
+        else:  # the instruction picks which frame features matter
+            gamma, beta = film[0].chunk(2, -1)
+            z = ctx * (1.0 + gamma) + beta
         return self.mlp(torch.cat([z, t], -1)).squeeze(-1)
 
 
@@ -455,6 +591,7 @@ class CaptionTrainConfig:
         bad = [m for m in self.models if m not in MODELS]
         if bad or not self.models:
             raise LcrlError(f"models must be among {MODELS}, got {self.models}")
+        self.model.validate()
         for name in ("steps", "batch_size"):
             if getattr(self, name) <= 0:
                 raise LcrlError(f"{name} must be positive")
@@ -635,7 +772,8 @@ class LearnedCaptioner:
                 f"this checkpoint has no {model} (it was trained with --models {other})"
             )
         net.eval()
-        return net.encoder(*self._inputs(*frames))
+        inputs = self._inputs(*frames)
+        return net.encoder(*inputs) if isinstance(net, Captioner) else net.context(*inputs)
 
     @torch.no_grad()
     def captions(
@@ -751,7 +889,8 @@ class LearnedCaptioner:
         vocab.words = list(words)
         vocab.index = {w: i for i, w in enumerate(words)}
         table = ckpt.json("instructions")
-        mcfg = CaptionModelConfig(**{**meta["model"], "channels": tuple(meta["model"]["channels"])})
+        saved = {"encoder": "flatten", **meta["model"]}  # checkpoints from before the option
+        mcfg = CaptionModelConfig(**{**saved, "channels": tuple(saved["channels"])})
         known = {"kind", "models", "frame_shape", "proprio_dim", "model", "text_model",
                  "proprio_mean", "proprio_std"}  # fmt: skip
         lc = cls(
@@ -876,7 +1015,7 @@ def train_models(cfg: CaptionTrainConfig) -> Path:
             bar = tqdm(range(cfg.steps), disable=not cfg.progress, desc="reward model")
             for _ in bar:
                 idx, ids, y = sampler.reward_batch(cfg.batch_size, cfg.hard_negative_fraction)
-                ctx = model_r.encoder(*_augment(pairs.tensors(idx, device), cfg.augment_pad, gen))
+                ctx = model_r.context(*_augment(pairs.tensors(idx, device), cfg.augment_pad, gen))
                 logit = model_r(ctx, emb[torch.as_tensor(ids, device=device)])
                 loss = F.binary_cross_entropy_with_logits(logit, torch.as_tensor(y, device=device))
                 opt.zero_grad()
@@ -1129,6 +1268,8 @@ class LearnedLabeller:
         captioner: use the learned captioner for ``labels`` (else the caller's rule
             labels are kept).
         reward: use the learned reward model for ``achieved``.
+        captioner_rewards: the captions are the rewards too (no reward model; the caller
+            stores no separate ``achieved``).
         min_logprob: captions less likely than this are skipped.
         beam: beam width (0 or 1: greedy, one caption per observation).
         threshold: reward-model probability that counts as satisfied.
@@ -1141,6 +1282,7 @@ class LearnedLabeller:
         num_train: int,
         captioner: bool = True,
         reward: bool = True,
+        captioner_rewards: bool = False,
         min_logprob: float = -1.0,
         beam: int = 3,
         threshold: float = 0.5,
@@ -1152,7 +1294,10 @@ class LearnedLabeller:
         self.models = models
         self.table = list(table)
         self.train_ids = {t: i for i, t in enumerate(self.table[:num_train])}
+        if captioner_rewards and (reward or not captioner):
+            raise LcrlError("captioner rewards need the learned captioner and no reward model")
         self.use_captioner, self.use_reward = captioner, reward
+        self.captioner_rewards = captioner_rewards
         self.min_logprob, self.beam, self.threshold = float(min_logprob), int(beam), threshold
         self.skipped = 0  # captions dropped by the threshold
         self.kept = 0

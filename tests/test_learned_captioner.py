@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import json
 
 import numpy as np
@@ -247,3 +248,90 @@ def test_random_shift_moves_both_frames_of_a_pair_together():
     assert _augment((frames, frames, p, p), 0, gen)[0] is frames
     with pytest.raises(LcrlError, match="augment_pad"):
         train_models(CaptionTrainConfig(augment_pad=-1))
+
+
+def test_spatial_softmax_finds_a_peak():
+    from captioner.learned import spatial_softmax
+
+    h = torch.full((1, 2, 9, 9), -50.0)
+    h[0, 0, 0, 8] = 50.0  # top right: y = -1, x = +1
+    h[0, 1, 4, 4] = 50.0  # centre
+    kp = spatial_softmax(h, torch.tensor(1.0))
+    torch.testing.assert_close(kp, torch.tensor([[-1.0, 0.0, 1.0, 0.0]]), atol=1e-4, rtol=0)
+
+
+@pytest.mark.parametrize("encoder", ["spatial", "flatten"])
+def test_reward_model_scores_agree_between_pairs_and_matrix(encoder, tmp_path, one_thread):
+    """score() (one text per frame pair) and score_matrix() (every text against every pair,
+    frames encoded once) are the same function; the instruction changes the score."""
+    from captioner.learned import Captioner, RewardModel
+
+    cfg = CaptionModelConfig(encoder=encoder, channels=(8, 8, 8, 8), features=32, hidden=32)
+    torch.manual_seed(0)
+    vocab = Vocabulary.from_grammar()
+    texts = [
+        "reach the red cube",
+        "push the blue cylinder left",
+        "put the red cube behind the green cube",
+    ]
+    lc = LearnedCaptioner(
+        vocab, texts, ["train"] * 3, (24, 24, 3), 4, cfg, np.zeros(4), np.ones(4), "", {}
+    )
+    lc.captioner = Captioner((24, 24, 3), 4, len(vocab), cfg)
+    emb = lc.encode_texts(texts)
+    lc.reward = RewardModel((24, 24, 3), 4, emb.shape[1], cfg)
+    for prm in lc.reward.film.parameters():  # FiLM starts at the identity: perturb it
+        torch.nn.init.normal_(prm, std=0.5)
+    rng = np.random.default_rng(0)
+    first = rng.integers(0, 255, (5, 24, 24, 3), dtype=np.uint8)
+    cur = rng.integers(0, 255, (5, 24, 24, 3), dtype=np.uint8)
+    p0 = rng.normal(size=(5, 4)).astype(np.float32)
+    p = rng.normal(size=(5, 4)).astype(np.float32)
+    mat = lc.score_matrix(texts, first, cur, p0, p)
+    assert mat.shape == (5, 3)
+    for k, t in enumerate(texts):
+        np.testing.assert_allclose(lc.score([t] * 5, first, cur, p0, p), mat[:, k], atol=1e-5)
+    assert np.ptp(mat, axis=1).max() > 1e-3  # the instruction matters
+    # a saved checkpoint loads with its encoder kind and gives the same scores
+    lc.meta["text_dim"] = int(emb.shape[1])
+    lc.save(tmp_path / "ck")
+    back = LearnedCaptioner.load(tmp_path / "ck")
+    assert back.cfg.encoder == encoder
+    np.testing.assert_allclose(back.score_matrix(texts, first, cur, p0, p), mat, atol=1e-5)
+
+
+def test_bad_model_config_is_refused():
+    with pytest.raises(LcrlError, match=r"model\.encoder"):
+        train_models(CaptionTrainConfig(model=CaptionModelConfig(encoder="vit")))
+    with pytest.raises(LcrlError, match="at least two"):
+        train_models(CaptionTrainConfig(model=CaptionModelConfig(channels=(8,))))
+
+
+def test_captioner_rewards_store_the_captions_as_rewards(trained, tmp_path, one_thread):
+    """reward=captioner: the learned captions are both the relabelling candidates and the
+    rewards (no reward model, no rule rewards)."""
+    from train.loop import Trainer
+
+    with pytest.raises(LcrlError, match="captioner=learned"):
+        Trainer(_small_run(tmp_path / "bad", trained, reward="captioner"))
+    cfg = _small_run(
+        tmp_path / "run", trained, captioner="learned", reward="captioner", min_logprob=-1e9
+    )
+    cfg = dataclasses.replace(cfg, total_steps=120, learning_starts=100)
+    trainer = Trainer(cfg)
+    task = trainer.task
+    assert task.labeller.captioner_rewards and not task.labeller.use_reward
+    env = trainer.env
+    obs, _ = env.reset(seed=0)
+    goal = task.goal(obs, env)
+    records = [task.step_record(obs, env)]
+    for _ in range(6):
+        obs, *_ = env.step(env.action_space.sample())
+        records.append(task.step_record(obs, env))
+    fields = task.episode_fields(records, goal, env)
+    assert "achieved" not in fields  # the buffer rewards the labels themselves
+    frames = np.stack([r[1] for r in records])
+    proprio = np.stack([r[2] for r in records])
+    assert fields["labels"] == task.labeller.labels(frames, proprio)
+    trainer.run()
+    assert trainer.buffer.size >= 120

@@ -39,6 +39,7 @@ class BufferConfig:
 
 
 RELABELLERS = ("rule", "learned")
+REWARDERS = ("rule", "learned", "captioner")
 
 
 @dataclass
@@ -50,8 +51,10 @@ class RelabelConfig:
     """Relabelling candidates: ``rule`` or ``learned`` (the learned captioner's captions of
     each step, read from the camera frames)."""
     reward: str = "rule"
-    """Rewards of stored transitions: ``rule`` or ``learned`` (the learned reward model,
-    scored once per stored episode for every candidate)."""
+    """Rewards of stored transitions: ``rule``, ``learned`` (the learned reward model,
+    scored once per stored episode for every candidate) or ``captioner`` (the learned
+    captioner's captions of each step are what it achieved, as in HIGhER; needs
+    ``captioner=learned``)."""
     checkpoint: str = ""
     """The learned models' checkpoint (``lcrl caption train --out``)."""
     min_logprob: float = -1.0
@@ -170,12 +173,16 @@ class TrainConfig:
             raise LcrlError(f"scripted_fraction must be in [0, 1], got {self.scripted_fraction}")
         if self.scripted_noise < 0:
             raise LcrlError(f"scripted_noise must be >= 0, got {self.scripted_noise}")
-        for name in ("captioner", "reward"):
-            if getattr(self.relabel, name) not in RELABELLERS:
+        for name, allowed in (("captioner", RELABELLERS), ("reward", REWARDERS)):
+            if getattr(self.relabel, name) not in allowed:
                 raise LcrlError(
-                    f"relabel.{name} must be one of {RELABELLERS}, got "
-                    f"{getattr(self.relabel, name)!r}"
+                    f"relabel.{name} must be one of {allowed}, got {getattr(self.relabel, name)!r}"
                 )
+        if self.relabel.reward == "captioner" and self.relabel.captioner != "learned":
+            raise LcrlError(
+                "relabel.reward=captioner takes the rewards from the learned captioner's "
+                "captions: it needs relabel.captioner=learned"
+            )
         if self.relabel.learned and not self.relabel.checkpoint:
             raise LcrlError(
                 "learned relabelling needs --relabel.checkpoint (train one with lcrl caption train)"

@@ -112,6 +112,7 @@ class Trainer:
                 self.task.num_train,
                 captioner=r.captioner == "learned",
                 reward=r.reward == "learned",
+                captioner_rewards=r.reward == "captioner",
                 min_logprob=r.min_logprob,
                 beam=r.beam,
                 threshold=r.threshold,

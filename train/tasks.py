@@ -493,8 +493,9 @@ class LanguageTask(Task):
         if lab.use_reward:
             cands = {i for ids in out["labels"] for i in ids} | {int(goal)}
             out["achieved"] = lab.achieved(frames, proprio, sorted(cands))
-        elif lab.use_captioner:
+        elif lab.use_captioner and not lab.captioner_rewards:
             out["achieved"] = labels  # learned candidates, rule rewards
+        # captioner_rewards: no "achieved", so the learned captions are the rewards too
         return out
 
     def embed_goals(self, goals: np.ndarray) -> np.ndarray:
