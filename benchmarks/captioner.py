@@ -163,6 +163,11 @@ def train_side_by_side(cfg: CaptionTrainConfig) -> Path:
     }
     with ProcessPoolExecutor(len(parts), mp_context=ctx) as pool:
         done = dict(zip(parts, pool.map(_train_one, parts.values()), strict=True))
+    return merge_checkpoints(done, cfg)
+
+
+def merge_checkpoints(done: dict[str, str], cfg: CaptionTrainConfig) -> Path:
+    """Save the models trained apart (``{model: checkpoint}``) as one checkpoint."""
     models = {m: LearnedCaptioner.load(path) for m, path in done.items()}
     merged = models[cfg.models[0]]
     for m, lc in models.items():
@@ -213,6 +218,11 @@ def _table(p: dict) -> str:
             if group in res and res[group].get("observations"):
                 lines.append(_row(group.replace("_", " "), decoding, res[group]))
     lines.append("")
+    if p["settings"].get("eval_only"):
+        lines.append(
+            "- The models were trained by an earlier `python benchmarks/captioner.py` run "
+            "with these settings; this pass evaluated them again."
+        )
     for decoding, res in p["results"].items():
         if "none_accuracy" in res:
             lines.append(
@@ -220,10 +230,9 @@ def _table(p: dict) -> str:
                 "observations that achieved nothing."
             )
     t = p["timings_s"]
-    lines.append(
-        f"- Time: collect {t['collect_s']:.0f} s, train {t['train_s']:.0f} s, evaluate "
-        f"{t['eval_s']:.0f} s."
-    )
+    names = {"collect_s": "collect", "train_s": "train", "eval_s": "evaluate"}
+    parts = [f"{names[k]} {t[k]:.0f} s" for k in names if t.get(k) is not None]
+    lines.append(f"- Time: {', '.join(parts)}.")
     return "\n".join(lines)
 
 

@@ -892,7 +892,7 @@ class LearnedCaptioner:
         saved = {"encoder": "flatten", **meta["model"]}  # checkpoints from before the option
         mcfg = CaptionModelConfig(**{**saved, "channels": tuple(saved["channels"])})
         known = {"kind", "models", "frame_shape", "proprio_dim", "model", "text_model",
-                 "proprio_mean", "proprio_std"}  # fmt: skip
+                 "proprio_mean", "proprio_std", "format_version"}  # fmt: skip
         lc = cls(
             vocab,
             list(table["texts"]),
