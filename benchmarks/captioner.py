@@ -10,6 +10,7 @@ target). Run from the repository root::
     python benchmarks/captioner.py                      # 2D tabletop, 64x64 frames
     python benchmarks/captioner.py --episodes 300 --steps 500   # a quick look
     python benchmarks/captioner.py --encoder flatten --augment-pad 0   # the plain CNN
+    python benchmarks/captioner.py --env robosuite --episodes 400 --steps 3000
 
 The two models train side by side, one process and one thread each (``--serial``: one
 after the other in this process).
@@ -55,6 +56,13 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--env", default="lang2d", choices=("lang2d", "robosuite"))
     parser.add_argument("--episodes", type=int, default=3000)
     parser.add_argument("--image-size", type=int, default=64)
+    parser.add_argument(
+        "--max-episode-steps",
+        type=int,
+        default=0,
+        help="steps per collected episode at most (0: 50 on lang2d, 80 on robosuite, where "
+        "the scripted stack takes up to 70)",
+    )
     parser.add_argument("--steps", type=int, default=4000)
     parser.add_argument("--encoder", default="spatial", choices=("spatial", "flatten"))
     parser.add_argument("--augment-pad", type=int, default=4)
@@ -93,6 +101,7 @@ def main(argv: list[str] | None = None) -> int:
                 env=args.env,
                 episodes=args.episodes,
                 image_size=args.image_size,
+                max_episode_steps=args.max_episode_steps or (80 if args.env == "robosuite" else 50),
                 overwrite=True,
             )
         )

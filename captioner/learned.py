@@ -564,7 +564,7 @@ class CaptionTrainConfig:
     none_fraction: float = 0.25
     """Captioner: fraction of each batch drawn from observations that achieved nothing
     (target ``<none>``)."""
-    augment_pad: int = 0
+    augment_pad: int = 4
     """Random-shift augmentation of training frame pairs: pad by this many edge pixels and
     crop back at a random offset, the same for both frames of a pair (0: off)."""
     hard_negative_fraction: float = 0.5
@@ -1301,6 +1301,32 @@ class LearnedLabeller:
         self.min_logprob, self.beam, self.threshold = float(min_logprob), int(beam), threshold
         self.skipped = 0  # captions dropped by the threshold
         self.kept = 0
+        self._agreement: dict[str, list[int]] = {}
+
+    def compare(self, kind: str, learned: Sequence[Sequence[int]], rule: Sequence[Sequence[int]],
+                among: Sequence[int] | None = None) -> None:  # fmt: skip
+        """Count how the learned ``kind`` (``labels`` or ``rewards``) agree with the rule
+        captioner's, observation by observation (only ids in ``among``, if given)."""
+        tp_fp_fn = self._agreement.setdefault(kind, [0, 0, 0])
+        keep = None if among is None else set(int(i) for i in among)
+        for pred, true in zip(learned, rule, strict=True):
+            a, b = set(int(i) for i in pred), set(int(i) for i in true)
+            if keep is not None:
+                a, b = a & keep, b & keep
+            tp_fp_fn[0] += len(a & b)
+            tp_fp_fn[1] += len(a - b)
+            tp_fp_fn[2] += len(b - a)
+
+    def agreement(self) -> dict[str, float]:
+        """Precision and recall of the learned labels / rewards against the rule captioner
+        since the last call (``nan`` where there was nothing to count), then reset."""
+        out = {}
+        for kind in ("labels", "rewards"):
+            tp, fp, fn = self._agreement.get(kind, (0, 0, 0))
+            out[f"{kind}_precision"] = tp / (tp + fp) if tp + fp else float("nan")
+            out[f"{kind}_recall"] = tp / (tp + fn) if tp + fn else float("nan")
+        self._agreement = {}
+        return out
 
     def labels(self, frames: np.ndarray, proprio: np.ndarray) -> list[list[int]]:
         """Training-instruction ids the captioner reads in each observation."""

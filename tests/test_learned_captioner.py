@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import csv
 import dataclasses
 import json
 
@@ -189,6 +190,24 @@ def test_training_with_learned_captioner_and_reward(trained, tmp_path, one_threa
     gs = trainer.buffer.goal_space
     n = trainer.buffer.size
     assert gs._total[:n].max() > 0  # some stored episode has learned labels to relabel with
+    # progress.csv reports how far the learned labels and rewards agree with the rule's
+    with (tmp_path / "run" / "progress.csv").open() as f:
+        rows = list(csv.DictReader(f))
+    assert rows and {"labels_precision", "labels_recall", "rewards_precision"} <= set(rows[0])
+    assert any(0.0 <= float(r["rewards_recall"]) <= 1.0 for r in rows)
+
+
+def test_agreement_counts_against_the_rule_labels(trained):
+    from captioner.learned import LearnedLabeller
+
+    lab = LearnedLabeller(LearnedCaptioner.load(trained), ["a", "b", "c"], 3)
+    lab.compare("labels", [[], [0, 1], [2]], [[], [0], [1, 2]])  # tp 2, fp 1, fn 1
+    lab.compare("rewards", [[0, 2]], [[1, 2]], among=[0, 2])  # 1 is not a candidate
+    got = lab.agreement()
+    assert got["labels_precision"] == pytest.approx(2 / 3)
+    assert got["labels_recall"] == pytest.approx(2 / 3)
+    assert got["rewards_precision"] == 0.5 and got["rewards_recall"] == 1.0
+    assert all(np.isnan(v) for v in lab.agreement().values())  # reset after reading
 
 
 def test_labeller_thresholds_and_candidates(trained, dataset):
@@ -298,6 +317,9 @@ def test_reward_model_scores_agree_between_pairs_and_matrix(encoder, tmp_path, o
     back = LearnedCaptioner.load(tmp_path / "ck")
     assert back.cfg.encoder == encoder
     np.testing.assert_allclose(back.score_matrix(texts, first, cur, p0, p), mat, atol=1e-5)
+    back.save(tmp_path / "again")  # a loaded checkpoint saves again
+    again = LearnedCaptioner.load(tmp_path / "again")
+    np.testing.assert_allclose(again.score_matrix(texts, first, cur, p0, p), mat, atol=1e-5)
 
 
 def test_bad_model_config_is_refused():

@@ -332,6 +332,9 @@ class Trainer:
             "sim_errors": self.sim_errors,
             "scripted_episodes": self.scripted_episodes,
         }
+        labeller = getattr(self.task, "labeller", None)
+        if labeller is not None:  # learned relabelling, against the rule captioner
+            row.update(labeller.agreement())
         n = max(self._metric_count, 1)
         row.update({k: v / n for k, v in sorted(self._metrics.items())})
         self._metrics, self._metric_count = {}, 0

@@ -488,11 +488,14 @@ class LanguageTask(Task):
             return out
         frames = np.stack([r[1] for r in records])
         proprio = np.stack([r[2] for r in records])
+        # the rule captioner's labels are kept only to report how far the learned ones agree
         if lab.use_captioner:
             out["labels"] = lab.labels(frames, proprio)
+            lab.compare("labels", out["labels"], labels)
         if lab.use_reward:
-            cands = {i for ids in out["labels"] for i in ids} | {int(goal)}
-            out["achieved"] = lab.achieved(frames, proprio, sorted(cands))
+            cands = sorted({i for ids in out["labels"] for i in ids} | {int(goal)})
+            out["achieved"] = lab.achieved(frames, proprio, cands)
+            lab.compare("rewards", out["achieved"], labels, among=cands)
         elif lab.use_captioner and not lab.captioner_rewards:
             out["achieved"] = labels  # learned candidates, rule rewards
         # captioner_rewards: no "achieved", so the learned captions are the rewards too
