@@ -197,7 +197,7 @@ def _row(group: str, decoding: str, r: dict) -> str:
     slots = r.get("slot_accuracy", {})
     cells = [
         f"{slots[g]:.2f}" if g in slots else "-"
-        for g in ("verb", "object", "direction", "relation", "reference")
+        for g in ("verb", "object", "colour", "shape", "direction", "relation", "reference")
     ]
     auc = f"{r['auc']:.3f}" if "auc" in r else "-"
     pr = f"{r['precision']:.2f} / {r['recall']:.2f}" if "precision" in r else "-"
@@ -218,9 +218,9 @@ def _table(p: dict) -> str:
         f"pad {p['settings'].get('augment_pad', 0)}) on 80% of the episodes; figures on the "
         "other 20% (and, to show what the models memorise, on as many training episodes).",
         "",
-        "| observations | decoding | n | exact match | verb | object | direction | relation "
-        "| reference | BLEU-4 | reward AUC | reward precision / recall |",
-        "|---|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|",
+        "| observations | decoding | n | exact match | verb | object | colour | shape | direction "
+        "| relation | reference | BLEU-4 | reward AUC | reward precision / recall |",
+        "|---|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|",
     ]
     for decoding, res in p["results"].items():
         for group in ("seen", "heldout_combinations"):

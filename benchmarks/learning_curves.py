@@ -297,6 +297,20 @@ def read_run(preset: str, overrides: dict[str, Any], out: Path) -> dict[str, Any
     }
 
 
+def _keep_timings(suite: str, results: dict[str, Any]) -> None:
+    """Rebuilt results keep the training time a previous report measured for the same
+    curve."""
+    path = Path(__file__).resolve().parent / "results" / f"{suite}.json"
+    if not path.exists():
+        return
+    old = json.loads(path.read_text()).get("runs", {})
+    for name, res in results.items():
+        prev = old.get(name, {})
+        if res["seconds"] is None and prev.get("seconds") and prev.get("curve") == res["curve"]:
+            res["seconds"] = prev["seconds"]
+            res["total_steps"] = prev["total_steps"]
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("suite", choices=sorted(SUITES))
@@ -347,7 +361,7 @@ def main(argv: list[str] | None = None) -> int:
         )
         for name, (preset, overrides) in suite["runs"].items()
     }
-    if args.reuse and suite.get("reuse") and not args.report_only:
+    if args.reuse and suite.get("reuse"):
         for name in list(jobs):
             folder = Path("runs/bench") / f"{suite['reuse']}-{name}"
             curve = reusable(run_config(*jobs[name]), folder)
@@ -365,7 +379,8 @@ def main(argv: list[str] | None = None) -> int:
                 "reused_from": str(folder),
             }
     if args.report_only:
-        results = {name: read_run(*job[:2], job[2]) for name, job in jobs.items()}
+        results.update({name: read_run(*job[:2], job[2]) for name, job in jobs.items()})
+        _keep_timings(args.suite, results)
     elif args.parallel and len(jobs) > 1:
         # One process per run, one torch thread each, so that the runs share the machine.
         ctx = multiprocessing.get_context("spawn")
@@ -440,21 +455,26 @@ def main(argv: list[str] | None = None) -> int:
     print(table)
     save_markdown(args.suite, suite["title"], table, info)
 
-    fig, ax = plt.subplots(figsize=(7, 4.2))
+    # one colour per run, one line style per instruction set
+    fig, ax = plt.subplots(figsize=(8.5, 4.4))
     styles = {"train": "-", "all": "-", "heldout": "--", "paraphrase": ":"}
-    for name, res in results.items():
+    colours = plt.rcParams["axes.prop_cycle"].by_key()["color"]
+    for i, (name, res) in enumerate(results.items()):
         for s in sets:
             xs = [r["step"] for r in res["curve"]]
             ys = [r[f"{s}/success"] for r in res["curve"]]
-            ax.plot(xs, ys, styles.get(s, "-"), marker="o", ms=3, label=f"{name}: {s}")
+            width = 2.0 if s in ("train", "all") else 1.0
+            colour = colours[i % len(colours)]
+            ax.plot(xs, ys, styles.get(s, "-"), color=colour, marker="o", ms=3, lw=width,
+                    label=f"{name}: {s}")  # fmt: skip
     ax.axhline(threshold, color="grey", lw=0.8)
     ax.axvline(budget, color="grey", lw=0.8)
     ax.set_xlabel("environment steps")
     ax.set_ylabel("success rate")
     ax.set_ylim(-0.02, 1.02)
-    ax.set_title(suite["title"])
-    ax.legend(fontsize=7)
-    fig.subplots_adjust(bottom=0.22)
+    ax.set_title(suite["title"], fontsize=10)
+    ax.legend(fontsize=7, loc="upper left", bbox_to_anchor=(1.01, 1.0))
+    fig.tight_layout(rect=(0, 0.08, 1, 1))
     caption(fig, info)
     fig.savefig(Path(__file__).resolve().parent / "results" / f"{args.suite}.png", dpi=120)
     print(f"saved benchmarks/results/{args.suite}.{{json,md,png}}")

@@ -132,6 +132,9 @@ class CaptionModelConfig:
     """Channels of the 3x3 convolutions. ``spatial``: strides 2, 1, 2, 1, ...; the reward
     model conditions the second half of them on the instruction (FiLM). ``flatten``: the
     first three have stride 2."""
+    strides: tuple[int, ...] = ()
+    """``spatial``: stride of each convolution (empty: 2, 1, 2, 1, ...). A first stride of
+    1 keeps every pixel of small objects for the first layer (their shape)."""
     features: int = 256
     """Width of the frame-pair features."""
     use_proprio: bool = True
@@ -152,6 +155,13 @@ class CaptionModelConfig:
             raise LcrlError(f"model.channels must be positive widths, got {self.channels}")
         if self.encoder == "spatial" and len(self.channels) < 2:
             raise LcrlError("the spatial encoder needs at least two convolutions")
+        if self.strides and (
+            len(self.strides) != len(self.channels) or any(int(v) < 1 for v in self.strides)
+        ):
+            raise LcrlError(
+                f"model.strides must give one stride >= 1 per convolution ({len(self.channels)}), "
+                f"got {self.strides}"
+            )
 
 
 ENCODERS: tuple[str, ...] = ("spatial", "flatten")
@@ -197,8 +207,11 @@ class FramePairEncoder(nn.Module):
             self.split = len(chans) // 2
             ch = 3 * c + 2
             convs = []
-            for i, out in enumerate(chans):
-                convs.append(nn.Conv2d(ch, out, 3, stride=2 if i % 2 == 0 else 1, padding=1))
+            strides = [int(v) for v in cfg.strides] or [
+                2 if i % 2 == 0 else 1 for i in range(len(chans))
+            ]
+            for out, stride in zip(chans, strides, strict=True):
+                convs.append(nn.Conv2d(ch, out, 3, stride=stride, padding=1))
                 ch = out
             self.convs = nn.ModuleList(convs)
             self.late_channels = chans[self.split :]
@@ -480,6 +493,8 @@ def roc_auc(scores: np.ndarray, labels: np.ndarray) -> float:
 SLOT_GROUPS: dict[str, tuple[str, ...]] = {
     "verb": ("family",),
     "object": ("colour", "shape"),
+    "colour": ("colour",),
+    "shape": ("shape",),
     "direction": ("direction",),
     "relation": ("relation",),
     "reference": ("target_colour", "target_shape"),
@@ -890,7 +905,13 @@ class LearnedCaptioner:
         vocab.index = {w: i for i, w in enumerate(words)}
         table = ckpt.json("instructions")
         saved = {"encoder": "flatten", **meta["model"]}  # checkpoints from before the option
-        mcfg = CaptionModelConfig(**{**saved, "channels": tuple(saved["channels"])})
+        mcfg = CaptionModelConfig(
+            **{
+                **saved,
+                "channels": tuple(saved["channels"]),
+                "strides": tuple(saved.get("strides", ())),
+            }
+        )
         known = {"kind", "models", "frame_shape", "proprio_dim", "model", "text_model",
                  "proprio_mean", "proprio_std", "format_version"}  # fmt: skip
         lc = cls(
