@@ -252,16 +252,11 @@ def _fill_defaults(saved: dict[str, Any], wanted: dict[str, Any], default: Any) 
             _fill_defaults(saved[key], value, base)
 
 
-def run_one(
-    preset: str,
-    overrides: dict[str, Any],
-    out: Path,
-    suite: dict[str, Any],
-    steps: int | None,
-    seed: int,
-) -> dict[str, Any]:
-    """Train one configuration and return its evaluation curve."""
-    cfg = run_config(preset, overrides, out, suite, steps, seed)
+def run_one(job: tuple[Any, ...]) -> dict[str, Any]:
+    """Train one configuration (:func:`run_config`'s arguments) and return its evaluation
+    curve."""
+    preset, out = job[0], job[2]
+    cfg = run_config(*job)
     shutil.rmtree(out, ignore_errors=True)
     t0 = time.perf_counter()
     Trainer(cfg).run()
@@ -385,12 +380,12 @@ def main(argv: list[str] | None = None) -> int:
         # One process per run, one torch thread each, so that the runs share the machine.
         ctx = multiprocessing.get_context("spawn")
         with ProcessPoolExecutor(len(jobs), mp_context=ctx, initializer=_one_thread) as pool:
-            futures = {name: pool.submit(run_one, *job) for name, job in jobs.items()}
+            futures = {name: pool.submit(run_one, job) for name, job in jobs.items()}
             results.update({name: f.result() for name, f in futures.items()})
     else:
         for name, job in jobs.items():
             print(f"== {name}: preset {job[0]} {job[1] or ''}", flush=True)
-            results[name] = run_one(*job)
+            results[name] = run_one(job)
     results = {name: results[name] for name in suite["runs"] if name in results}
     run_name, set_name, threshold, budget = suite["target"]
     curve = results[run_name]["curve"]

@@ -1,0 +1,46 @@
+"""The learning-curve benchmark reads a finished run again only when it learned the same
+thing: same config apart from where it was written and how long it ran."""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+
+import pytest
+
+from benchmarks.learning_curves import SUITES, reusable, run_config
+from train.config import BufferConfig
+
+
+@pytest.fixture
+def job(tmp_path):
+    suite = SUITES["lang2d-learned"]
+    return ("lang2d", {}, tmp_path / "new", suite, 20_000, 0)
+
+
+def _finished_run(folder, cfg, steps):
+    folder.mkdir()
+    saved = json.loads(json.dumps(dataclasses.asdict(cfg)))
+    saved.update(out=str(folder), total_steps=steps[-1], resolved_algo="sac")
+    saved.pop("relabel")  # a run saved before the option existed ran with its default
+    (folder / "config.json").write_text(json.dumps(saved))
+    rows = ["step,train/success"] + [f"{s},{s / 100_000}" for s in steps]
+    (folder / "eval.csv").write_text("\n".join(rows) + "\n")
+
+
+def test_a_run_with_the_same_config_is_cut_at_the_budget(job, tmp_path):
+    cfg = run_config(*job)
+    old = tmp_path / "old"
+    _finished_run(old, dataclasses.replace(cfg, total_steps=50_000), [10_003, 20_011, 30_002])
+    curve = reusable(cfg, old)
+    assert [int(r["step"]) for r in curve] == [10_003, 20_011]  # first evaluation >= 20k
+    # too short a run, or a different learner, is trained again
+    assert reusable(dataclasses.replace(cfg, total_steps=40_000), old) is None
+    other = dataclasses.replace(cfg, buffer=BufferConfig(k=0))
+    assert reusable(other, old) is None
+    assert reusable(cfg, tmp_path / "missing") is None
+    # an option added later, set away from its default, is a different config
+    learned = run_config(
+        *job[:1], {"relabel": SUITES["lang2d-learned"]["runs"]["learned"][1]["relabel"]}, *job[2:]
+    )
+    assert reusable(learned, old) is None
