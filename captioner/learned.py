@@ -218,8 +218,9 @@ class FramePairEncoder(nn.Module):
             self.log_temperature = nn.Parameter(torch.zeros(()))
             with torch.no_grad():
                 z = torch.zeros(1, h, w, c, dtype=torch.uint8)
-                self.early_shape = tuple(self.early(z, z).shape[1:])
-                self.map_shape = tuple(self.late(self.early(z, z)).shape[1:])
+                e = self.early(z, z)
+                self.early_shape = tuple(e.shape[1:])
+                self.map_shape = tuple(self.late(e).shape[1:])
             flat = 3 * self.map_shape[0]
         self.head = nn.Sequential(
             nn.Linear(flat + 2 * self.proprio_dim, cfg.features),
@@ -228,15 +229,10 @@ class FramePairEncoder(nn.Module):
         )
         self.out_dim = cfg.features
 
-    @staticmethod
-    def _frames(first: torch.Tensor, current: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        a = first.permute(0, 3, 1, 2).float() / 255.0
-        b = current.permute(0, 3, 1, 2).float() / 255.0
-        return a, b
-
     def early(self, first: torch.Tensor, current: torch.Tensor) -> torch.Tensor:
         """Spatial encoder: the text-independent first half of the convolutions."""
-        a, b = self._frames(first, current)
+        a = first.permute(0, 3, 1, 2).float() / 255.0
+        b = current.permute(0, 3, 1, 2).float() / 255.0
         n, _, hh, ww = a.shape
         ys = torch.linspace(-1.0, 1.0, hh, device=a.device).view(1, 1, hh, 1).expand(n, 1, hh, ww)
         xs = torch.linspace(-1.0, 1.0, ww, device=a.device).view(1, 1, 1, ww).expand(n, 1, hh, ww)
