@@ -66,6 +66,13 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--steps", type=int, default=4000)
     parser.add_argument("--encoder", default="spatial", choices=("spatial", "flatten"))
     parser.add_argument("--augment-pad", type=int, default=4)
+    parser.add_argument(
+        "--strides",
+        type=int,
+        nargs="*",
+        default=[],
+        help="convolution strides of the frame encoder (default: 2 1 2 1)",
+    )
     parser.add_argument("--serial", action="store_true", help="train the models one by one")
     parser.add_argument("--batch-size", type=int, default=64)
     parser.add_argument("--beam", type=int, default=3, help="beam width of a second pass")
@@ -89,7 +96,7 @@ def main(argv: list[str] | None = None) -> int:
             parser.error(f"--eval-only needs a previous run ({ckpt}, {previous})")
         old = json.loads(previous.read_text())
         timings = {k: v for k, v in old["timings_s"].items() if k != "eval_s"}
-        for key in ("steps", "batch_size", "encoder", "augment_pad"):
+        for key in ("steps", "batch_size", "encoder", "augment_pad", "strides"):
             setattr(args, key, old["settings"].get(key, getattr(args, key)))
     t0 = time.perf_counter()
     if args.eval_only:
@@ -118,7 +125,7 @@ def main(argv: list[str] | None = None) -> int:
             steps=args.steps,
             batch_size=args.batch_size,
             augment_pad=args.augment_pad,
-            model=CaptionModelConfig(encoder=args.encoder),
+            model=CaptionModelConfig(encoder=args.encoder, strides=tuple(args.strides)),
             threads=args.threads,
             device=args.device,
             overwrite=True,
