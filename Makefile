@@ -24,8 +24,9 @@ install: $(STAMP)
 # instructions, held-out word combinations and unseen phrasings.
 demo: $(STAMP)
 	$(BIN)/lcrl train lang2d-quick --out runs/main --overwrite
-	$(BIN)/lcrl eval runs/main --episodes 100
-	@echo "outputs: runs/main/report.md, runs/main/curves.png, runs/main/checkpoints/"
+	$(BIN)/lcrl eval runs/main --episodes 100 --out runs/main/evals/final
+	$(BIN)/lcrl report runs/main
+	@echo "outputs: runs/main/report.md, runs/main/curves.png, runs/main/evals/final/, runs/main/checkpoints/"
 
 test: $(STAMP)
 	$(BIN)/ruff check .

@@ -6,12 +6,14 @@ feasible in the new scene (objects present, not already satisfied, room to do it
 the one passed as ``reset(options={"instruction": "..."})``. The observation gains an
 ``instruction`` text entry; reward is 1.0 when ``satisfied(instruction, s0, s)`` and 0.0
 otherwise, ``info["is_success"]`` says the same, and the episode terminates on success by
-default.
+default. :meth:`LanguageGoalWrapper.switch_instruction` gives a running episode its next
+instruction (chained tasks).
 """
 
 from __future__ import annotations
 
 import string
+from collections.abc import Sequence
 from typing import Any
 
 import gymnasium as gym
@@ -97,8 +99,11 @@ class LanguageGoalWrapper(gym.Wrapper):
     def _scene(self) -> SceneState:
         return self.env.unwrapped.scene()
 
-    def _choose(self, s0: SceneState) -> tuple[str, Instruction] | None:
-        feasible = [(t, m) for t, m in self._candidates if self.captioner.feasible(m, s0)]
+    def _choose(
+        self, s0: SceneState, pool: list[tuple[str, Instruction]] | None = None
+    ) -> tuple[str, Instruction] | None:
+        candidates = self._candidates if pool is None else pool
+        feasible = [(t, m) for t, m in candidates if self.captioner.feasible(m, s0)]
         if not feasible:
             return None
         rng = self.env.unwrapped.np_random
@@ -144,6 +149,47 @@ class LanguageGoalWrapper(gym.Wrapper):
         info["instruction"] = text
         info["is_success"] = False
         return obs, info
+
+    def switch_instruction(
+        self, instruction: str | None = None, candidates: Sequence[str] | None = None
+    ) -> str | None:
+        """Give the running episode a new instruction without resetting the scene.
+
+        For chained tasks (one instruction after another in the same scene, as in
+        CALVIN): the scene now becomes the reference ``s0`` that success is judged
+        against, so after a switch "push the red cube left" means left of where the cube
+        is now. The next observation carries the new instruction.
+
+        Args:
+            instruction: the new instruction (any phrasing the grammar parses); default:
+                draw one, as :meth:`reset` does, among the instructions feasible in the
+                current scene, with the env's seeded ``np_random``.
+            candidates: sentences to draw from instead of this wrapper's set (ignored
+                when ``instruction`` is given).
+
+        Returns:
+            The new instruction, or ``None`` when no candidate is feasible in the current
+            scene (the episode then keeps its instruction and its ``s0``).
+
+        Raises:
+            LcrlError: called before :meth:`reset`, or an instruction that does not parse.
+        """
+        if self.meaning is None:
+            raise LcrlError("call reset() before switch_instruction()")
+        s0 = self._scene()
+        if instruction is not None:
+            text = _check_text(instruction)
+            meaning = self.captioner.parse(text)
+        else:
+            pool = None
+            if candidates is not None:
+                pool = [(t, self.captioner.parse(t)) for t in candidates]
+            choice = self._choose(s0, pool)
+            if choice is None:
+                return None
+            text, meaning = choice
+        self.instruction, self.meaning, self.s0 = text, meaning, s0
+        return text
 
     def step(self, action: Any) -> tuple[dict[str, Any], float, bool, bool, dict[str, Any]]:
         """Step the env; reward 1.0 when the instruction is satisfied, else 0.0."""

@@ -98,6 +98,7 @@ class SlotFeatures(gym.ObservationWrapper):
         self.slot_layout = (start, count, width + dims * parts)
         self.position_dims = dims
         self._origin: np.ndarray | None = None  # slot positions at the last reset
+        self._raw: np.ndarray | None = None  # the last raw observation vector
         low, high = box.low.astype(np.float64), box.high.astype(np.float64)
         slots_lo = low[start : self._end].reshape(count, width)
         slots_hi = high[start : self._end].reshape(count, width)
@@ -161,8 +162,26 @@ class SlotFeatures(gym.ObservationWrapper):
 
     def observation(self, observation: dict[str, Any]) -> dict[str, Any]:
         out = dict(observation)
-        out["observation"] = self.features(observation["observation"])
+        self._raw = np.asarray(observation["observation"], np.float32)
+        out["observation"] = self.features(self._raw)
         return out
+
+    def restart_displacements(self) -> np.ndarray:
+        """Measure displacements from the objects' current positions from now on.
+
+        For a new task that begins mid-episode (the next instruction of a chain): push
+        and put are then judged from here, and so are the displacement features.
+
+        Returns:
+            The current ``"observation"`` vector recomputed (its displacements are 0).
+
+        Raises:
+            LcrlError: the env has not been reset.
+        """
+        if self._raw is None:
+            raise LcrlError("SlotFeatures: reset the env before restarting displacements")
+        self._origin = self._slots(self._raw)[..., : self._dims].copy()
+        return self.features(self._raw)
 
 
 class RelativePositions(SlotFeatures):

@@ -388,7 +388,8 @@ def test_act_saves_a_video_and_runs_state_goal_checkpoints(lang_run, state_full,
     steps = [int(n) for n in re.findall(r"^episode \d: (\d+) steps", out, re.M)]
     assert len(steps) == 2 and f"video: {video}" in out
     cap = cv2.VideoCapture(str(video))
-    assert int(cap.get(cv2.CAP_PROP_FRAME_COUNT)) == sum(steps) + 2  # + each reset frame
+    # + each reset frame, + each last frame held 1 s (5 frames) with the outcome
+    assert int(cap.get(cv2.CAP_PROP_FRAME_COUNT)) == sum(steps) + 2 * (1 + 5)
     ok, frame = cap.read()
     assert ok and frame.shape[2] == 3 and frame.std() > 0
     cap.release()

@@ -2,8 +2,9 @@
 
 Subcommands:
     train   train a policy from a named preset (``lcrl train lang2d --total-steps 50000``)
-    eval    evaluate a checkpoint per instruction set and family
-    act     run a checkpoint on any free-text instruction
+    eval    evaluate a checkpoint: instruction sets, families, slot values, chains, report
+    report  rebuild a run's report, or compare runs side by side
+    act     run a checkpoint on any free-text instruction (or many, --interactive)
     demo    caption scripted and random episodes on the 2D tabletop, write a report
     split   make a compositional instruction split and save it as JSON
     parse   show how the grammar reads instructions (canonical form and slots)
@@ -21,10 +22,7 @@ import json
 import sys
 from collections.abc import Sequence
 from dataclasses import dataclass
-from pathlib import Path
-from typing import Any
 
-import numpy as np
 import tyro
 
 from lcrl.errors import LcrlError
@@ -93,170 +91,218 @@ class TrainStub:
 
 @dataclass
 class EvalCommand:
-    """Evaluate a checkpoint: success per instruction set (seen, held-out, paraphrase) and
-    family."""
+    """Evaluate a checkpoint: success with 95% confidence intervals per instruction set
+    (seen, held-out combinations, paraphrases, a file of your own), family and slot value;
+    optionally chains of instructions; a Markdown report with figures (``--out``)."""
 
     checkpoint: tyro.conf.Positional[str]
     """A checkpoint folder, or a run folder (its latest checkpoint)."""
     episodes: int = 100
-    """Episodes per instruction set."""
+    """Episodes per instruction set (chains per set with --chain)."""
     sets: tuple[str, ...] = ()
-    """Instruction sets to evaluate (default: every set of the task)."""
+    """Instruction sets to evaluate (default: every set of the task, plus ``custom`` with
+    --instructions)."""
+    instructions: str = ""
+    """A file of instructions, one per line (blank lines and # comments skipped): the set
+    ``custom``; episode i runs line i modulo their number. Lines the rule captioner cannot
+    parse still run, their success not checked."""
+    chain: int = 0
+    """Chained evaluation: up to this many instructions in a row in one episode, each
+    drawn among those feasible in the scene after the previous success (0: off)."""
     families: tuple[str, ...] = ()
     """Instruction families to evaluate (default: those it was trained on)."""
     seed: int = 0
-    """Seed of the evaluation layouts."""
+    """Seed of the evaluation layouts and instruction draws."""
+    num_envs: int = 0
+    """Environments stepped together, the policy acting on the batch (0: one per CPU
+    core). Results do not depend on it."""
+    vector: str = "auto"
+    """Vector env: ``sync`` (one process), ``async`` (a process per env) or ``auto``
+    (async on robosuite, whose steps are slow, sync otherwise)."""
     device: str | None = None
     """Run the policy on this device (default: the one it was trained on)."""
+    out: str = ""
+    """Write eval.json (every figure), eval.md and PNG figures to this folder; inside a
+    run folder (e.g. RUN/evals/NAME) ``lcrl report RUN`` includes them."""
     json: str | None = None
-    """Also write the results to this JSON file."""
+    """Also write every figure to this JSON file."""
+    progress: bool = True
+    """Show a progress bar over episodes."""
 
     def run(self) -> None:
-        from train.evaluate import evaluate, format_results, load_policy
+        from pathlib import Path
+
+        from train.eval_suite import (
+            default_num_envs,
+            evaluation_document,
+            format_summary,
+            read_instruction_file,
+            run_evaluation,
+        )
+        from train.evaluate import load_policy
 
         if self.episodes <= 0:
             raise LcrlError("--episodes must be positive")
+        if self.num_envs < 0:
+            raise LcrlError("--num-envs must be positive (or 0: one per CPU core)")
+        if self.chain < 0:
+            raise LcrlError("--chain must be 0 (off) or a number of instructions")
+        if self.vector not in ("auto", "sync", "async"):
+            raise LcrlError(f"--vector must be auto, sync or async, got {self.vector!r}")
+        if self.out and Path(self.out).exists() and not Path(self.out).is_dir():
+            raise LcrlError(f"--out {self.out} is a file, not a folder")
+        if self.instructions:
+            read_instruction_file(self.instructions)  # bad lines fail before loading
         overrides = {"families": tuple(self.families)} if self.families else None
         policy = load_policy(self.checkpoint, overrides, self.device)
-        sets = tuple(self.sets) or policy.task.sets
-        bad = [s for s in sets if s not in policy.task.sets]
-        if bad:
-            raise LcrlError(f"unknown sets {bad}; this task has {policy.task.sets}")
-        results = evaluate(
-            policy.agent, policy.task, policy.cfg, self.episodes, seed=self.seed, sets=sets
+        lines = None
+        if self.instructions:
+            can_do = getattr(policy.env.unwrapped, "instruction_families", None)
+            lines = read_instruction_file(self.instructions, can_do)
+            if len(lines) > self.episodes:
+                print(
+                    f"note: {len(lines)} instructions but --episodes {self.episodes}: only "
+                    f"the first {self.episodes} run"
+                )
+        num_envs = self.num_envs or default_num_envs()
+        results = run_evaluation(
+            policy.agent,
+            policy.task,
+            policy.cfg,
+            self.episodes,
+            seed=self.seed,
+            sets=tuple(self.sets) or None,
+            instructions=lines,
+            chain=self.chain,
+            num_envs=num_envs,
+            vector=self.vector,
+            progress=self.progress,
         )
-        print(f"checkpoint {policy.checkpoint.path} (step {policy.checkpoint.meta['step']})")
-        print(format_results(results))
+        step = policy.checkpoint.meta["step"]
+        print(f"checkpoint {policy.checkpoint.path} (step {step})")
+        print(format_summary(results))
+        settings = {
+            "episodes": self.episodes,
+            "seed": self.seed,
+            "chain": self.chain,
+            "sets": list(results),
+            "instructions_file": self.instructions or None,
+            "families": list(policy.cfg.env.families),
+            "num_envs": num_envs,
+            "command": self._command(),
+        }
+        doc = evaluation_document(policy.checkpoint.path, step, policy.cfg, results, settings)
+        if self.out:
+            from train.report import write_evaluation
+
+            paths = write_evaluation(doc, self.out)
+            print(f"saved {paths['md']}, {paths['json'].name} and figures in {self.out}")
         if self.json:
+            from train.report import EVAL_FORMAT, EVAL_VERSION
+
+            Path(self.json).parent.mkdir(parents=True, exist_ok=True)
             with open(self.json, "w") as f:
-                json.dump(results, f, indent=1)
+                json.dump({"format": EVAL_FORMAT, "version": EVAL_VERSION, **doc}, f, indent=1)
             print(f"saved {self.json}")
+
+    def _command(self) -> str:
+        """The command line that reproduces these figures."""
+        parts = ["lcrl eval", self.checkpoint, f"--episodes {self.episodes}", f"--seed {self.seed}"]
+        if self.sets:
+            parts.append("--sets " + " ".join(self.sets))
+        if self.families:
+            parts.append("--families " + " ".join(self.families))
+        if self.instructions:
+            parts.append(f"--instructions {self.instructions}")
+        if self.chain:
+            parts.append(f"--chain {self.chain}")
+        return " ".join(parts)
+
+
+@dataclass
+class ReportCommand:
+    """Rebuild a run's report (curves.png, report.md, with the figures of every
+    ``lcrl eval --out`` inside the run folder), or compare runs side by side."""
+
+    runs: tyro.conf.Positional[tuple[str, ...]]
+    """One run folder (its report is rebuilt), or several (compared; needs --out)."""
+    out: str = ""
+    """Write here instead of into the run folder; with several runs, the folder that
+    receives comparison.md and comparison.png."""
+
+    def run(self) -> None:
+        from train.report import compare_runs, write_report
+
+        if not self.runs:
+            raise LcrlError("give one run folder, or several to compare")
+        if len(self.runs) == 1:
+            path = write_report(self.runs[0], out=self.out or None)
+            print(f"report: {path} (curves: {path.parent / 'curves.png'})")
+            return
+        if not self.out:
+            raise LcrlError("comparing runs needs --out DIR (where comparison.md goes)")
+        path = compare_runs(self.runs, self.out)
+        print(f"comparison: {path} (curves: {path.parent / 'comparison.png'})")
 
 
 @dataclass
 class ActCommand:
-    """Run a checkpoint's policy on a free-text instruction and report what happened."""
+    """Run a checkpoint's policy on free-text instructions and report what happened: how
+    the captioner reads each one, the nearest training instructions, success per episode.
+    ``--interactive`` reads one instruction per line from the standard input."""
 
     checkpoint: tyro.conf.Positional[str]
     """A checkpoint folder, or a run folder (its latest checkpoint)."""
     instruction: str = ""
     """Any text; success is reported when the rule captioner can parse and check it.
-    Required for language checkpoints; state- and image-goal checkpoints run on the
-    environment's own goals."""
+    Required for language checkpoints (unless --interactive); state- and image-goal
+    checkpoints run on the environment's own goals."""
+    interactive: bool = False
+    """Read instructions line by line from the standard input until an empty line,
+    ``quit`` or the end of input; run --episodes for each."""
     episodes: int = 10
-    """Episodes to run."""
+    """Episodes to run per instruction."""
     seed: int = 0
-    """Seed of the layouts."""
+    """Seed of the layouts: episode i starts from layout seed + i (an instruction the
+    captioner checks, from the next layout where it is feasible)."""
     stochastic: bool = False
     """Sample actions instead of taking the policy's mean action."""
     video: str = ""
-    """Save the episodes as a video here (``.mp4``), one after the other."""
+    """Save the episodes as a video here (``.mp4`` or ``.gif``) with the instruction drawn
+    on the frames; with --interactive, one file per instruction (``NAME_001.gif``, ...)."""
     fps: int = 10
     """Frames per second of the video."""
+    hold: float = 1.0
+    """Seconds each episode's last frame stays in the video, with its outcome."""
 
     def run(self) -> None:
-        from captioner.grammar import try_parse
-        from train.evaluate import load_policy, run_episode
-        from train.tasks import LanguageTask
+        from train.act import ActSession, check_video_path, read_lines
+        from train.policy import load
 
-        if self.episodes <= 0:
-            raise LcrlError("--episodes must be positive")
-        if self.video and not self.video.lower().endswith(".mp4"):
-            raise LcrlError(f"--video must name an .mp4 file, got {self.video!r}")
-        if self.fps <= 0:
-            raise LcrlError("--fps must be positive")
-        policy = load_policy(self.checkpoint, render=bool(self.video))
-        task = policy.task
-        frames: list[np.ndarray] | None = [] if self.video else None
-        if not isinstance(task, LanguageTask):
-            if self.instruction.strip():
+        video = check_video_path(self.video) if self.video else None
+        if self.interactive and self.instruction.strip():
+            raise LcrlError("give either --instruction or --interactive, not both")
+        policy = load(self.checkpoint)
+        env = policy.make_env(render=video is not None)
+        session = ActSession(
+            policy, env, self.episodes, self.seed, not self.stochastic, self.fps, self.hold
+        )
+        if not policy.language:
+            if self.instruction.strip() or self.interactive:
                 raise LcrlError(
                     "this checkpoint was not trained with language goals: drop --instruction "
-                    "to run it on the environment's own goals"
+                    "and --interactive to run it on the environment's own goals"
                 )
-            self._run_goals(policy, frames)
-            return
-        text = " ".join(self.instruction.split())
-        if not text:
-            raise LcrlError("this is a language checkpoint: give an --instruction")
-        meaning = try_parse(text)
-        vector = np.asarray(task.encoder.encode([text])[0], np.float32)
-        if meaning is None:
-            print(f"{text!r}: the captioner cannot parse it, so success is not checked")
-        else:
-            print(f"{text!r} -> {meaning.text!r}")
-        successes, checked = [], 0
-        for i in range(self.episodes):
-            options = {"instruction": text} if meaning is not None else None
-            try:
-                r = run_episode(
-                    policy.agent,
-                    task,
-                    policy.env,
-                    seed=self.seed + i,
-                    options=options,
-                    goal_vector=vector,
-                    deterministic=not self.stochastic,
-                    frames=frames,
-                )
-            except LcrlError as e:
-                print(f"episode {i}: {e}")
-                continue
-            if meaning is not None:
-                checked += 1
-                successes.append(r["success"])
-                status = "success" if r["success"] else "failure"
-            else:
-                status = "not checked"
-            print(f"episode {i}: {r['steps']} steps, {status}")
-        if checked:
-            print(f"success {np.mean(successes):.2f} over {checked} episodes")
-        self._save_video(frames)
-
-    def _run_goals(self, policy: Any, frames: list[np.ndarray] | None) -> None:
-        from train.evaluate import run_episode
-
-        successes = []
-        for i in range(self.episodes):
-            r = run_episode(
-                policy.agent,
-                policy.task,
-                policy.env,
-                seed=self.seed + i,
-                deterministic=not self.stochastic,
-                frames=frames,
+            session.run_goals(video)
+        elif self.interactive:
+            session.interactive(read_lines(sys.stdin), video)
+        elif not self.instruction.strip():
+            raise LcrlError(
+                "this is a language checkpoint: give an --instruction (or --interactive)"
             )
-            successes.append(r["success"])
-            print(f"episode {i}: {r['steps']} steps, {'success' if r['success'] else 'failure'}")
-        print(f"success {np.mean(successes):.2f} over {self.episodes} episodes")
-        self._save_video(frames)
-
-    def _save_video(self, frames: list[np.ndarray] | None) -> None:
-        if not frames:
-            return
-        path = save_video(self.video, frames, self.fps)
-        print(f"video: {path} ({len(frames)} frames at {self.fps} fps)")
-
-
-def save_video(path: str | Path, frames: Sequence[np.ndarray], fps: int = 10) -> Path:
-    """Write RGB uint8 frames ``(H, W, 3)`` to an ``.mp4`` file (OpenCV's mp4v codec)."""
-    import cv2
-
-    frames = [f for f in frames if f is not None]
-    if not frames:
-        raise LcrlError("no frames to save: the environment did not render")
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    h, w = frames[0].shape[:2]
-    writer = cv2.VideoWriter(str(path), cv2.VideoWriter_fourcc(*"mp4v"), float(fps), (w, h))
-    if not writer.isOpened():
-        raise LcrlError(f"cannot write a video to {path} (OpenCV has no mp4v encoder here)")
-    try:
-        for frame in frames:
-            writer.write(cv2.cvtColor(np.ascontiguousarray(frame, np.uint8), cv2.COLOR_RGB2BGR))
-    finally:
-        writer.release()
-    return path
+        else:
+            session.run_text(self.instruction, video)
+        env.close()
 
 
 def _train(argv: Sequence[str]) -> None:
@@ -362,6 +408,7 @@ def main(argv: Sequence[str] | None = None) -> None:
         "train": TrainStub,
         "eval": EvalCommand,
         "act": ActCommand,
+        "report": ReportCommand,
         "demo": DemoConfig,
         "split": SplitCommand,
         "parse": ParseCommand,

@@ -1,0 +1,400 @@
+"""A trained policy as a Python object: observations and free-text instructions in, actions out.
+
+::
+
+    import lcrl
+
+    policy = lcrl.load("runs/lang2d")          # a run folder or one checkpoint folder
+    env = policy.make_env()
+    obs, info = env.reset(seed=0)
+    policy.reset()                              # a new episode starts
+    while True:
+        action = policy.act(obs, "push the red cube left")
+        obs, reward, terminated, truncated, info = env.step(action)
+        if terminated or truncated:
+            break
+    policy.nearest("shove the crimson box leftwards", k=3)
+
+Any text is a goal: the checkpoint's frozen text encoder embeds it, whether or not the
+instruction grammar knows its words. :meth:`Policy.nearest` shows which training
+instructions lie closest to a text in that embedding space, i.e. what the policy most
+probably understood.
+
+The first observation of an episode
+    Language policies judge push and put relative to where the objects started, so besides
+    the current observation they read the episode's first observation. Pass it as
+    ``initial=``, or let the policy remember it: the first observation given to
+    :meth:`Policy.act` after :meth:`Policy.reset` (or after loading) is kept as the
+    episode's start until the next :meth:`Policy.reset`. Call :meth:`Policy.reset` whenever
+    an environment is reset.
+
+Batches
+    ``observation`` may carry a leading batch dimension on every array (``B`` environments
+    stepped together); the instruction is then one text for every row or a list of ``B``
+    texts, and the actions come back with the same leading dimension.
+"""
+
+from __future__ import annotations
+
+import copy
+from collections.abc import Mapping, Sequence
+from pathlib import Path
+from typing import Any, NamedTuple
+
+import gymnasium as gym
+import numpy as np
+
+from lcrl.algos import Agent
+from lcrl.checkpoint import Checkpoint
+from lcrl.errors import LcrlError
+from train.config import TrainConfig
+from train.tasks import ImageGoalTask, LanguageTask, StateTask, Task, make_env
+
+
+class Neighbour(NamedTuple):
+    """A training instruction and its cosine similarity to a query text."""
+
+    text: str
+    similarity: float
+
+
+def check_instruction(text: Any) -> str:
+    """``text`` with runs of whitespace collapsed, or an error for a non-string, an empty
+    text, control characters, or a text longer than the instruction limit
+    (:data:`captioner.lang_env.MAX_INSTRUCTION_LENGTH` characters). Any other characters
+    and words are fine: the text encoder embeds whatever it is given."""
+    from captioner.lang_env import MAX_INSTRUCTION_LENGTH
+
+    if not isinstance(text, str):
+        raise LcrlError(f"an instruction must be a string, got {type(text).__name__}")
+    norm = " ".join(text.split())
+    if not norm:
+        raise LcrlError("empty instruction: say what to do, e.g. 'push the red cube left'")
+    if not norm.isprintable():
+        raise LcrlError(f"instruction contains control characters: {norm!r}")
+    if len(norm) > MAX_INSTRUCTION_LENGTH:
+        raise LcrlError(
+            f"instruction is {len(norm)} characters long; the limit is {MAX_INSTRUCTION_LENGTH}"
+        )
+    return norm
+
+
+def describe_env(cfg: TrainConfig) -> str:
+    """A few words naming a config's environment (for error messages)."""
+    env = cfg.env
+    if env.kind == "gym":
+        name = f"gym {env.gym_id}"
+    elif env.kind == "robosuite":
+        name = f"robosuite tabletop ({env.goal_type} goals)"
+    else:
+        name = f"{env.kind} tabletop"
+    return name + (", image observations" if env.image_obs else "")
+
+
+class Policy:
+    """A trained policy: call :meth:`act` with an environment observation and an instruction.
+
+    Build one with :func:`load`. Attributes: ``cfg`` (the run's config), ``agent`` (the
+    learner), ``task`` (observation layout and goals), ``checkpoint``, and ``env`` (the
+    environment rebuilt from the config when loading, used to check shapes; make fresh
+    ones with :meth:`make_env`).
+    """
+
+    def __init__(
+        self, cfg: TrainConfig, agent: Agent, task: Task, env: gym.Env, checkpoint: Checkpoint
+    ) -> None:
+        self.cfg, self.agent, self.task, self.env = cfg, agent, task, env
+        self.checkpoint = checkpoint
+        space = env.observation_space
+        self._spaces = dict(space.spaces) if isinstance(space, gym.spaces.Dict) else {}
+        self._initial: dict[str, np.ndarray] | None = None
+        self._initial_batch: int | None = None
+
+    # --- what the policy is -------------------------------------------------------------
+    @property
+    def language(self) -> bool:
+        """Whether the policy follows instructions (else it reaches the env's goals)."""
+        return isinstance(self.task, LanguageTask)
+
+    @property
+    def instructions(self) -> list[str]:
+        """The instructions it was trained on (empty for state- and image-goal policies)."""
+        if not isinstance(self.task, LanguageTask):
+            return []
+        return list(self.task.table[: self.task.num_train])
+
+    @property
+    def families(self) -> tuple[str, ...]:
+        """Instruction families it was trained on (empty for state- and image-goal ones)."""
+        return tuple(self.cfg.env.families) if self.language else ()
+
+    def __repr__(self) -> str:
+        step = self.checkpoint.meta.get("step", "?")
+        return (
+            f"Policy({self.checkpoint.path}, step {step}, {self.checkpoint.meta.get('algo')}, "
+            f"{describe_env(self.cfg)})"
+        )
+
+    # --- environments -------------------------------------------------------------------
+    def make_env(self, split_set: str = "train", render: bool = False) -> gym.Env:
+        """A new environment like the one the policy was trained on.
+
+        Args:
+            split_set: language policies: the instruction set that ``reset()`` samples from
+                when no ``options={"instruction": ...}`` is given (``train``, ``heldout``
+                or ``paraphrase``).
+            render: make it with ``render_mode="rgb_array"`` so ``env.render()`` returns
+                camera frames.
+        """
+        env_cfg = copy.deepcopy(self.cfg.env)
+        if render:
+            env_cfg.extra = {**env_cfg.extra, "render_mode": "rgb_array"}
+        return make_env(env_cfg, split_set)
+
+    # --- language ----------------------------------------------------------------------
+    def embed(self, texts: str | Sequence[str]) -> np.ndarray:
+        """Text embeddings ``(N, d)`` from the policy's frozen encoder (unit length)."""
+        encoder = self._encoder()
+        texts = [texts] if isinstance(texts, str) else list(texts)
+        return np.asarray(encoder.encode([check_instruction(t) for t in texts]), np.float32)
+
+    def nearest(self, text: str, k: int = 3) -> list[Neighbour]:
+        """The ``k`` training instructions closest to ``text`` by cosine similarity of their
+        embeddings, most similar first (a training instruction's nearest is itself, with
+        similarity 1)."""
+        if isinstance(k, bool) or not isinstance(k, (int, np.integer)) or k <= 0:
+            raise LcrlError(f"k must be a positive integer, got {k!r}")
+        query = self.embed(text)[0]
+        assert isinstance(self.task, LanguageTask)
+        table = self.task.embeddings[: self.task.num_train]
+        norms = np.linalg.norm(table, axis=1) * max(float(np.linalg.norm(query)), 1e-12)
+        sims = table @ query / np.maximum(norms, 1e-12)
+        order = np.argsort(-sims, kind="stable")[: int(k)]
+        return [Neighbour(self.task.table[i], float(sims[i])) for i in order]
+
+    def _encoder(self) -> Any:
+        if not isinstance(self.task, LanguageTask):
+            raise LcrlError(
+                f"this policy was not trained with language goals ({describe_env(self.cfg)}): "
+                "it takes no instruction"
+            )
+        return self.task.encoder  # type: ignore[attr-defined]
+
+    # --- acting -------------------------------------------------------------------------
+    def reset(self) -> None:
+        """Forget the remembered first observation: the next :meth:`act` starts an episode."""
+        self._initial, self._initial_batch = None, None
+
+    def act(
+        self,
+        observation: Mapping[str, Any],
+        instruction: str | Sequence[str] | None = None,
+        *,
+        initial: Mapping[str, Any] | None = None,
+        goal: np.ndarray | None = None,
+        deterministic: bool = True,
+    ) -> np.ndarray:
+        """The action for an observation, in the environment's units (pass it to
+        ``env.step``).
+
+        Args:
+            observation: the dict the environment returns (extra entries such as
+                ``instruction`` are ignored), or the same with a leading batch dimension
+                on every array.
+            instruction: any text (language policies), or one text per batch row. ``None``
+                takes the observation's own ``instruction`` entry.
+            initial: the episode's first observation (same layout and batch size as
+                ``observation``). Default: the first observation given since
+                :meth:`reset`, remembered.
+            goal: state-goal policies: the goal vector (default: the observation's
+                ``desired_goal``); image-goal policies: the goal frame (required, e.g.
+                ``env.unwrapped.goal_image()``).
+            deterministic: the policy's mean (greedy) action; ``False`` samples one.
+
+        Returns:
+            ``(action_dim,)`` floats (or one integer for discrete moves); with a batch,
+            ``(B, action_dim)`` (or ``(B,)``).
+
+        Raises:
+            LcrlError: missing observation entries or wrong shapes (e.g. an observation of
+                another environment), an empty or overlong text, texts and observations of
+                different batch sizes.
+        """
+        obs, batch = self._check_obs(observation, "observation")
+        rows = 1 if batch is None else batch
+        if isinstance(self.task, LanguageTask):
+            texts = self._texts(observation, instruction, batch)
+            vectors = self.embed(texts)  # before remembering anything: the texts may be bad
+            first = self._first(initial, obs, batch)
+            if len(vectors) == 1 and rows > 1:
+                vectors = np.repeat(vectors, rows, axis=0)
+            net_obs = self._storage(obs, first, batch)
+            a = self.agent.act(net_obs, vectors, deterministic=deterministic, embedded=True)
+        else:
+            if instruction is not None:
+                raise LcrlError(
+                    f"this policy was not trained with language goals ({describe_env(self.cfg)})"
+                    ": it takes no instruction; its goal is the observation's desired_goal "
+                    "(or goal=)"
+                )
+            goals = self._goals(observation, goal, batch)
+            net_obs = self._storage(obs, obs, batch)
+            a = self.agent.act(net_obs, goals, deterministic=deterministic)
+        actions = self.task.scale_action(a)
+        return actions if batch is not None else actions[0]
+
+    # --- checks ---------------------------------------------------------------------------
+    def _required_keys(self) -> tuple[str, ...]:
+        task = self.task
+        keys = ["observation"]
+        if getattr(task, "image_obs", False) or isinstance(task, ImageGoalTask):
+            keys.append("image")
+        return tuple(keys)
+
+    def _check_obs(self, observation: Any, name: str) -> tuple[dict[str, np.ndarray], int | None]:
+        """The entries the network reads, checked against the env's shapes, and the batch
+        size (None for one unbatched observation)."""
+        if not isinstance(observation, Mapping):
+            raise LcrlError(
+                f"{name} must be the dict the environment returns (keys "
+                f"{list(self._required_keys())}), got {type(observation).__name__}"
+            )
+        out: dict[str, np.ndarray] = {}
+        batch: int | None = None
+        for key in self._required_keys():
+            if key not in observation:
+                raise LcrlError(
+                    f"{name} has no {key!r} entry (it has {sorted(map(str, observation))}); "
+                    f"this policy ({describe_env(self.cfg)}) reads {list(self._required_keys())}"
+                )
+            arr = np.asarray(observation[key])
+            if arr.dtype.kind not in "fiub":
+                raise LcrlError(f"{name}[{key!r}] must be numbers, got dtype {arr.dtype}")
+            want = tuple(self._spaces[key].shape)
+            if arr.shape == want:
+                b = None
+            elif arr.ndim == len(want) + 1 and arr.shape[1:] == want:
+                b = int(arr.shape[0])
+            else:
+                raise LcrlError(
+                    f"{name}[{key!r}] has shape {arr.shape}; this policy was trained on the "
+                    f"{describe_env(self.cfg)}, whose {key!r} is {want} (or (batch, *{want})): "
+                    "is the observation from another environment?"
+                )
+            if out and b != batch:
+                raise LcrlError(
+                    f"{name} entries disagree on the batch size: "
+                    + ", ".join(f"{k} {v.shape}" for k, v in [*out.items(), (key, arr)])
+                )
+            out[key], batch = arr, b
+        if batch == 0:
+            raise LcrlError(f"{name} is an empty batch")
+        return out, batch
+
+    def _texts(self, observation: Mapping[str, Any], instruction: Any, batch: int | None) -> list:
+        if instruction is None:
+            if "instruction" not in observation:
+                raise LcrlError(
+                    "give an instruction: policy.act(observation, 'push the red cube left') "
+                    "(the observation has no 'instruction' entry either)"
+                )
+            instruction = observation["instruction"]
+            if isinstance(instruction, np.ndarray):
+                instruction = instruction.tolist()
+        if isinstance(instruction, str):
+            return [instruction]
+        if not isinstance(instruction, Sequence):
+            raise LcrlError(
+                f"an instruction must be a string or a list of strings, got "
+                f"{type(instruction).__name__}"
+            )
+        texts = list(instruction)
+        rows = 1 if batch is None else batch
+        if len(texts) != rows:
+            what = "one observation" if batch is None else f"a batch of {batch} observations"
+            raise LcrlError(f"{len(texts)} instructions for {what}: give one text, or one per row")
+        return texts
+
+    def _first(
+        self, initial: Mapping[str, Any] | None, obs: dict[str, np.ndarray], batch: int | None
+    ) -> dict[str, np.ndarray]:
+        if initial is not None:
+            first, b = self._check_obs(initial, "initial")
+            if b != batch:
+                raise LcrlError(
+                    f"initial has batch size {b} but observation has {batch}: give the "
+                    "first observation of the same episodes"
+                )
+            return first
+        if self._initial is None:
+            self._initial = {k: np.array(v, copy=True) for k, v in obs.items()}
+            self._initial_batch = batch
+        elif self._initial_batch != batch:
+            raise LcrlError(
+                f"the remembered first observation has batch size {self._initial_batch} but "
+                f"this observation has {batch}: call policy.reset() when new episodes start "
+                "(or pass initial=)"
+            )
+        return self._initial
+
+    def _goals(self, observation: Mapping[str, Any], goal: Any, batch: int | None) -> np.ndarray:
+        if isinstance(self.task, ImageGoalTask):
+            if goal is None:
+                raise LcrlError(
+                    "an image-goal policy needs goal=, the goal frame (env.unwrapped.goal_image())"
+                )
+            want = tuple(self.task.problem().goal_shape)
+        else:
+            assert isinstance(self.task, StateTask)
+            if goal is None:
+                if "desired_goal" not in observation:
+                    raise LcrlError(
+                        "the observation has no 'desired_goal' entry: pass goal= (a goal vector)"
+                    )
+                goal = observation["desired_goal"]
+            want = (self.task.goal_dim,)
+        g = np.asarray(goal)
+        if g.shape == want:
+            g = g[None] if batch is None else np.repeat(g[None], batch, axis=0)
+        elif batch is None or g.shape != (batch, *want):
+            rows = "" if batch is None else f" or ({batch}, *{want})"
+            raise LcrlError(f"the goal has shape {g.shape}; this policy expects {want}{rows}")
+        return g if g.dtype == np.uint8 else g.astype(np.float32)
+
+    def _storage(
+        self, obs: dict[str, np.ndarray], first: dict[str, np.ndarray], batch: int | None
+    ) -> dict[str, np.ndarray]:
+        """The network's observation arrays, built row by row exactly as in training."""
+        if batch is None:
+            return {k: v[None] for k, v in self.task.storage_obs(obs, first).items()}
+        parts = [
+            self.task.storage_obs(
+                {k: v[i] for k, v in obs.items()}, {k: v[i] for k, v in first.items()}
+            )
+            for i in range(batch)
+        ]
+        return {k: np.stack([p[k] for p in parts]) for k in parts[0]}
+
+
+def load(
+    path: str | Path,
+    device: str | None = None,
+    env_overrides: Mapping[str, Any] | None = None,
+) -> Policy:
+    """Load a trained policy.
+
+    Args:
+        path: a checkpoint folder, or a run folder (its latest checkpoint).
+        device: run the networks here (``"cpu"``, ``"cuda"``) instead of the checkpoint's
+            device.
+        env_overrides: env config fields to change (e.g. ``{"families": ("reach",)}``);
+            the resulting environment must give the checkpoint's observation and action
+            shapes.
+
+    Raises:
+        LcrlError: no checkpoint at ``path``, or it does not match its environment.
+    """
+    from train.evaluate import load_policy
+
+    loaded = load_policy(path, dict(env_overrides or {}), device)
+    return Policy(loaded.cfg, loaded.agent, loaded.task, loaded.env, loaded.checkpoint)
