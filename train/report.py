@@ -85,7 +85,10 @@ def run_of_checkpoint(checkpoint: str | Path) -> Path | None:
     p = Path(checkpoint).resolve()
     run = p.parent.parent
     if p.parent.name == "checkpoints" and (run / "config.json").is_file():
-        return run
+        try:  # as the user would type it, when it is below the working directory
+            return run.relative_to(Path.cwd().resolve())
+        except ValueError:
+            return run
     return None
 
 
