@@ -163,6 +163,15 @@ def test_periodic_checkpoints_keep_the_latest(one_thread, tmp_path):
 
 
 # --- 2. exact resume ---------------------------------------------------------------------
+def test_resume_without_a_saved_buffer_says_so(tmp_path, capsys):
+    out = tmp_path / "nobuf"
+    Trainer(tiny("state2d", out, total_steps=100, save_buffer=False)).run()
+    resumed = Trainer(tiny("state2d", out, total_steps=200, resume=True))
+    printed = capsys.readouterr().out
+    assert resumed.step == 100 and resumed.buffer.size == 0
+    assert "holds no replay buffer" in printed and "does not continue the run exactly" in printed
+
+
 def test_resume_at_episode_boundary_is_bit_identical(state_full, tmp_path, capsys):
     full = state_full
     # the assumption that makes 150 an episode boundary: no episode ends early

@@ -418,6 +418,11 @@ class Trainer:
         if ckpt.has_arrays():
             self.buffer.load_arrays(ckpt.arrays())
         print(f"resumed {self.out} at step {self.step} ({self.episodes} episodes)")
+        if not ckpt.has_arrays():
+            print(
+                "note: this checkpoint holds no replay buffer (the run had save_buffer off): "
+                "training goes on from an empty buffer, so it does not continue the run exactly"
+            )
 
 
 def _learned_models(cfg: TrainConfig) -> Any:
