@@ -119,7 +119,8 @@ class LanguageGoalWrapper(gym.Wrapper):
         """Reset the env and pick the episode's instruction.
 
         ``options={"instruction": text}`` fixes the instruction (any phrasing the grammar
-        parses); the other options go to the wrapped env.
+        parses); the other options go to the wrapped env. ``info["feasible"]`` says whether
+        the instruction can be followed in the new layout (drawn instructions always can).
         """
         options = dict(options or {})
         given = options.pop("instruction", None)
@@ -147,6 +148,8 @@ class LanguageGoalWrapper(gym.Wrapper):
         obs["instruction"] = text
         info = dict(info)
         info["instruction"] = text
+        # a given instruction may name an object that is not on the table, or already hold
+        info["feasible"] = bool(self.captioner.feasible(meaning, s0))
         info["is_success"] = False
         return obs, info
 

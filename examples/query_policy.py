@@ -20,8 +20,12 @@ policy = lcrl.load(sys.argv[1] if len(sys.argv) > 1 else "runs/lang2d-quick")
 text = "go to the red cube"
 env = policy.make_env()
 successes = []
-for seed in range(3):
+seed = 0
+while len(successes) < 3:
     obs, info = env.reset(seed=seed, options={"instruction": text})
+    seed += 1
+    if not info["feasible"]:  # e.g. no red cube on the table in this layout
+        continue
     policy.reset()  # a new episode: the next observation is remembered as its start
     done = False
     while not done:

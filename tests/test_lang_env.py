@@ -41,7 +41,7 @@ def test_instructions_come_from_the_chosen_set_and_are_feasible(split_set):
         obs, info = env.reset(seed=seed)
         assert obs["instruction"] == info["instruction"] == env.instruction
         assert env.instruction in texts
-        assert cap.feasible(env.instruction, base.scene())
+        assert cap.feasible(env.instruction, base.scene()) and info["feasible"]
         assert env.observation_space.contains(obs)
         families.add(env.meaning.family)
     assert families == set(FAMILIES_2D)
@@ -87,6 +87,17 @@ def test_given_instruction_any_phrasing_and_bad_text():
         env.reset(seed=1, options={"instruction": "fly to the moon"})
     with pytest.raises(LcrlError, match="characters"):
         env.reset(seed=1, options={"instruction": "x" * 500})
+
+
+def test_reset_info_says_whether_a_given_instruction_is_feasible():
+    base, env = make()
+    seen = set()
+    for seed in range(30):
+        _, info = env.reset(seed=seed, options={"instruction": "reach the red cube"})
+        on_table = "red cube" in base.scene().names
+        assert info["feasible"] == on_table
+        seen.add(on_table)
+    assert seen == {True, False}  # both kinds of layout were drawn
 
 
 def test_wrapper_refuses_envs_without_scene_and_bad_sets():
