@@ -8,6 +8,7 @@ import dataclasses
 from pathlib import Path
 
 from lcrl.nets import NetConfig
+from train.cli import main
 from train.config import PRESETS, TrainConfig
 
 
@@ -30,3 +31,17 @@ def tiny(preset: str, out: Path, **overrides) -> TrainConfig:
         agent=dataclasses.replace(base.agent, net=NetConfig(hidden=(32, 32), text_dim=8)),
     )
     return dataclasses.replace(cfg, **overrides)
+
+
+def cli(*args: str) -> int:
+    """Run ``lcrl ARGS``; the exit status (0 when main returns)."""
+    try:
+        main(list(args))
+    except SystemExit as e:
+        return 0 if e.code is None else e.code if isinstance(e.code, int) else 1
+    return 0
+
+
+def error_line(stderr: str) -> str:
+    """The last line of stderr (the transformers loading bar may precede it)."""
+    return stderr.strip().splitlines()[-1]

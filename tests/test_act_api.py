@@ -18,12 +18,11 @@ from pathlib import Path
 import gymnasium as gym
 import numpy as np
 import pytest
-from helpers import tiny
+from helpers import cli, tiny
 
 import lcrl
 from lcrl.errors import LcrlError
 from train.act import annotate_episode, upscale
-from train.cli import main
 from train.evaluate import run_episode
 from train.loop import Trainer
 from train.policy import Policy
@@ -58,15 +57,6 @@ def state_ckpt(tmp_path_factory) -> Path:
 @pytest.fixture(scope="module")
 def policy(lang_ckpt) -> Policy:
     return lcrl.load(lang_ckpt, device="cpu")
-
-
-def cli(*args: str) -> int:
-    """Run ``lcrl ARGS``; the exit status (0 when main returns)."""
-    try:
-        main(list(args))
-    except SystemExit as e:
-        return 0 if e.code is None else e.code if isinstance(e.code, int) else 1
-    return 0
 
 
 class RecordActions(gym.Wrapper):

@@ -16,7 +16,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from helpers import tiny
+from helpers import cli, error_line, tiny
 
 from captioner.grammar import FAMILIES_2D, parse
 from captioner.lang_env import LanguageGoalWrapper
@@ -27,7 +27,6 @@ from envs.features import SlotFeatures, slot_layout
 from envs.scene import OBJECT_KINDS
 from envs.tabletop2d import MAX_STEP, Tabletop2DEnv
 from lcrl.errors import LcrlError
-from train.cli import main
 from train.eval_suite import (
     EpisodeResult,
     EpisodeSpec,
@@ -92,20 +91,6 @@ class ReachOracle:
             rel = row[self.start + k * self.width :][3:5]  # [x, y, present, rel x, rel y, ...]
             out.append(np.clip(rel / max(float(np.abs(rel).max()), 1e-6), -1.0, 1.0))
         return np.asarray(out, np.float32)
-
-
-def cli(*args: str) -> int:
-    """Run ``lcrl ARGS``; the exit status (0 when main returns)."""
-    try:
-        main(list(args))
-    except SystemExit as e:
-        return 0 if e.code is None else e.code if isinstance(e.code, int) else 1
-    return 0
-
-
-def error_line(stderr: str) -> str:
-    """The last line of stderr (the transformers loading bar may precede it)."""
-    return stderr.strip().splitlines()[-1]
 
 
 # --- statistics ----------------------------------------------------------------------------

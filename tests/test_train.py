@@ -17,11 +17,10 @@ import numpy as np
 import pytest
 import safetensors.torch
 import torch
-from helpers import tiny
+from helpers import cli, error_line, tiny
 
 from lcrl.checkpoint import find_latest, load_checkpoint
 from lcrl.errors import LcrlError
-from train.cli import main
 from train.config import PRESETS
 from train.evaluate import evaluate, load_policy, run_episode
 from train.loop import Trainer
@@ -73,20 +72,6 @@ def assert_same_tensors(a: Path, b: Path) -> None:
         assert ta.keys() == tb.keys(), name
         different = [k for k in ta if not torch.equal(ta[k], tb[k])]
         assert not different, f"{name}: {different[:5]}"
-
-
-def cli(*args: str) -> int:
-    """Run ``lcrl ARGS``; the exit status (0 when main returns)."""
-    try:
-        main(list(args))
-    except SystemExit as e:
-        return 0 if e.code is None else e.code if isinstance(e.code, int) else 1
-    return 0
-
-
-def error_line(stderr: str) -> str:
-    """The last line of stderr (the transformers loading bar may precede it)."""
-    return stderr.strip().splitlines()[-1]
 
 
 @pytest.fixture(scope="module")
