@@ -877,6 +877,7 @@ def evaluation_document(
     """Everything an evaluation report needs: where the policy comes from, the settings
     and the figures of :func:`run_evaluation`."""
     from train.config import config_to_dict
+    from train.machine import machine
     from train.report import run_of_checkpoint, task_name
 
     run = run_of_checkpoint(checkpoint)
@@ -888,5 +889,6 @@ def evaluation_document(
         "run": str(run) if run is not None else None,
         "task": task,
         "settings": {"first_seed": episode_seed(seed, 0), **settings},
+        "machine": machine(),
         "sets": results,
     }

@@ -219,9 +219,27 @@ def _style_curve_axes(axes: Sequence[Any]) -> None:
             ax.legend(fontsize=7)
 
 
-def plot_run_curves(run: str | Path, path: str | Path, mark_step: int | None = None) -> Path:
+def _footer(fig: Any, footer: str) -> None:
+    """The command and machine behind a figure, in small print at its bottom left."""
+    if footer:
+        fig.text(0.01, 0.005, footer, fontsize=6, va="bottom")
+
+
+def _eval_footer(doc: dict[str, Any]) -> str:
+    """``command`` and machine line of an evaluation document (older ones may lack them)."""
+    from train.machine import machine_line
+
+    lines = [doc.get("settings", {}).get("command") or ""]
+    if doc.get("machine"):
+        lines.append(machine_line(doc["machine"]))
+    return "\n".join(x for x in lines if x)
+
+
+def plot_run_curves(
+    run: str | Path, path: str | Path, mark_step: int | None = None, footer: str = ""
+) -> Path:
     """Learning curves of a run folder into ``path`` (PNG); ``mark_step`` draws a vertical
-    line (the evaluated checkpoint)."""
+    line (the evaluated checkpoint); ``footer``: small print (command, machine)."""
     run = Path(run)
     config = _config(run)
     plt = _plt()
@@ -232,14 +250,15 @@ def plot_run_curves(run: str | Path, path: str | Path, mark_step: int | None = N
             ax.axvline(mark_step, color="grey", lw=0.8, ls=":")
     _style_curve_axes(axes)
     fig.suptitle(f"{run.name}: {config['env']['kind']} {config.get('resolved_algo', '')}")
-    fig.tight_layout()
+    fig.tight_layout(rect=(0, 0.06 if footer else 0, 1, 1))
+    _footer(fig, footer)
     path = Path(path)
     fig.savefig(path, dpi=110)
     plt.close(fig)
     return path
 
 
-def _bars(sets: dict[str, Any], path: Path) -> Path:
+def _bars(sets: dict[str, Any], path: Path, footer: str = "") -> Path:
     """Success per family (and overall) for each set, with Wilson 95% error bars."""
     import numpy as np
 
@@ -275,13 +294,14 @@ def _bars(sets: dict[str, Any], path: Path) -> Path:
     ax.set_ylabel("success rate (95% CI)")
     ax.set_title("success per set and family")
     ax.legend(fontsize=7)
-    fig.tight_layout()
+    fig.tight_layout(rect=(0, 0.08 if footer else 0, 1, 1))
+    _footer(fig, footer)
     fig.savefig(path, dpi=110)
     plt.close(fig)
     return path
 
 
-def _heatmap(sets: dict[str, Any], path: Path) -> Path | None:
+def _heatmap(sets: dict[str, Any], path: Path, footer: str = "") -> Path | None:
     """Success per family (rows) and object (columns), one panel per set."""
     import numpy as np
 
@@ -315,12 +335,14 @@ def _heatmap(sets: dict[str, Any], path: Path) -> Path | None:
         ax.set_title(SET_LABELS.get(name, name), fontsize=9)
     if image is not None:
         fig.colorbar(image, ax=list(axes), shrink=0.8, label="success (episodes below)")
+    if footer:
+        fig.text(0.01, -0.08, footer, fontsize=6, va="top", transform=fig.transFigure)
     fig.savefig(path, dpi=110, bbox_inches="tight")
     plt.close(fig)
     return path
 
 
-def _chain_plot(sets: dict[str, Any], path: Path) -> Path | None:
+def _chain_plot(sets: dict[str, Any], path: Path, footer: str = "") -> Path | None:
     chains = {n: r["chain"] for n, r in sets.items() if r.get("chain") and r["chain"]["chains"]}
     if not chains:
         return None
@@ -338,7 +360,8 @@ def _chain_plot(sets: dict[str, Any], path: Path) -> Path | None:
     ax.set_xticks(ks)
     ax.legend(fontsize=7)
     ax.set_title("chained instructions")
-    fig.tight_layout()
+    fig.tight_layout(rect=(0, 0.1 if footer else 0, 1, 1))
+    _footer(fig, footer)
     fig.savefig(path, dpi=110)
     plt.close(fig)
     return path
@@ -462,6 +485,10 @@ def evaluation_markdown(doc: dict[str, Any], images: dict[str, str]) -> str:
         lines.append(f"Set `custom`: the instructions of `{s['instructions_file']}`.")
     if s.get("command"):
         lines.append(f"\nCommand: `{s['command']}`")
+    if doc.get("machine"):
+        from train.machine import machine_line
+
+        lines.append(f"\nMachine: {machine_line(doc['machine'])}")
     lines += ["", "## Success per set", "", *_sets_table(doc["sets"]), ""]
     lines.append(
         "`train`: seen instructions; `heldout`: word combinations never trained on; "
@@ -493,15 +520,16 @@ def write_evaluation(doc: dict[str, Any], out: str | Path) -> dict[str, Path]:
     doc = {"format": EVAL_FORMAT, "version": EVAL_VERSION, **doc}
     paths: dict[str, Path] = {}
     sets = doc["sets"]
-    paths["sets"] = _bars(sets, out / "sets.png")
-    heat = _heatmap(sets, out / "heatmap.png")
+    footer = _eval_footer(doc)
+    paths["sets"] = _bars(sets, out / "sets.png", footer)
+    heat = _heatmap(sets, out / "heatmap.png", footer)
     if heat is not None:
         paths["heatmap"] = heat
-    chain = _chain_plot(sets, out / "chain.png")
+    chain = _chain_plot(sets, out / "chain.png", footer)
     if chain is not None:
         paths["chain"] = chain
     if doc.get("run"):
-        paths["curves"] = plot_run_curves(doc["run"], out / "curves.png", doc.get("step"))
+        paths["curves"] = plot_run_curves(doc["run"], out / "curves.png", doc.get("step"), footer)
     json_path = out / "eval.json"
     tmp = json_path.with_suffix(".json.tmp")
     tmp.write_text(json.dumps(doc, indent=1) + "\n")
