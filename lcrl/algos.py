@@ -24,6 +24,7 @@ from torch import nn
 
 from lcrl.buffer import Batch
 from lcrl.errors import LcrlError
+from lcrl.multitask import MultiTaskOptions, TaskGradients, rows_by_task, task_weights
 from lcrl.nets import (
     FlatAdam,
     GoalConditionedEnsemble,
@@ -53,6 +54,8 @@ class Problem:
         action_dim: continuous action width (actions in ``[-1, 1]``), or the number of
             discrete actions.
         discrete: whether actions are discrete.
+        num_tasks: the size of a fixed task set whose goal ids are batch goals (one-hot
+            task ids, or instruction ids of a table of exactly those tasks); 0 for none.
     """
 
     obs_shapes: dict[str, tuple[int, ...]]
@@ -60,6 +63,7 @@ class Problem:
     goal_shape: tuple[int, ...]
     action_dim: int
     discrete: bool = False
+    num_tasks: int = 0
 
     def to_dict(self) -> dict[str, Any]:
         """JSON-able form."""
@@ -69,6 +73,7 @@ class Problem:
             "goal_shape": list(self.goal_shape),
             "action_dim": self.action_dim,
             "discrete": self.discrete,
+            "num_tasks": self.num_tasks,
         }
 
     @classmethod
@@ -80,6 +85,7 @@ class Problem:
             goal_shape=tuple(d["goal_shape"]),
             action_dim=int(d["action_dim"]),
             discrete=bool(d["discrete"]),
+            num_tasks=int(d.get("num_tasks", 0)),
         )
 
 
@@ -190,6 +196,9 @@ class AgentOptions:
     """``cpu``, ``cuda`` or ``cuda:N``."""
     seed: int = 0
     """Seed of the network initialisation and of the agent's noise."""
+    multitask: MultiTaskOptions = field(default_factory=MultiTaskOptions)
+    """Multi-task training over a fixed task set (``env.tasks``): PCGrad, task weights,
+    gradient-conflict measurement (SAC) and how training tasks are drawn."""
 
 
 def resolve_device(name: str) -> torch.device:
@@ -245,6 +254,12 @@ class Agent:
         self.norms.to(self.device)
         self.updates = 0
         self.acts = 0
+        options.multitask.validate(problem.num_tasks)
+        if options.multitask.active and self.name != "sac":
+            raise LcrlError(
+                f"PCGrad, task weights and gradient-conflict measurement are implemented for "
+                f"SAC, not {self.name}: use --algo sac or turn the multitask options off"
+            )
 
     # --- inputs ----------------------------------------------------------------------
     def observe(self, obs: Mapping[str, np.ndarray], goals: np.ndarray | None = None) -> None:
@@ -361,6 +376,13 @@ class Agent:
         self.acts = int(states["counters"]["acts"])
 
 
+def _weighted(coefs: np.ndarray, losses: list[torch.Tensor | None]) -> float:
+    """``sum_i c_i L_i`` over the tasks that have a loss."""
+    return float(
+        sum(c * float(x.detach()) for c, x in zip(coefs, losses, strict=True) if x is not None)
+    )
+
+
 def _flat_target(module: nn.Module) -> tuple[nn.Module, torch.Tensor]:
     target = copy.deepcopy(module)
     for p in target.parameters():
@@ -400,6 +422,16 @@ class SAC(Agent):
         )
         self.alpha_opt = FlatAdam([self.log_alpha], cfg.alpha_lr)
         self.target_entropy = float(-n if cfg.target_entropy is None else cfg.target_entropy)
+        mt = options.multitask
+        self.multitask = mt if mt.active else None
+        if self.multitask is not None:
+            self._task_w = torch.as_tensor(
+                task_weights(mt.task_weights, problem.num_tasks),
+                dtype=torch.float32,
+                device=self.device,
+            )
+            self._critic_tasks = TaskGradients(self.critic_opt, pcgrad=mt.pcgrad)
+            self._actor_tasks = TaskGradients(self.actor_opt, pcgrad=mt.pcgrad)
 
     def _policy(
         self, obs: Mapping[str, torch.Tensor], goal: torch.Tensor, with_mean: bool = False
@@ -430,6 +462,8 @@ class SAC(Agent):
 
     def update(self, batch: Batch) -> dict[str, float]:
         """One critic, actor and temperature step; returns losses and diagnostics."""
+        if self.multitask is not None:
+            return self._update_multitask(batch)
         obs, nobs, goal, act, rew, boot = self.batch_tensors(batch)
         cfg = self.cfg
         alpha = self.log_alpha.detach().exp()
@@ -475,6 +509,113 @@ class SAC(Agent):
         if bc_loss is not None:
             metrics["bc_loss"] = bc_loss.item()
         return metrics
+
+    def _update_multitask(self, batch: Batch) -> dict[str, float]:
+        """The update of :meth:`update` for the multi-task objective ``sum_i w_i L_i``.
+
+        A batch row's task is its goal id. Rows of task ``i`` weigh ``w_i / mean(w)`` in the
+        critic and actor losses (the usual losses for equal weights). On updates that
+        measure gradient conflict (every update with PCGrad, every ``conflict_every``-th
+        otherwise) each task's rows go through the networks on their own, the per-task
+        gradients of the critic and the actor are compared (``grad/*`` metrics) and, with
+        PCGrad, projected before their weighted sum is applied. The temperature is tuned
+        on the whole batch as usual.
+        """
+        mt = self.multitask
+        obs, nobs, goal, act, rew, boot = self.batch_tensors(batch)
+        cfg = self.cfg
+        alpha = self.log_alpha.detach().exp()
+        tasks = np.asarray(batch.goal, np.int64)
+        groups = rows_by_task(tasks, self.problem.num_tasks)
+        w = self._task_w[torch.as_tensor(tasks, device=self.device)]
+        n = len(tasks)
+        with torch.no_grad():
+            next_a, next_logp = self._policy(nobs, goal)
+            target_q = self.critic_target(nobs, goal, next_a).min(0).values.squeeze(-1)
+            y = rew + boot * (target_q - alpha * next_logp)
+        rel = torch.as_tensor(batch.relabelled, device=self.device)
+        use_bc = cfg.hindsight_bc > 0.0 and bool(batch.relabelled.any())
+        measure = mt.pcgrad or (mt.conflict_every > 0 and self.updates % mt.conflict_every == 0)
+        metrics: dict[str, float] = {}
+
+        def sub(d: Mapping[str, torch.Tensor], rows: torch.Tensor) -> dict[str, torch.Tensor]:
+            return {k: v[rows] for k, v in d.items()}
+
+        def actor_rows(o: Any, g: torch.Tensor, a_taken: torch.Tensor, rows: Any) -> Any:
+            a, logp, mean_action = self._policy(o, g, with_mean=True)
+            q_pi = self.critic(o, g, a).min(0).values.squeeze(-1)
+            per_row = alpha * logp - q_pi
+            if use_bc:
+                bc = (mean_action - a_taken).pow(2).sum(-1)
+                per_row = per_row + cfg.hindsight_bc * rel[rows] * bc * (n / int(rel.sum()))
+            return per_row, logp
+
+        if not measure:
+            q = self.critic(obs, goal, act).squeeze(-1)
+            critic_loss = (0.5 * (q - y).pow(2).sum(0) * w).mean()
+            self.critic_opt.zero_grad()
+            critic_loss.backward()
+            self.critic_opt.step()
+            self.critic.requires_grad_(False)
+            per_row, logp = actor_rows(obs, goal, act, slice(None))
+            actor_loss = (per_row * w).mean()
+            self.actor_opt.zero_grad()
+            actor_loss.backward()
+            self.actor_opt.step()
+            self.critic.requires_grad_(True)
+            q_mean, actor_value = q.detach().mean().item(), actor_loss.item()
+            critic_value = critic_loss.item()
+        else:
+            idx = [torch.as_tensor(r, device=self.device) for r in groups]
+            coefs = np.array(
+                [len(r) / n * float(self._task_w[i]) for i, r in enumerate(groups)], np.float64
+            )
+            losses: list[torch.Tensor | None] = []
+            q_sum = 0.0
+            for rows in idx:
+                if rows.numel() == 0:
+                    losses.append(None)
+                    continue
+                q = self.critic(sub(obs, rows), goal[rows], act[rows]).squeeze(-1)
+                losses.append((0.5 * (q - y[rows]).pow(2).sum(0)).mean())
+                q_sum += float(q.detach().sum())
+            stats = self._critic_tasks.step(losses, coefs, self.np_rng)
+            critic_value = _weighted(coefs, losses)
+            metrics.update({f"grad/critic_{k}": stats[k] for k in ("cos_mean", "cos_min")})
+            metrics["grad/critic_conflict"] = stats["conflict_fraction"]
+            self.critic.requires_grad_(False)
+            losses, logps = [], []
+            for rows in idx:
+                if rows.numel() == 0:
+                    losses.append(None)
+                    continue
+                per_row, logp_i = actor_rows(sub(obs, rows), goal[rows], act[rows], rows)
+                losses.append(per_row.mean())
+                logps.append(logp_i)
+            stats = self._actor_tasks.step(losses, coefs, self.np_rng)
+            self.critic.requires_grad_(True)
+            logp = torch.cat(logps)
+            actor_value = _weighted(coefs, losses)
+            metrics.update({f"grad/actor_{k}": stats[k] for k in ("cos_mean", "cos_min")})
+            metrics["grad/actor_conflict"] = stats["conflict_fraction"]
+            q_mean = q_sum / (n * self.critic.n)
+
+        if cfg.autotune_alpha:
+            alpha_loss = -(self.log_alpha * (logp.detach() + self.target_entropy)).mean()
+            self.alpha_opt.zero_grad()
+            alpha_loss.backward()
+            self.alpha_opt.step()
+        with torch.no_grad():
+            self._target_flat.lerp_(self.critic_opt.flat, cfg.tau)
+        self.updates += 1
+        return {
+            "critic_loss": critic_value,
+            "actor_loss": actor_value,
+            "alpha": float(alpha),
+            "q": q_mean,
+            "entropy": -logp.detach().mean().item(),
+            **metrics,
+        }
 
     def modules(self) -> dict[str, nn.Module]:
         """Actor, critics, target critics and normalisers."""

@@ -41,7 +41,7 @@ from typing import Any, NamedTuple
 import numpy as np
 
 from lcrl.errors import LcrlError
-from lcrl.goals import STRATEGIES, GoalSpace
+from lcrl.goals import STRATEGIES, TASK_RELABEL_ERROR, GoalSpace
 
 
 class Batch(NamedTuple):
@@ -85,7 +85,9 @@ class HindsightReplayBuffer:
         goal_space: a :class:`lcrl.goals.GoalSpace`.
         strategy: ``future``, ``final`` or ``episode``.
         k: relabelled goals per original goal; the relabel ratio is ``k / (k + 1)``.
-            ``k = 0`` turns hindsight relabelling off.
+            ``k = 0`` turns hindsight relabelling off. A goal space that cannot be
+            relabelled (``can_relabel = False``, one-hot task ids) needs ``k = 0`` and
+            ``random_fraction = 0``.
         seed: seed of the sampling generator.
         only_relabelable: draw the transitions to relabel among those that have an
             achieved goal for the strategy (see the module docstring); ``False`` draws
@@ -136,6 +138,8 @@ class HindsightReplayBuffer:
             )
         if isinstance(n_step, bool) or int(n_step) != n_step or n_step < 1:
             raise LcrlError(f"n_step must be an integer >= 1, got {n_step!r}")
+        if not getattr(goal_space, "can_relabel", True) and (k > 0 or random_fraction > 0):
+            raise LcrlError(TASK_RELABEL_ERROR)
         if not 0.0 < gamma <= 1.0:
             raise LcrlError(f"gamma must be in (0, 1], got {gamma}")
         self.n_step = int(n_step)

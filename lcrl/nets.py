@@ -70,6 +70,11 @@ class NetConfig:
     share_cnn: bool = False
     """Image goals are read by the same CNN as the image observation of the same shape
     (one encoder per network instead of two)."""
+    task_heads: int = 0
+    """Per-task output heads (multi-task RL with one-hot task ids): the last layer of the
+    actor and of each critic is one linear head per task over the shared trunk, picked by
+    the task id (the argmax of the one-hot goal). Set it to the number of tasks; 0: one
+    shared output layer."""
 
 
 def mlp(sizes: Sequence[int], out_act: bool = False) -> nn.Sequential:
@@ -356,15 +361,87 @@ def build_encoders(
     return ObsEncoder(obs_shapes, cfg, goal_encoder.out_dim), goal_encoder
 
 
+class TaskHeads(nn.Module):
+    """One linear layer per task; row ``b`` of the input goes through head ``task[b]``.
+
+    Each head is initialised like :class:`torch.nn.Linear`. With ``members`` > 0 the heads
+    belong to an ensemble: inputs ``(members, B, in)`` (or ``(B, in)``, shared), outputs
+    ``(members, B, out)``.
+
+    Args:
+        num_tasks: heads.
+        in_dim: input width (the trunk's last hidden layer).
+        out_dim: output width.
+        members: ensemble members (0: a single network).
+    """
+
+    def __init__(self, num_tasks: int, in_dim: int, out_dim: int, members: int = 0) -> None:
+        super().__init__()
+        self.members = members
+        lead = (members,) if members else ()
+        self.weight = nn.Parameter(torch.empty(*lead, num_tasks, in_dim, out_dim))
+        self.bias = nn.Parameter(torch.empty(*lead, num_tasks, out_dim))
+        bound = 1.0 / math.sqrt(in_dim)
+        with torch.no_grad():
+            w = self.weight.view(-1, in_dim, out_dim)
+            for i in range(w.shape[0]):
+                layer = torch.empty(out_dim, in_dim)
+                nn.init.kaiming_uniform_(layer, a=math.sqrt(5))
+                w[i].copy_(layer.T)
+            self.bias.uniform_(-bound, bound)
+
+    def forward(self, x: torch.Tensor, task: torch.Tensor) -> torch.Tensor:
+        rows = torch.arange(task.shape[0], device=task.device)
+        if not self.members:
+            out = torch.einsum("bi,kio->bko", x, self.weight) + self.bias
+            return out[rows, task]
+        if x.dim() == 2:
+            x = x.expand(self.members, *x.shape)
+        out = torch.einsum("nbi,nkio->nbko", x, self.weight) + self.bias[:, None]
+        return out[:, rows, task]
+
+
+def check_task_heads(cfg: NetConfig, goal_kind: str, goal_shape: Sequence[int]) -> int:
+    """The number of per-task heads of a network (0 for none).
+
+    Raises:
+        LcrlError: heads asked for with goals that are not one-hot task ids, or a number of
+            heads other than the number of tasks.
+    """
+    heads = int(cfg.task_heads)
+    if heads < 0:
+        raise LcrlError(f"net.task_heads must be >= 0, got {heads}")
+    if not heads:
+        return 0
+    if goal_kind != "onehot":
+        raise LcrlError(
+            f"net.task_heads picks a head by one-hot task id, but this network's goals are "
+            f"{goal_kind!r}: use --env.goal-type task, or set net.task_heads=0"
+        )
+    if heads != int(goal_shape[0]):
+        raise LcrlError(
+            f"net.task_heads is {heads} but there are {goal_shape[0]} tasks: set "
+            f"--agent.net.task-heads {goal_shape[0]}"
+        )
+    return heads
+
+
 class FusedMLP(nn.Module):
     """MLP over (features, goal features [, extra input]) with concat or FiLM fusion.
 
     ``concat``: ``MLP([x, g, extra])``. ``film``: ``h_l = relu(W_l h_{l-1}) * (1 + gamma_l(g))
-    + beta_l(g)`` for every hidden layer, the first reading ``[x, extra]``.
+    + beta_l(g)`` for every hidden layer, the first reading ``[x, extra]``. With
+    ``task_heads`` the output layer is a :class:`TaskHeads` picked by ``task``.
     """
 
     def __init__(
-        self, in_dim: int, goal_dim: int, out_dim: int, hidden: Sequence[int], fusion: str
+        self,
+        in_dim: int,
+        goal_dim: int,
+        out_dim: int,
+        hidden: Sequence[int],
+        fusion: str,
+        task_heads: int = 0,
     ) -> None:
         super().__init__()
         if fusion not in FUSIONS:
@@ -372,7 +449,11 @@ class FusedMLP(nn.Module):
         if not hidden:
             raise LcrlError("the fused MLP needs at least one hidden layer")
         self.fusion = fusion
-        if fusion == "concat":
+        self.task_heads = task_heads
+        if fusion == "concat" and task_heads:
+            self.net = mlp([in_dim + goal_dim, *hidden], out_act=True)
+            self.heads = TaskHeads(task_heads, hidden[-1], out_dim)
+        elif fusion == "concat":
             self.net = mlp([in_dim + goal_dim, *hidden, out_dim])
         else:
             sizes = [in_dim, *hidden]
@@ -380,17 +461,24 @@ class FusedMLP(nn.Module):
             self.film = nn.Linear(goal_dim, 2 * sum(hidden))
             nn.init.zeros_(self.film.weight)
             nn.init.zeros_(self.film.bias)
-            self.out = nn.Linear(hidden[-1], out_dim)
+            self.out: nn.Module = (
+                TaskHeads(task_heads, hidden[-1], out_dim)
+                if task_heads
+                else nn.Linear(hidden[-1], out_dim)
+            )
             self.hidden = tuple(hidden)
 
-    def forward(self, x: torch.Tensor, g: torch.Tensor) -> torch.Tensor:
+    def forward(
+        self, x: torch.Tensor, g: torch.Tensor, task: torch.Tensor | None = None
+    ) -> torch.Tensor:
         if self.fusion == "concat":
-            return self.net(torch.cat([x, g], -1))
+            h = self.net(torch.cat([x, g], -1))
+            return self.heads(h, task) if self.task_heads else h
         params = self.film(g).split([h for h in self.hidden for _ in range(2)], -1)
         h = x
         for i, layer in enumerate(self.layers):
             h = F.relu(layer(h)) * (1 + params[2 * i]) + params[2 * i + 1]
-        return self.out(h)
+        return self.out(h, task) if self.task_heads else self.out(h)
 
 
 class GoalConditionedNet(nn.Module):
@@ -418,12 +506,14 @@ class GoalConditionedNet(nn.Module):
         obs_encoder, goal_encoder = build_encoders(obs_shapes, goal_kind, goal_shape, cfg)
         self.goal_encoder = goal_encoder  # registered first: parameter order as before
         self.obs_encoder = obs_encoder
+        self.task_heads = check_task_heads(cfg, goal_kind, goal_shape)
         self.head = FusedMLP(
             self.obs_encoder.out_dim + action_dim,
             self.goal_encoder.out_dim,
             out_dim,
             cfg.hidden,
             cfg.fusion,
+            self.task_heads,
         )
 
     def forward(
@@ -436,6 +526,8 @@ class GoalConditionedNet(nn.Module):
         x = self.obs_encoder(obs, g)
         if action is not None:
             x = torch.cat([x, action], -1)
+        if self.task_heads:
+            return self.head(x, g, goal.argmax(-1))
         return self.head(x, g)
 
 
@@ -499,14 +591,20 @@ class GoalConditionedEnsemble(nn.Module):
         in_dim = self.obs_encoders[0].out_dim + action_dim
         goal_dim = self.goal_encoders[0].out_dim
         self.batched = cfg.fusion == "concat"
+        self.task_heads = check_task_heads(cfg, goal_kind, goal_shape)
         if self.batched:
             sizes = [in_dim + goal_dim, *cfg.hidden, out_dim]
+            if self.task_heads:
+                sizes = sizes[:-1]
             self.layers = nn.ModuleList(
                 BatchedLinear(n, a, b) for a, b in itertools.pairwise(sizes)
             )
+            if self.task_heads:
+                self.out_heads = TaskHeads(self.task_heads, cfg.hidden[-1], out_dim, members=n)
         else:
             self.heads = nn.ModuleList(
-                FusedMLP(in_dim, goal_dim, out_dim, cfg.hidden, cfg.fusion) for _ in range(n)
+                FusedMLP(in_dim, goal_dim, out_dim, cfg.hidden, cfg.fusion, self.task_heads)
+                for _ in range(n)
             )
 
     def _features(
@@ -528,11 +626,12 @@ class GoalConditionedEnsemble(nn.Module):
         goal: torch.Tensor,
         action: torch.Tensor | None = None,
     ) -> torch.Tensor:
+        task = goal.argmax(-1) if self.task_heads else None
         if not self.batched:
             outs = []
             for i in range(self.n):
                 x, g = self._features(i, obs, goal, action)
-                outs.append(self.heads[i](x, g))
+                outs.append(self.heads[i](x, g, task))
             return torch.stack(outs)
         if self.shared:
             h = torch.cat(self._features(0, obs, goal, action), -1)
@@ -540,11 +639,13 @@ class GoalConditionedEnsemble(nn.Module):
             h = torch.stack(
                 [torch.cat(self._features(i, obs, goal, action), -1) for i in range(self.n)]
             )
-        last = len(self.layers) - 1
+        last = len(self.layers) - (0 if self.task_heads else 1)
         for k, layer in enumerate(self.layers):
             h = layer(h)
             if k < last:
                 h = F.relu(h)
+        if self.task_heads:
+            return self.out_heads(h, task)
         return h
 
 

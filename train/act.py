@@ -6,9 +6,13 @@ instructions nearest to it in the text encoder's embedding space, one line per e
 and the success rate. Episodes of an instruction the captioner can check start from
 layouts where it is feasible (its objects are on the table, it does not already hold).
 
-Videos (``.mp4`` or ``.gif``) show the instruction on every frame and hold each episode's
-last frame for a moment with its outcome written on it. Small renders are enlarged by an
-integer factor (nearest neighbour) so the text stays readable.
+Policies trained on a fixed task set (``env.tasks``) also run one of their tasks by id or
+text (``--task``); task-id policies (``env.goal_type="task"``) take nothing else. Their
+episodes start, like checked instructions, from layouts where the task is feasible.
+
+Videos (``.mp4`` or ``.gif``) show the instruction (or task) on every frame and hold each
+episode's last frame for a moment with its outcome written on it. Small renders are
+enlarged by an integer factor (nearest neighbour) so the text stays readable.
 """
 
 from __future__ import annotations
@@ -262,8 +266,11 @@ class ActSession:
 
     def run_text(self, text: str, video: Path | None = None) -> InstructionResult:
         """Run :attr:`episodes` episodes on one instruction; print and return the outcome."""
-        from train.evaluate import run_episode
-
+        if self.policy.takes_task_ids:
+            raise LcrlError(
+                "this policy was trained with task ids: it reads no text; give one of its "
+                f"tasks by id or text: {self.policy.describe_tasks()}"
+            )
         text = check_instruction(text)
         if video is not None:
             check_video_path(video)
@@ -275,6 +282,44 @@ class ActSession:
         self._print("nearest training instructions (cosine similarity):")
         for n in result.nearest:
             self._print(f"  {n.similarity:.3f}  {n.text}")
+        return self._run_episodes(result, meaning, vector, text, video)
+
+    def run_task(self, task: int | str, video: Path | None = None) -> InstructionResult:
+        """Run :attr:`episodes` episodes of one task of the policy's fixed task set, given
+        by its id (``3`` or ``"3"``) or its text; print and return the outcome.
+
+        Raises:
+            LcrlError: the policy has no task set, or ``task`` is none of its tasks (the
+                message lists them).
+        """
+        from captioner.grammar import parse
+
+        if isinstance(task, str) and task.strip().lstrip("+-").isdigit():
+            task = int(task.strip())
+        k = self.policy.task_id(task)
+        text = self.policy.tasks[k]
+        if video is not None:
+            check_video_path(video)
+        if not self.policy.takes_task_ids:  # a language policy trained on the task set
+            self._print(f"task {k} of {len(self.policy.tasks)}:")
+            return self.run_text(text, video)
+        meaning = parse(text)
+        self._print(f"task {k}: {text!r} (task id {k} of {len(self.policy.tasks)})")
+        result = InstructionResult(text, meaning.text, [])
+        return self._run_episodes(result, meaning, None, f"task {k}: {text}", video)
+
+    def _run_episodes(
+        self,
+        result: InstructionResult,
+        meaning: Any,
+        vector: np.ndarray | None,
+        label: str,
+        video: Path | None,
+    ) -> InstructionResult:
+        """The episodes of one instruction or task (``vector``: its goal embedding, None
+        for task ids), filling ``result``; ``label`` is drawn on the video frames."""
+        from train.evaluate import run_episode
+
         frames: list[np.ndarray] = []
         options = {"instruction": meaning.text} if meaning is not None else None
         for i in range(self.episodes):
@@ -305,7 +350,7 @@ class ActSession:
             self._print(f"episode {i}: {r['steps']} steps, {status}")
             if raw is not None:
                 frames += annotate_episode(
-                    raw, text, status, self.hold_frames, f"{r['steps']} steps"
+                    raw, label, status, self.hold_frames, f"{r['steps']} steps"
                 )
         if result.successes:
             self._print(f"success {result.success_rate:.2f} over {len(result.successes)} episodes")
@@ -365,11 +410,13 @@ class ActSession:
     def interactive(
         self, lines: Iterable[str], video: Path | None = None
     ) -> list[InstructionResult]:
-        """Run every instruction of ``lines`` until an empty line, ``quit`` or the end.
+        """Run every instruction of ``lines`` until an empty line, ``quit`` or the end
+        (for task-id policies, every task, by id or text).
 
         A line that cannot be run prints ``error: ...`` and the session goes on. With
         ``video``, instruction ``n`` is saved as ``<stem>_<nnn><suffix>``.
         """
+        run = self.run_task if self.policy.takes_task_ids else self.run_text
         results: list[InstructionResult] = []
         for line in lines:
             text = line.strip()
@@ -377,7 +424,7 @@ class ActSession:
                 break
             path = numbered_path(video, len(results) + 1) if video is not None else None
             try:
-                results.append(self.run_text(text, path))
+                results.append(run(text, path))
             except LcrlError as e:
                 self._print(f"error: {e}")
             self._print("")

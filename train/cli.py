@@ -1,16 +1,22 @@
 """The ``lcrl`` command line.
 
 Subcommands:
-    train   train a policy from a named preset (``lcrl train lang2d --total-steps 50000``)
+    train   train a policy from a named preset (``lcrl train lang2d --total-steps 50000``),
+            or clone demonstrations (``lcrl train lang2d-bc --demos FILE``)
     eval    evaluate a checkpoint: instruction sets, families, slot values, chains, report
     report  rebuild a run's report, or compare runs side by side
-    act     run a checkpoint on any free-text instruction (or many, --interactive)
+    act     run a checkpoint on any free-text instruction (or many, --interactive), or on
+            one task of a fixed task set (--task ID)
     demo    caption scripted and random episodes on the 2D tabletop, write a report
     split   make a compositional instruction split and save it as JSON
     parse   show how the grammar reads instructions (canonical form and slots)
     caption collect   gather camera episodes labelled by the rule captioner (HDF5)
     caption train     fit the learned captioner and reward model on such a dataset
     caption eval      exact match, slot accuracy, BLEU-4, reward AUC of those models
+    demos record      record scripted demonstrations of a language-goal preset (HDF5)
+    demos relabel     add hindsight instructions: everything each episode achieved
+    demos info        summarise a demonstration dataset (segments per family ...)
+    demos import-robomimic   convert a robomimic / LIBERO file into a demonstration dataset
 
 User mistakes (bad options, unparseable instructions, missing files) print one line
 starting with ``lcrl: error:`` and exit with status 2; Ctrl-C exits with status 130.
@@ -93,7 +99,9 @@ class TrainStub:
 class EvalCommand:
     """Evaluate a checkpoint: success with 95% confidence intervals per instruction set
     (seen, held-out combinations, paraphrases, a file of your own), family and slot value;
-    optionally chains of instructions; a Markdown report with figures (``--out``)."""
+    optionally chains of instructions; a Markdown report with figures (``--out``). A
+    checkpoint trained on a fixed task set (env.tasks) runs its tasks round robin as set
+    ``train`` and reports success per task; a task-id checkpoint has that set only."""
 
     checkpoint: tyro.conf.Positional[str]
     """A checkpoint folder, or a run folder (its latest checkpoint)."""
@@ -132,14 +140,16 @@ class EvalCommand:
     def run(self) -> None:
         from pathlib import Path
 
+        from lcrl.checkpoint import load_checkpoint
         from train.eval_suite import (
+            check_task_id_options,
             default_num_envs,
             evaluation_document,
             format_summary,
             read_instruction_file,
             run_evaluation,
         )
-        from train.evaluate import load_policy
+        from train.evaluate import load_policy, resolve_checkpoint
 
         if self.episodes <= 0:
             raise LcrlError("--episodes must be positive")
@@ -153,8 +163,27 @@ class EvalCommand:
             raise LcrlError(f"--out {self.out} is a file, not a folder")
         if self.instructions:
             read_instruction_file(self.instructions)  # bad lines fail before loading
+        # a fixed task set: options that cannot apply fail before the policy is built
+        meta = load_checkpoint(resolve_checkpoint(self.checkpoint)).meta
+        saved_env = (meta.get("config") or {}).get("env") or {}
+        tasks = tuple(" ".join(str(t).split()) for t in saved_env.get("tasks") or ())
+        if saved_env.get("goal_type") == "task":
+            check_task_id_options(len(tasks), self.sets, bool(self.instructions), self.chain)
+        if tasks and self.families:
+            raise LcrlError(
+                f"--families cannot narrow a checkpoint trained on a fixed task set of "
+                f"{len(tasks)} tasks (families {tuple(saved_env.get('families', ()))}): drop "
+                "it; the figures are broken down per family and per task anyway"
+            )
         overrides = {"families": tuple(self.families)} if self.families else None
         policy = load_policy(self.checkpoint, overrides, self.device)
+        extra = self.episodes % len(tasks) if tasks else 0
+        if extra and (not self.sets or "train" in self.sets):
+            which = "task 0 gets" if extra == 1 else f"tasks 0 to {extra - 1} get"
+            print(
+                f"note: {self.episodes} episodes over {len(tasks)} tasks: {which} one "
+                "episode more than the others (use a multiple of the number of tasks)"
+            )
         lines = None
         if self.instructions:
             can_do = getattr(policy.env.unwrapped, "instruction_families", None)
@@ -188,6 +217,7 @@ class EvalCommand:
             "sets": list(results),
             "instructions_file": self.instructions or None,
             "families": list(policy.cfg.env.families),
+            "tasks": list(tasks),
             "num_envs": num_envs,
             "command": self._command(),
         }
@@ -249,7 +279,9 @@ class ReportCommand:
 class ActCommand:
     """Run a checkpoint's policy on free-text instructions and report what happened: how
     the captioner reads each one, the nearest training instructions, success per episode.
-    ``--interactive`` reads one instruction per line from the standard input."""
+    ``--interactive`` reads one instruction per line from the standard input. Policies
+    trained on a fixed task set run one of their tasks with ``--task ID`` (task-id
+    policies take nothing else)."""
 
     checkpoint: tyro.conf.Positional[str]
     """A checkpoint folder, or a run folder (its latest checkpoint)."""
@@ -257,6 +289,10 @@ class ActCommand:
     """Any text; success is reported when the rule captioner can parse and check it.
     Required for language checkpoints (unless --interactive); state- and image-goal
     checkpoints run on the environment's own goals."""
+    task: str = ""
+    """One task of a checkpoint trained on a fixed task set (env.tasks): its id (0 to
+    K-1) or its text. Required for task-id checkpoints (unless --interactive, which then
+    reads task ids or texts)."""
     interactive: bool = False
     """Read instructions line by line from the standard input until an empty line,
     ``quit`` or the end of input; run --episodes for each."""
@@ -280,14 +316,39 @@ class ActCommand:
         from train.policy import load
 
         video = check_video_path(self.video) if self.video else None
-        if self.interactive and self.instruction.strip():
-            raise LcrlError("give either --instruction or --interactive, not both")
+        given = [
+            name
+            for name, on in (
+                ("--instruction", self.instruction.strip()),
+                ("--task", self.task.strip()),
+                ("--interactive", self.interactive),
+            )
+            if on
+        ]
+        if len(given) > 1:
+            raise LcrlError(f"give either {given[0]} or {given[1]}, not both")
         policy = load(self.checkpoint)
+        if self.task.strip() and not policy.tasks:
+            raise LcrlError(
+                "--task runs a task of a checkpoint trained on a fixed task set (env.tasks); "
+                "this one has none: "
+                + ("give an --instruction" if policy.language else "drop --task")
+            )
+        if policy.takes_task_ids and not (self.task.strip() or self.interactive):
+            what = "it reads no free text (--instruction); " if self.instruction.strip() else ""
+            raise LcrlError(
+                f"this is a task-id checkpoint: {what}give --task with the id or the text of "
+                f"one of its tasks (or --interactive): {policy.describe_tasks()}"
+            )
         env = policy.make_env(render=video is not None)
         session = ActSession(
             policy, env, self.episodes, self.seed, not self.stochastic, self.fps, self.hold
         )
-        if not policy.language:
+        if self.task.strip():
+            session.run_task(self.task, video)
+        elif policy.takes_task_ids:  # --interactive: task ids or texts, one per line
+            session.interactive(read_lines(sys.stdin, "task> "), video)
+        elif not policy.language:
             if self.instruction.strip() or self.interactive:
                 raise LcrlError(
                     "this checkpoint was not trained with language goals: drop --instruction "
@@ -318,7 +379,12 @@ def _train(argv: Sequence[str]) -> None:
         args=list(argv),
     )
     assert isinstance(cfg, TrainConfig)
-    trainer = Trainer(cfg)
+    if cfg.algo == "bc":  # behavioural cloning from --demos
+        from train.bc import BCTrainer
+
+        trainer: Trainer | BCTrainer = BCTrainer(cfg)
+    else:
+        trainer = Trainer(cfg)
     results = trainer.run()
     out = trainer.out
     tb = ", tb/ (TensorBoard)" if trainer.cfg.tensorboard else ""
@@ -399,6 +465,28 @@ def _caption(argv: Sequence[str]) -> None:
         cfg.run()
 
 
+@dataclass
+class DemosStub:
+    """Demonstration datasets: ``lcrl demos record --help`` (also relabel, info,
+    import-robomimic)."""
+
+    def run(self) -> None:
+        _demos(["--help"])
+
+
+def _demos(argv: Sequence[str]) -> None:
+    from train.demos import COMMANDS
+
+    cfg = tyro.extras.subcommand_cli_from_dict(
+        COMMANDS,
+        prog="lcrl demos",
+        description="Demonstration datasets: record scripted episodes, relabel them in "
+        "hindsight, inspect them, import robomimic files.",
+        args=list(argv),
+    )
+    cfg.run()
+
+
 def main(argv: Sequence[str] | None = None) -> None:
     """Entry point of the ``lcrl`` console script."""
     from train.demo import DemoConfig, run_demo
@@ -413,6 +501,7 @@ def main(argv: Sequence[str] | None = None) -> None:
         "split": SplitCommand,
         "parse": ParseCommand,
         "caption": CaptionStub,
+        "demos": DemosStub,
     }
     try:
         if args and args[0] == "train":
@@ -420,6 +509,9 @@ def main(argv: Sequence[str] | None = None) -> None:
             return
         if args and args[0] == "caption":
             _caption(args[1:])
+            return
+        if args and args[0] == "demos":
+            _demos(args[1:])
             return
         cfg = tyro.extras.subcommand_cli_from_dict(
             commands,

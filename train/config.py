@@ -11,11 +11,13 @@ from dataclasses import dataclass, field
 from typing import Any
 
 from lcrl.algos import AgentOptions, DQNConfig, SACConfig, TD3Config
+from lcrl.bc import BCConfig
 from lcrl.errors import LcrlError
-from lcrl.goals import STRATEGIES
-from lcrl.nets import NetConfig
+from lcrl.goals import STRATEGIES, TASK_RELABEL_ERROR
+from lcrl.multitask import MultiTaskOptions
+from lcrl.nets import NetConfig, check_task_heads
 from lcrl.text_encoder import TextEncoderConfig
-from train.tasks import EnvConfig
+from train.tasks import EnvConfig, check_tasks, is_language
 
 
 @dataclass
@@ -79,13 +81,20 @@ class TrainConfig:
     env: EnvConfig = field(default_factory=EnvConfig)
     """The environment."""
     algo: str = "auto"
-    """``sac``, ``td3``, ``dqn``, or ``auto`` (SAC for continuous, DQN for discrete actions)."""
+    """``sac``, ``td3``, ``dqn``, ``bc`` (behavioural cloning from ``--demos``), or ``auto``
+    (SAC for continuous, DQN for discrete actions)."""
     sac: SACConfig = field(default_factory=SACConfig)
     """SAC hyper-parameters."""
     td3: TD3Config = field(default_factory=TD3Config)
     """TD3 hyper-parameters."""
     dqn: DQNConfig = field(default_factory=DQNConfig)
     """Double-DQN hyper-parameters."""
+    bc: BCConfig = field(default_factory=BCConfig)
+    """Behavioural-cloning hyper-parameters (``algo=bc``)."""
+    demos: str = ""
+    """Demonstration file (``lcrl demos record``) that ``algo=bc`` learns from. With
+    ``bc``, ``total_steps``, ``eval_every``, ``checkpoint_every`` and ``log_every`` count
+    gradient updates instead of environment steps."""
     agent: AgentOptions = field(default_factory=AgentOptions)
     """Networks, normalisation, device and seed of the learner."""
     buffer: BufferConfig = field(default_factory=BufferConfig)
@@ -140,15 +149,22 @@ class TrainConfig:
     """Write TensorBoard event files (needs the ``tensorboard`` package)."""
 
     def resolved_algo(self, discrete: bool) -> str:
-        """The algorithm after resolving ``auto``."""
+        """The algorithm after resolving ``auto`` (``bc`` for behavioural cloning)."""
         if self.algo == "auto":
             return "dqn" if discrete else "sac"
         return self.algo
 
     def validate(self) -> None:
         """Raise :class:`LcrlError` for inconsistent settings."""
-        if self.algo not in ("auto", "sac", "td3", "dqn"):
-            raise LcrlError(f"unknown algo {self.algo!r}; choose auto, sac, td3 or dqn")
+        if self.algo not in ("auto", "sac", "td3", "dqn", "bc"):
+            raise LcrlError(f"unknown algo {self.algo!r}; choose auto, sac, td3, dqn or bc")
+        if self.algo == "bc":
+            self.bc.validate()
+        elif self.demos:
+            raise LcrlError(
+                "--demos is read by behavioural cloning only: add --algo bc (or train a -bc "
+                "preset such as lang2d-bc)"
+            )
         if self.buffer.strategy not in STRATEGIES:
             raise LcrlError(
                 f"unknown relabelling strategy {self.buffer.strategy!r}; choose one of {STRATEGIES}"
@@ -189,6 +205,24 @@ class TrainConfig:
             )
         if self.keep_checkpoints < 1:
             raise LcrlError("keep_checkpoints must be at least 1")
+        self._validate_tasks()
+
+    def _validate_tasks(self) -> None:
+        """Multi-task settings: the task set, no relabelling over task ids, per-task heads
+        only over task ids, the multitask options (before any env is built)."""
+        env = self.env
+        check_tasks(env)
+        if env.goal_type == "task" and (self.buffer.k > 0 or self.buffer.random_fraction > 0):
+            raise LcrlError(TASK_RELABEL_ERROR)
+        kind = "onehot" if env.goal_type == "task" else "text" if is_language(env) else "vector"
+        check_task_heads(self.agent.net, kind, (len(env.tasks),))
+        mt = self.agent.multitask
+        mt.validate(len(env.tasks))
+        if mt.active and self.algo in ("td3", "dqn", "bc"):
+            raise LcrlError(
+                f"PCGrad, task weights and gradient-conflict measurement are implemented for "
+                f"SAC, not {self.algo}: use --algo sac or turn the multitask options off"
+            )
 
 
 def config_to_dict(cfg: Any) -> dict[str, Any]:
@@ -229,11 +263,13 @@ _NESTED: dict[tuple[str, str], type] = {
     ("TrainConfig", "sac"): SACConfig,
     ("TrainConfig", "td3"): TD3Config,
     ("TrainConfig", "dqn"): DQNConfig,
+    ("TrainConfig", "bc"): BCConfig,
     ("TrainConfig", "agent"): AgentOptions,
     ("TrainConfig", "buffer"): BufferConfig,
     ("TrainConfig", "relabel"): RelabelConfig,
     ("TrainConfig", "text_encoder"): TextEncoderConfig,
     ("AgentOptions", "net"): NetConfig,
+    ("AgentOptions", "multitask"): MultiTaskOptions,
 }
 
 
@@ -268,6 +304,39 @@ def _lang2d(**overrides: Any) -> TrainConfig:
         scripted_fraction=0.2,
         eval_every=10_000,
         eval_episodes=100,
+    )
+    return dataclasses.replace(cfg, **overrides)
+
+
+#: The task set of the lang2d-tasks presets: 4 reach and 4 push instructions of the 2D
+#: split's training set (seed 0), over four objects, pushes in all four directions.
+TASKS_2D = (
+    "reach the red cube",
+    "reach the green cylinder",
+    "reach the blue cube",
+    "reach the yellow cube",
+    "push the red cube left",
+    "push the green cylinder right",
+    "push the blue cube forward",
+    "push the yellow cube backward",
+)
+
+
+def _lang2d_tasks(goal_type: str, **overrides: Any) -> TrainConfig:
+    """The 8 tasks of :data:`TASKS_2D` on the 2D tabletop, 30k steps: one-hot task ids
+    without relabelling (``task``) or the same instructions as language goals with
+    language HER (``language``); gradient conflict measured every 10 updates."""
+    relabel = goal_type == "language"
+    agent = _net2d()
+    agent.multitask = MultiTaskOptions(conflict_every=10)
+    cfg = _lang2d(
+        out=f"runs/lang2d-tasks{'-lang' if relabel else ''}",
+        env=_env2d(goal_type=goal_type, tasks=TASKS_2D),
+        agent=agent,
+        buffer=BufferConfig(k=4, random_fraction=0.1) if relabel else BufferConfig(k=0),
+        total_steps=30_000,
+        eval_every=5_000,
+        eval_episodes=80,
     )
     return dataclasses.replace(cfg, **overrides)
 
@@ -365,6 +434,41 @@ PRESETS: dict[str, tuple[str, TrainConfig]] = {
             agent=AgentOptions(augment_pad=4),
             buffer=BufferConfig(capacity=200_000, k=4, random_fraction=0.1),
         ),
+    ),
+    "lang2d-bc": (
+        "behavioural cloning on the lang2d env from --demos (record them with lcrl demos "
+        "record --preset lang2d), 20k updates",
+        _lang2d(
+            out="runs/lang2d-bc",
+            algo="bc",
+            total_steps=20_000,
+            eval_every=5_000,
+            checkpoint_every=5_000,
+            log_every=500,
+        ),
+    ),
+    "robosuite-bc": (
+        "behavioural cloning on the robosuite env from --demos (record them with lcrl demos "
+        "record --preset robosuite), 20k updates",
+        _robosuite(
+            out="runs/robosuite-bc",
+            algo="bc",
+            total_steps=20_000,
+            eval_every=5_000,
+            checkpoint_every=5_000,
+            log_every=500,
+        ),
+    ),
+    "lang2d-tasks": (
+        "multi-task RL on the 2D tabletop: 8 fixed tasks (4 reach, 4 push) as one-hot task "
+        "ids, each with its own reward, no relabelling, SAC, 30k steps (add "
+        "--agent.multitask.pcgrad for PCGrad)",
+        _lang2d_tasks("task"),
+    ),
+    "lang2d-tasks-lang": (
+        "the 8 tasks of lang2d-tasks as language goals with language HER among them, SAC, "
+        "30k steps (add --agent.multitask.pcgrad for PCGrad)",
+        _lang2d_tasks("language"),
     ),
     "fetch-reach": (
         "gymnasium-robotics FetchReach-v4 (state goals), SAC + HER, 10k steps",

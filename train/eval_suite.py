@@ -8,6 +8,12 @@ instructions (colour, shape, direction, relation, object) and every instruction:
 success rate with a 95% Wilson confidence interval, the number of episodes and the mean
 number of steps to success. State- and image-goal tasks have one set, ``all``.
 
+Fixed task sets (``env.tasks``, ``K`` instructions): a task-id policy has one set,
+``train``, its ``K`` tasks; so has a language policy trained on a task set, besides its
+held-out and paraphrase sets. Episode ``i`` of that set runs task ``i mod K`` from the first
+layout of its reset seed where the task is feasible (:func:`train.tasks.reset_feasible`,
+the layouts of the training loop's evaluation), and its figures add success per task.
+
 Episodes run in a gymnasium vector env (``num_envs`` copies of the task's env, stepped
 together; the policy acts on the whole batch). Episode ``i`` of a set always starts from
 reset seed ``EVAL_SEED_OFFSET + seed * 10_007 + i`` (the seeds of the training loop's
@@ -41,7 +47,17 @@ import numpy as np
 from lcrl.errors import LcrlError
 from train.config import TrainConfig
 from train.evaluate import EVAL_SEED_OFFSET
-from train.tasks import ImageGoalTask, LanguageTask, Task, find_language_wrapper, make_env
+from train.tasks import (
+    FEASIBLE_TRIES,
+    ImageGoalTask,
+    LanguageTask,
+    Task,
+    TaskIdTask,
+    find_language_wrapper,
+    make_env,
+    reset_feasible,
+    task_texts,
+)
 
 #: Rows of every forward pass of the policy during evaluation (smaller batches are padded,
 #: larger ones split). A row's result then never depends on how many envs run together:
@@ -183,12 +199,15 @@ def read_instruction_file(
 @dataclass(frozen=True)
 class EpisodeSpec:
     """One evaluation episode: its place in the set, its reset seed and, optionally, a
-    fixed instruction (``checked=False``: free text the captioner cannot judge)."""
+    fixed instruction (``checked=False``: free text the captioner cannot judge) or the
+    index of a task of a fixed task set (``instruction`` is then the task's text, and the
+    layout is the first from ``seed`` where it is feasible, as in the training loop)."""
 
     index: int
     seed: int
     instruction: str | None = None
     checked: bool = True
+    task: int | None = None
 
 
 @dataclass
@@ -307,6 +326,9 @@ class EvalEpisodes(gym.Wrapper):
             return obs
         if spec.instruction is None:
             obs, _ = self.env.reset(seed=spec.seed)
+            return obs
+        if spec.task is not None:  # a task of a fixed task set: the training loop's layouts
+            obs, _ = reset_feasible(self.env, spec.seed, spec.instruction, FEASIBLE_TRIES)
             return obs
         if not spec.checked:  # free text: the language wrapper (its check) is bypassed
             obs, _ = self.lang.env.reset(seed=spec.seed)
@@ -523,7 +545,7 @@ def run_set(
     """
     if not specs:
         return []
-    language = isinstance(task, LanguageTask)
+    language = isinstance(task, (LanguageTask, TaskIdTask))  # instructions (or task ids of them)
     n = max(1, min(int(num_envs), len(specs)))
     shares = [list(specs[j::n]) for j in range(n)]
     image = isinstance(task, ImageGoalTask)
@@ -614,12 +636,22 @@ def _track(
 
 
 # --- the whole evaluation ---------------------------------------------------------------------
-def summarise(results: Sequence[EpisodeResult], chain: int = 1) -> dict[str, Any]:
+def summarise(
+    results: Sequence[EpisodeResult], chain: int = 1, tasks: Sequence[str] = ()
+) -> dict[str, Any]:
     """Every figure of one set: overall, per family, per slot value, per instruction,
-    per family and object, and (``chain > 1``) the chain figures.
+    per family and object, (``chain > 1``) the chain figures, and (``tasks``, a fixed
+    task set) per task.
 
-    In chain mode the overall, family, slot and instruction figures count every
+    In chain mode the overall, family, slot, instruction and task figures count every
     instruction attempted, first ones and later ones alike.
+
+    Args:
+        results: the set's episodes.
+        chain: instructions per episode at most.
+        tasks: the ``K`` task texts of a fixed task set: ``out["tasks"]`` lists, for task
+            ``i``, ``id``, ``instruction``, ``family`` and :func:`rate_stats` of the
+            attempts of that text (success None for a task without episodes).
     """
     checked: list[dict[str, Any]] = []
     unchecked: dict[str, int] = defaultdict(int)
@@ -667,6 +699,15 @@ def summarise(results: Sequence[EpisodeResult], chain: int = 1) -> dict[str, Any
         group(lambda a: a["instruction"]) if any(a["instruction"] for a in checked) else {}
     )
     out["unchecked_instructions"] = {k: v for k, v in sorted(unchecked.items()) if k}
+    if tasks:
+        from captioner.grammar import try_parse
+
+        out["tasks"] = []
+        for k, text in enumerate(tasks):
+            meaning = try_parse(text)
+            row = {"id": k, "instruction": text, "family": meaning.family if meaning else None}
+            row.update(stats([a for a in checked if a["instruction"] == text]))
+            out["tasks"].append(row)
     if chain > 1:
         out["chain"] = chain_stats(results, chain)
     return out
@@ -752,14 +793,22 @@ def run_evaluation(
         vector: ``auto``, ``sync`` or ``async`` vector env.
         progress: show a progress bar over episodes.
 
+    With a fixed task set (``cfg.env.tasks``, task ids or language goals), episode ``i``
+    of the ``train`` set runs task ``i mod K`` and its figures include ``tasks``
+    (:func:`summarise`); a task-id policy has that set only.
+
     Returns:
-        ``{set name: summarise(...)}``; non-language tasks report their one set as ``all``.
+        ``{set name: summarise(...)}``; state- and image-goal tasks report their one set
+        as ``all``.
 
     Raises:
         LcrlError: bad counts, unknown sets, chains or instruction files on a task
-            without language goals.
+            without language goals (task ids included).
     """
     language = isinstance(task, LanguageTask)
+    tasks = list(task_texts(cfg.env))
+    if isinstance(task, TaskIdTask):
+        check_task_id_options(len(tasks), sets, bool(instructions), chain)
     if episodes <= 0:
         raise LcrlError("the number of episodes must be positive")
     if num_envs <= 0:
@@ -786,7 +835,11 @@ def run_evaluation(
     plans: list[tuple[str, str, list[EpisodeSpec], list[str] | None, list[str]]] = []
     for name in names:
         seeds = [episode_seed(seed, i) for i in range(episodes)]
-        if name == CUSTOM_SET:
+        if tasks and name == "train":  # a fixed task set: round robin over the tasks
+            k = len(tasks)
+            specs = [EpisodeSpec(i, s, tasks[i % k], task=i % k) for i, s in enumerate(seeds)]
+            plans.append((name, name, specs, list(tasks), list(tasks)))
+        elif name == CUSTOM_SET:
             assert instructions is not None
             lines = list(instructions)
             specs = [
@@ -823,8 +876,8 @@ def run_evaluation(
                 pool=pool,
                 on_episode=(lambda _r: bar.update(1)) if bar is not None else None,
             )
-            key = name if language else "all"
-            out[key] = summarise(results, chain)
+            key = name if language or isinstance(task, TaskIdTask) else "all"
+            out[key] = summarise(results, chain, tasks if tasks and name == "train" else ())
             if name == CUSTOM_SET:
                 out[key]["file_instructions"] = [asdict(x) for x in instructions or ()]
             out[key]["episode_results"] = [asdict(r) for r in results]
@@ -832,6 +885,34 @@ def run_evaluation(
         if bar is not None:
             bar.close()
     return out
+
+
+def check_task_id_options(
+    num_tasks: int, sets: Sequence[str] | None, instructions: bool, chain: int
+) -> None:
+    """Refuse evaluation options that a task-id policy cannot follow: instruction sets
+    other than ``train`` (its ``num_tasks`` tasks), an instruction file, chains.
+
+    Raises:
+        LcrlError: one of those is asked for.
+    """
+    bad = [s for s in sets or () if s != "train"]
+    lang = "a policy trained with language goals over the same tasks (preset lang2d-tasks-lang)"
+    if bad:
+        raise LcrlError(
+            f"a task-id policy has one set, 'train' (its {num_tasks} tasks), not {bad}: "
+            f"drop --sets; held-out and paraphrase instructions need {lang}"
+        )
+    if instructions:
+        raise LcrlError(
+            f"a task-id policy reads no text, only the ids of its {num_tasks} tasks: drop "
+            f"--instructions; free-text instructions need {lang}"
+        )
+    if chain > 1:
+        raise LcrlError(
+            "chained evaluation switches instructions inside an episode, which a task-id "
+            f"policy cannot follow: drop --chain; chains need {lang}"
+        )
 
 
 def format_summary(results: dict[str, Any]) -> str:
@@ -856,6 +937,13 @@ def format_summary(results: dict[str, Any]) -> str:
             lines.append(f"  95% CI [{low:.2f}, {high:.2f}]{more}")
         if res["unchecked"]:
             lines.append(f"  {res['unchecked']} episodes not checked (free text)")
+        for t in res.get("tasks", ()):
+            rate = "n/a" if t["success"] is None else f"{t['success']:.2f}"
+            low, high = t["ci"]
+            lines.append(
+                f"  task {t['id']} {t['instruction']!r}: {rate} [{low:.2f}, {high:.2f}], "
+                f"{t['episodes']} episodes"
+            )
         if "chain" in res:
             c = res["chain"]
             if c["chains"]:

@@ -22,12 +22,16 @@ from lcrl.checkpoint import Checkpoint, find_latest, load_checkpoint
 from lcrl.errors import LcrlError
 from train.config import TrainConfig, config_from_dict
 from train.tasks import (
+    FEASIBLE_TRIES,
     LanguageTask,
     Task,
+    TaskIdTask,
     find_language_wrapper,
     is_language,
     make_env,
     make_task,
+    reset_feasible,
+    task_texts,
 )
 
 EVAL_SEED_OFFSET = 7_777_777
@@ -73,8 +77,12 @@ def check_slots(cfg: TrainConfig, env: gym.Env) -> None:
 
 def build_agent(algo: str, problem: Problem, cfg: TrainConfig, goal_embed: Any) -> Agent:
     """The learner named ``algo`` for ``problem``."""
+    if algo == "bc":  # behavioural cloning: continuous or discrete actions
+        from lcrl.bc import BC
+
+        return BC(problem, cfg.agent, goal_embed, cfg.bc)
     if algo not in ALGOS:
-        raise LcrlError(f"unknown algo {algo!r}; choose one of {sorted(ALGOS)}")
+        raise LcrlError(f"unknown algo {algo!r}; choose one of {sorted([*ALGOS, 'bc'])}")
     if problem.discrete and algo != "dqn":
         raise LcrlError(f"{algo} needs continuous actions; this env has discrete actions: use dqn")
     if not problem.discrete and algo == "dqn":
@@ -95,15 +103,21 @@ def run_episode(
     goal_vector: np.ndarray | None = None,
     deterministic: bool = True,
     frames: list[np.ndarray] | None = None,
+    feasible_tries: int = 0,
 ) -> dict[str, Any]:
     """One episode with the policy; returns success, length, return and the instruction.
 
     ``goal_vector`` replaces the task's goal by an already embedded goal (e.g. the text
     encoder's vector of a free-text instruction). ``frames``, when given, receives
     ``env.render()`` after the reset and after every step (an env made with
-    ``render_mode="rgb_array"``).
+    ``render_mode="rgb_array"``). ``feasible_tries`` > 0 with an ``instruction`` option
+    resets into the first layout (of ``seed``, then seeds derived from it) where the
+    instruction is feasible (:func:`train.tasks.reset_feasible`).
     """
-    obs, info = env.reset(seed=seed, options=options)
+    if feasible_tries > 0 and options and "instruction" in options:
+        obs, info = reset_feasible(env, seed, options["instruction"], feasible_tries)
+    else:
+        obs, info = env.reset(seed=seed, options=options)
     if frames is not None:
         frames.append(env.render())
     first = obs
@@ -124,7 +138,7 @@ def run_episode(
         if terminated or truncated:
             break
     out = {"success": bool(info.get("is_success", False)), "steps": steps, "return": ret}
-    if isinstance(task, LanguageTask):
+    if isinstance(task, (LanguageTask, TaskIdTask)):
         wrapper = find_language_wrapper(env)
         out["instruction"] = wrapper.instruction
         out["family"] = wrapper.meaning.family if wrapper.meaning else "free"
@@ -141,7 +155,13 @@ def evaluate(
     seed: int = 0,
     sets: tuple[str, ...] | None = None,
 ) -> dict[str, Any]:
-    """Success rates per instruction set (and family) over ``episodes`` episodes per set."""
+    """Success rates per instruction set (and family) over ``episodes`` episodes per set.
+
+    With a fixed task set (``env.tasks``, task ids or language goals) there is one set,
+    ``train``, evaluated by :func:`evaluate_tasks`.
+    """
+    if task_texts(cfg.env):
+        return {"train": evaluate_tasks(agent, task, cfg, episodes, seed)}
     results: dict[str, Any] = {}
     for name in sets or task.sets:
         env = make_env(cfg.env, name) if name != "train" or isinstance(task, LanguageTask) else None
@@ -162,12 +182,60 @@ def evaluate(
     return results
 
 
+def evaluate_tasks(
+    agent: Agent, task: Task, cfg: TrainConfig, episodes: int, seed: int = 0
+) -> dict[str, Any]:
+    """Success on a fixed task set (``env.tasks``): episode ``i`` runs task ``i mod K`` in
+    the first layout from its fixed seed where the task is feasible, so every task gets
+    ``episodes / K`` episodes and two checkpoints are compared on the same layouts.
+
+    Returns:
+        ``success`` (over all episodes), ``episodes``, ``families`` and ``tasks``: per
+        task ``{"id", "instruction", "success", "episodes"}`` (success NaN for a task
+        without episodes, when ``episodes < K``).
+    """
+    tasks = task_texts(cfg.env)
+    env = make_env(cfg.env, "train")
+    per_task: list[list[float]] = [[] for _ in tasks]
+    fam: dict[str, list[float]] = defaultdict(list)
+    for i in range(episodes):
+        k = i % len(tasks)
+        r = run_episode(
+            agent,
+            task,
+            env,
+            seed=EVAL_SEED_OFFSET + seed * 10_007 + i,
+            options={"instruction": tasks[k]},
+            feasible_tries=FEASIBLE_TRIES,
+        )
+        per_task[k].append(float(r["success"]))
+        fam[r["family"]].append(float(r["success"]))
+    env.close()
+    return {
+        "success": float(np.mean([x for xs in per_task for x in xs])),
+        "episodes": episodes,
+        "families": {f: float(np.mean(v)) for f, v in sorted(fam.items())},
+        "tasks": [
+            {
+                "id": k,
+                "instruction": text,
+                "success": float(np.mean(xs)) if xs else float("nan"),
+                "episodes": len(xs),
+            }
+            for k, (text, xs) in enumerate(zip(tasks, per_task, strict=True))
+        ],
+    }
+
+
 def format_results(results: dict[str, Any]) -> str:
-    """One line per set: overall and per-family success."""
+    """One line per set: overall and per-family success (and per task, for a task set)."""
     lines = []
     for name, res in results.items():
         fams = " ".join(f"{f} {v:.2f}" for f, v in res["families"].items())
-        lines.append(f"{name}: success {res['success']:.2f} ({fams}; {res['episodes']} episodes)")
+        line = f"{name}: success {res['success']:.2f} ({fams}; {res['episodes']} episodes)"
+        if res.get("tasks"):
+            line += "; tasks " + " ".join(f"{t['id']}:{t['success']:.2f}" for t in res["tasks"])
+        lines.append(line)
     return "\n".join(lines)
 
 

@@ -27,10 +27,11 @@ from lcrl.algos import Agent
 from lcrl.buffer import HindsightReplayBuffer
 from lcrl.checkpoint import find_latest, load_checkpoint, save_checkpoint, write_latest
 from lcrl.errors import LcrlError
+from lcrl.multitask import CONFLICT_KEYS, TaskSampler
 from train.config import TrainConfig, config_from_dict, config_to_dict
 from train.evaluate import build_agent, build_task, evaluate, format_results
 from train.report import write_report
-from train.tasks import ScriptedActor, make_env
+from train.tasks import ScriptedActor, make_env, reset_feasible, task_texts
 
 
 class CsvLog:
@@ -60,6 +61,89 @@ def _fmt(v: Any) -> Any:
     return f"{v:.6g}" if isinstance(v, float) else v
 
 
+def open_run(cfg: TrainConfig) -> tuple[TrainConfig, Any]:
+    """Prepare ``cfg.out`` for a run: with ``cfg.resume``, load its latest checkpoint and
+    the config saved there (keeping ``total_steps``, ``out`` and ``resume`` from ``cfg``);
+    otherwise refuse a folder that already holds a run unless ``cfg.overwrite``, in which
+    case its checkpoints and logs are removed.
+
+    Returns:
+        The config to run with and the checkpoint to resume from (None for a new run).
+    """
+    out = Path(cfg.out)
+    if cfg.resume:
+        latest = find_latest(out)
+        if latest is None:
+            raise LcrlError(f"--resume: no checkpoint in {out} (no latest.json)")
+        ckpt = load_checkpoint(latest)
+        saved = config_from_dict(ckpt.meta["config"])
+        saved.total_steps = cfg.total_steps
+        saved.resume = True
+        saved.out = cfg.out
+        return saved, ckpt
+    if (out / "latest.json").exists():
+        if not cfg.overwrite:
+            raise LcrlError(
+                f"{out} already holds a run; pass --resume to continue it, "
+                "--overwrite to replace it, or choose another --out"
+            )
+        for name in ("checkpoints", "tb"):
+            shutil.rmtree(out / name, ignore_errors=True)
+        for name in ("latest.json", "progress.csv", "eval.csv", "report.md", "curves.png"):
+            (out / name).unlink(missing_ok=True)
+    return cfg, None
+
+
+def eval_row(results: Mapping[str, Any], task: Any, step: int, episodes: int) -> dict[str, Any]:
+    """The eval.csv row of an evaluation: step, episodes, success per set and per family
+    (every family of the task gets a column, even one that no episode of this round drew)."""
+    row: dict[str, Any] = {"step": step, "episodes": episodes}
+    families = tuple(getattr(task, "families", ()))
+    for name, res in results.items():
+        row[f"{name}/success"] = res["success"]
+        for fam in dict.fromkeys((*families, *res["families"])):
+            row[f"{name}/{fam}"] = res["families"].get(fam, float("nan"))
+        for t in res.get("tasks", ()):  # a fixed task set: success per task id
+            row[f"tasks/{t['id']}"] = t["success"]
+    return row
+
+
+def checkpoint_meta(
+    cfg: TrainConfig, algo: str, problem: Any, env: Any, task: Any, step: int, episodes: int
+) -> tuple[dict[str, Any], dict[str, Any]]:
+    """``meta`` and JSON files of a run's checkpoint: config, algo, problem, env spaces,
+    and for language tasks the instruction table, the split and the text encoder."""
+    meta: dict[str, Any] = {
+        "config": config_to_dict(cfg),
+        "algo": algo,
+        "problem": problem.to_dict(),
+        "step": step,
+        "episodes": episodes,
+        "env": {
+            "kind": cfg.env.kind,
+            "observation_space": str(env.observation_space),
+            "action_space": str(env.action_space),
+        },
+    }
+    json_files: dict[str, Any] = {}
+    table = getattr(task, "table", None)
+    if table is not None:
+        json_files["instructions"] = {"texts": table, "num_train": task.num_train}
+        json_files["split"] = task.split.to_dict()
+        meta["text_encoder"] = {
+            "model": cfg.text_encoder.model,
+            "dim": int(task.embeddings.shape[1]),
+        }
+    return meta, json_files
+
+
+def prune_checkpoints(out: Path, keep: int) -> None:
+    """Delete all but the ``keep`` latest ``checkpoints/step_*`` folders of a run."""
+    kept = sorted((out / "checkpoints").glob("step_*"))
+    for old in kept[:-keep]:
+        shutil.rmtree(old, ignore_errors=True)
+
+
 class Trainer:
     """Builds everything a run needs from a :class:`TrainConfig` and runs it.
 
@@ -70,28 +154,13 @@ class Trainer:
 
     def __init__(self, cfg: TrainConfig) -> None:
         cfg.validate()
+        if cfg.algo == "bc":
+            raise LcrlError(
+                "behavioural cloning learns from demonstrations, not in this loop: run it "
+                "with lcrl train (train.bc.BCTrainer)"
+            )
         self.out = Path(cfg.out)
-        ckpt = None
-        if cfg.resume:
-            latest = find_latest(self.out)
-            if latest is None:
-                raise LcrlError(f"--resume: no checkpoint in {self.out} (no latest.json)")
-            ckpt = load_checkpoint(latest)
-            saved = config_from_dict(ckpt.meta["config"])
-            saved.total_steps = cfg.total_steps
-            saved.resume = True
-            saved.out = cfg.out
-            cfg = saved
-        elif (self.out / "latest.json").exists():
-            if not cfg.overwrite:
-                raise LcrlError(
-                    f"{self.out} already holds a run; pass --resume to continue it, "
-                    "--overwrite to replace it, or choose another --out"
-                )
-            for name in ("checkpoints", "tb"):
-                shutil.rmtree(self.out / name, ignore_errors=True)
-            for name in ("latest.json", "progress.csv", "eval.csv", "report.md", "curves.png"):
-                (self.out / name).unlink(missing_ok=True)
+        cfg, ckpt = open_run(cfg)
         self.cfg = cfg
         models = _learned_models(cfg)
         env_cfg = cfg.env
@@ -144,6 +213,13 @@ class Trainer:
             else None
         )
         self.scripted_rng = np.random.default_rng([cfg.seed, 1])
+        # a fixed task set: each training episode's task is drawn by the sampler
+        self.tasks = task_texts(cfg.env)
+        self.sampler = (
+            TaskSampler.from_options(len(self.tasks), cfg.agent.multitask) if self.tasks else None
+        )
+        self.task_rng = np.random.default_rng([cfg.seed, 2])
+        self._grad_metrics: dict[str, list[float]] = {}
         self.step = 0
         self.episodes = 0
         self.sim_errors = 0  # episodes a simulator error ended (the env reports them)
@@ -216,7 +292,13 @@ class Trainer:
     def collect_episode(self) -> None:
         """Run one episode (acting, stepping, updating) and store it in the buffer."""
         cfg, task, env = self.cfg, self.task, self.env
-        obs, info = env.reset(seed=int(cfg.seed * 1_000_003 + self.episodes))
+        seed = int(cfg.seed * 1_000_003 + self.episodes)
+        task_id = None
+        if self.sampler is not None:  # the sampled task, in a layout where it is feasible
+            task_id = self.sampler.sample(self.task_rng)
+            obs, info = reset_feasible(env, seed, self.tasks[task_id])
+        else:
+            obs, info = env.reset(seed=seed)
         first = obs
         goal = task.goal(obs, env)
         goal_batch = np.asarray([goal])
@@ -270,6 +352,8 @@ class Trainer:
             self.scripted_episodes += 1
         else:  # the live success rate is the policy's
             self.recent.append(float(succeeded))
+            if task_id is not None:
+                self.sampler.update(task_id, succeeded)
         if info.get("sim_error"):
             self.sim_errors += 1
 
@@ -287,6 +371,9 @@ class Trainer:
         for _ in range(n):
             metrics = self.agent.update(self.buffer.sample(self.cfg.batch_size))
             for k, v in metrics.items():
+                if k.startswith("grad/"):  # gradient conflict: measured on some updates
+                    self._grad_metrics.setdefault(k, []).append(v)
+                    continue
                 self._metrics[k] = self._metrics.get(k, 0.0) + v
             self._metric_count += 1
 
@@ -296,13 +383,7 @@ class Trainer:
         cfg = self.cfg
         results = evaluate(self.agent, self.task, cfg, episodes=cfg.eval_episodes, seed=cfg.seed)
         self.last_eval = results
-        row: dict[str, Any] = {"step": self.step, "episodes": self.episodes}
-        families = tuple(getattr(self.task, "families", ()))
-        for name, res in results.items():
-            row[f"{name}/success"] = res["success"]
-            # every family gets a column, even one that no episode of this round drew
-            for fam in dict.fromkeys((*families, *res["families"])):
-                row[f"{name}/{fam}"] = res["families"].get(fam, float("nan"))
+        row = eval_row(results, self.task, self.step, self.episodes)
         self.eval_log.write(row)
         if self.tb is not None:
             for k, v in row.items():
@@ -338,6 +419,7 @@ class Trainer:
         n = max(self._metric_count, 1)
         row.update({k: v / n for k, v in sorted(self._metrics.items())})
         self._metrics, self._metric_count = {}, 0
+        row.update(self._multitask_columns())
         self.progress_log.write(row)
         self._last_logged = self.step
         if self.tb is not None:
@@ -345,32 +427,33 @@ class Trainer:
                 if k != "step":
                     self.tb.add_scalar(f"train/{k}", v, self.step)
 
+    def _multitask_columns(self) -> dict[str, float]:
+        """progress.csv columns of a task set, every one from the first row: per task the
+        live success (the policy's last ``multitask.window`` episodes of it) and its
+        sampling probability; the gradient-conflict statistics (NaN until measured)."""
+        row: dict[str, float] = {}
+        if self.sampler is not None:
+            rates, probs = self.sampler.success_rates(), self.sampler.probs()
+            for i in range(len(self.tasks)):
+                row[f"tasks/{i}/success"] = float(rates[i])
+                row[f"tasks/{i}/prob"] = float(probs[i])
+        if self.tasks and self.cfg.agent.multitask.measures_conflict:
+            for net in ("critic", "actor"):
+                for key in CONFLICT_KEYS:
+                    name = f"grad/{net}_{'conflict' if key == 'conflict_fraction' else key}"
+                    values = [v for v in self._grad_metrics.get(name, []) if v == v]
+                    row[name] = float(np.mean(values)) if values else float("nan")
+        self._grad_metrics = {}
+        return row
+
     # --- checkpoints -----------------------------------------------------------------
     def save(self) -> Path:
         """Checkpoint the run (weights, optimiser and RNG state, buffer, tables)."""
         cfg = self.cfg
         directory = self.out / "checkpoints" / f"step_{self.step:09d}"
-        json_files: dict[str, Any] = {}
-        meta = {
-            "config": config_to_dict(cfg),
-            "algo": self.algo,
-            "problem": self.problem.to_dict(),
-            "step": self.step,
-            "episodes": self.episodes,
-            "env": {
-                "kind": cfg.env.kind,
-                "observation_space": str(self.env.observation_space),
-                "action_space": str(self.env.action_space),
-            },
-        }
-        table = getattr(self.task, "table", None)
-        if table is not None:
-            json_files["instructions"] = {"texts": table, "num_train": self.task.num_train}
-            json_files["split"] = self.task.split.to_dict()
-            meta["text_encoder"] = {
-                "model": cfg.text_encoder.model,
-                "dim": int(self.task.embeddings.shape[1]),
-            }
+        meta, json_files = checkpoint_meta(
+            cfg, self.algo, self.problem, self.env, self.task, self.step, self.episodes
+        )
         states = {
             **self.agent.states(),
             "buffer_rng": self.buffer.rng.bit_generator.state,
@@ -385,6 +468,9 @@ class Trainer:
                 "credit": self._credit,
             },
         }
+        if self.sampler is not None:
+            states["task_sampler"] = self.sampler.state_dict()
+            states["task_rng"] = self.task_rng.bit_generator.state
         arrays = self.buffer.arrays() if cfg.save_buffer else None
         path = save_checkpoint(
             directory,
@@ -395,9 +481,7 @@ class Trainer:
             arrays=arrays,
         )
         write_latest(self.out, path)
-        kept = sorted((self.out / "checkpoints").glob("step_*"))
-        for old in kept[: -cfg.keep_checkpoints]:
-            shutil.rmtree(old, ignore_errors=True)
+        prune_checkpoints(self.out, cfg.keep_checkpoints)
         return path
 
     def _restore(self, ckpt: Any) -> None:
@@ -415,6 +499,9 @@ class Trainer:
         self.scripted_episodes = int(trainer.get("scripted_episodes", 0))
         self.recent.extend(trainer["recent"])
         self._credit = float(trainer["credit"])
+        if self.sampler is not None and ckpt.has_state("task_sampler"):
+            self.sampler.load_state_dict(ckpt.state("task_sampler"))
+            self.task_rng.bit_generator.state = ckpt.state("task_rng")
         if ckpt.has_arrays():
             self.buffer.load_arrays(ckpt.arrays())
         print(f"resumed {self.out} at step {self.step} ({self.episodes} episodes)")

@@ -32,6 +32,18 @@ Batches
     ``observation`` may carry a leading batch dimension on every array (``B`` environments
     stepped together); the instruction is then one text for every row or a list of ``B``
     texts, and the actions come back with the same leading dimension.
+
+Task ids
+    A policy trained on a fixed task set with one-hot task ids (``env.goal_type="task"``,
+    preset ``lang2d-tasks``) reads no text: :meth:`Policy.act` takes the id of one of its
+    :attr:`Policy.tasks` (an int, or one per batch row), and the environment is reset with
+    that task's instruction so that success is judged::
+
+        policy = lcrl.load("runs/lang2d-tasks")
+        env = policy.make_env()
+        obs, info = env.reset(seed=0, options={"instruction": policy.tasks[3]})
+        policy.reset()
+        action = policy.act(obs, 3)
 """
 
 from __future__ import annotations
@@ -48,7 +60,15 @@ from lcrl.algos import Agent
 from lcrl.checkpoint import Checkpoint
 from lcrl.errors import LcrlError
 from train.config import TrainConfig
-from train.tasks import ImageGoalTask, LanguageTask, StateTask, Task, make_env
+from train.tasks import (
+    ImageGoalTask,
+    LanguageTask,
+    StateTask,
+    Task,
+    TaskIdTask,
+    make_env,
+    task_texts,
+)
 
 
 class Neighbour(NamedTuple):
@@ -88,6 +108,8 @@ def describe_env(cfg: TrainConfig) -> str:
         name = f"robosuite tabletop ({env.goal_type} goals)"
     else:
         name = f"{env.kind} tabletop"
+    if env.goal_type == "task":
+        name += f", {len(env.tasks)} task ids"
     return name + (", image observations" if env.image_obs else "")
 
 
@@ -122,6 +144,66 @@ class Policy:
         if not isinstance(self.task, LanguageTask):
             return []
         return list(self.task.table[: self.task.num_train])
+
+    @property
+    def takes_task_ids(self) -> bool:
+        """Whether the policy's goal is the one-hot id of one of its :attr:`tasks`
+        (``env.goal_type="task"``): :meth:`act` takes a task id, not text."""
+        return isinstance(self.task, TaskIdTask)
+
+    @property
+    def tasks(self) -> list[str]:
+        """The fixed task set it was trained on (``env.tasks``; task ``i`` has id ``i``),
+        as task ids or as language goals; empty without one."""
+        return list(task_texts(self.cfg.env))
+
+    def task_id(self, task: Any) -> int:
+        """The id of one of :attr:`tasks`, given by its id (checked) or its text (any
+        phrasing the instruction grammar reads as the same instruction).
+
+        Raises:
+            LcrlError: the policy has no task set, an id out of range, or a text that is
+                none of its tasks (the message lists them).
+        """
+        tasks = self.tasks
+        if not tasks:
+            raise LcrlError(
+                f"this policy was not trained on a fixed task set ({describe_env(self.cfg)}): "
+                "it has no task ids"
+            )
+        if isinstance(task, str):
+            from captioner.grammar import try_parse
+
+            text = " ".join(task.split())
+            if text in tasks:
+                return tasks.index(text)
+            meaning = try_parse(text)
+            if meaning is not None:
+                for k, t in enumerate(tasks):
+                    other = try_parse(t)
+                    if other is not None and other.text == meaning.text:
+                        return k
+            raise LcrlError(f"{task!r} is none of this policy's tasks: {self.describe_tasks()}")
+        return self._check_task_id(task)
+
+    def describe_tasks(self) -> str:
+        """The tasks with their ids, for messages: ``0 'reach the red cube', 1 ...``."""
+        return ", ".join(f"{k} {t!r}" for k, t in enumerate(self.tasks))
+
+    def _check_task_id(self, task: Any) -> int:
+        """``task`` as an int in ``[0, K)``, or an error naming the range and the tasks."""
+        if isinstance(task, (bool, np.bool_)) or not isinstance(task, (int, np.integer)):
+            raise LcrlError(
+                f"a task id must be an integer, got {type(task).__name__}: one of "
+                f"{self.describe_tasks()}"
+            )
+        k = len(self.tasks)
+        if not 0 <= int(task) < k:
+            raise LcrlError(
+                f"task id {int(task)} is out of range: this policy has {k} tasks, ids 0 to "
+                f"{k - 1}: {self.describe_tasks()}"
+            )
+        return int(task)
 
     @property
     def families(self) -> tuple[str, ...]:
@@ -202,7 +284,10 @@ class Policy:
                 ``instruction`` are ignored), or the same with a leading batch dimension
                 on every array.
             instruction: any text (language policies), or one text per batch row. ``None``
-                takes the observation's own ``instruction`` entry.
+                takes the observation's own ``instruction`` entry. Task-id policies
+                (:attr:`takes_task_ids`): the task id, an int in ``[0, K)``, or one per
+                batch row; ``None`` takes the task whose instruction the observation
+                carries (an env reset with ``options={"instruction": policy.tasks[i]}``).
             initial: the episode's first observation (same layout and batch size as
                 ``observation``). Default: the first observation given since
                 :meth:`reset`, remembered.
@@ -218,11 +303,21 @@ class Policy:
         Raises:
             LcrlError: missing observation entries or wrong shapes (e.g. an observation of
                 another environment), an empty or overlong text, texts and observations of
-                different batch sizes.
+                different batch sizes; for task-id policies, text or an id out of range.
         """
         obs, batch = self._check_obs(observation, "observation")
         rows = 1 if batch is None else batch
-        if isinstance(self.task, LanguageTask):
+        if isinstance(self.task, TaskIdTask):
+            if goal is not None:
+                raise LcrlError(
+                    "goal= is for state- and image-goal policies; this task-id policy takes a "
+                    "task id: policy.act(observation, 0)"
+                )
+            ids = self._task_ids(observation, instruction, batch)  # before remembering
+            first = self._first(initial, obs, batch)
+            net_obs = self._storage(obs, first, batch)
+            a = self.agent.act(net_obs, ids, deterministic=deterministic)
+        elif isinstance(self.task, LanguageTask):
             texts = self._texts(observation, instruction, batch)
             vectors = self.embed(texts)  # before remembering anything: the texts may be bad
             first = self._first(initial, obs, batch)
@@ -314,6 +409,52 @@ class Policy:
             what = "one observation" if batch is None else f"a batch of {batch} observations"
             raise LcrlError(f"{len(texts)} instructions for {what}: give one text, or one per row")
         return texts
+
+    def _task_ids(self, observation: Mapping[str, Any], task: Any, batch: int | None) -> np.ndarray:
+        """Checked task ids, one per row: ``task`` (an id, or one per row), or the task
+        of the observation's own ``instruction`` entry."""
+        rows = 1 if batch is None else batch
+        if task is None:
+            if "instruction" not in observation:
+                raise LcrlError(
+                    f"give a task id: policy.act(observation, 0); tasks: {self.describe_tasks()}"
+                )
+            texts = observation["instruction"]
+            texts = [texts] if isinstance(texts, str) else list(np.asarray(texts).tolist())
+            ids = []
+            for text in texts:
+                try:
+                    ids.append(self.task_id(str(text)))
+                except LcrlError:
+                    raise LcrlError(
+                        f"the observation's instruction {text!r} is none of this policy's "
+                        f"tasks: reset the env with options={{'instruction': policy.tasks[i]}} "
+                        f"or pass the id; tasks: {self.describe_tasks()}"
+                    ) from None
+        elif isinstance(task, str) or (
+            isinstance(task, (Sequence, np.ndarray))
+            and any(isinstance(t, str) for t in np.asarray(task, object).reshape(-1))
+        ):
+            raise LcrlError(
+                f"this policy was trained with task ids ({describe_env(self.cfg)}): it reads "
+                f"no text; pass a task id (policy.task_id(TEXT) looks one up): "
+                f"{self.describe_tasks()}"
+            )
+        elif isinstance(task, (Sequence, np.ndarray)):
+            arr = np.asarray(task)
+            if arr.ndim == 0:  # a 0-d array: one id
+                arr = arr.reshape(1)
+            if arr.ndim != 1:
+                raise LcrlError(f"task ids must be one id or a list of ids, got shape {arr.shape}")
+            ids = [self._check_task_id(t) for t in arr.tolist()]
+        else:
+            ids = [self._check_task_id(task)]
+        if len(ids) == 1 and rows > 1:
+            ids = ids * rows
+        if len(ids) != rows:
+            what = "one observation" if batch is None else f"a batch of {batch} observations"
+            raise LcrlError(f"{len(ids)} task ids for {what}: give one id, or one per row")
+        return np.asarray(ids, np.int64)
 
     def _first(
         self, initial: Mapping[str, Any] | None, obs: dict[str, np.ndarray], batch: int | None

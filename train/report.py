@@ -8,7 +8,8 @@
 * :func:`write_evaluation` writes what ``lcrl eval --out DIR`` produces: ``eval.json``
   (every figure), ``eval.md``, ``sets.png`` (success per set and family with 95%
   confidence intervals), ``heatmap.png`` (success per family and object), ``chain.png``
-  (chained evaluation) and, when the checkpoint belongs to a run folder, ``curves.png``.
+  (chained evaluation), ``tasks.png`` (success per task of a fixed task set) and, when
+  the checkpoint belongs to a run folder, ``curves.png``.
 * :func:`compare_runs` puts several runs side by side (``lcrl report RUN_A RUN_B --out
   DIR``): ``comparison.md`` (a table) and ``comparison.png`` (overlaid curves).
 
@@ -98,12 +99,19 @@ def task_name(env: dict[str, Any]) -> str:
     kind = env.get("kind", "?")
     if kind == "gym":
         return str(env.get("gym_id", "gym"))
-    language = kind == "lang2d" or (kind == "robosuite" and env.get("goal_type") == "language")
+    goal_type = env.get("goal_type", "language")
+    language = (kind == "lang2d" and goal_type != "task") or (
+        kind == "robosuite" and goal_type == "language"
+    )
     name = kind
     if language:
         name += " " + "/".join(env.get("families", ()))
-    if kind == "robosuite":
-        name += f" ({env.get('goal_type', 'language')} goals)"
+    tasks = env.get("tasks") or ()
+    if tasks:
+        name += f", {len(tasks)} tasks"
+        name += " as task ids" if goal_type == "task" else " as language goals"
+    elif kind == "robosuite":
+        name += f" ({goal_type} goals)"
     return name
 
 
@@ -133,6 +141,18 @@ def final_from_log(run: str | Path) -> dict[str, Any] | None:
             "families": fams,
             "step": int(last["step"]),
         }
+    tasks = config["env"].get("tasks") or ()
+    if tasks and "train" in out:  # a fixed task set: success per task, run round robin
+        n, k = out["train"]["episodes"], len(tasks)
+        out["train"]["tasks"] = [
+            {
+                "id": i,
+                "instruction": t,
+                "success": last.get(f"tasks/{i}", float("nan")),
+                "episodes": n // k + (i < n % k),
+            }
+            for i, t in enumerate(tasks)
+        ]
     return out
 
 
@@ -342,6 +362,36 @@ def _heatmap(sets: dict[str, Any], path: Path, footer: str = "") -> Path | None:
     return path
 
 
+def _task_bars(sets: dict[str, Any], path: Path, footer: str = "") -> Path | None:
+    """Success per task of a fixed task set (one bar per task, Wilson 95% error bars),
+    one panel per set that has tasks; None when no set has."""
+    import numpy as np
+
+    panels = [(n, r["tasks"]) for n, r in sets.items() if r.get("tasks")]
+    if not panels:
+        return None
+    plt = _plt()
+    k = max(len(t) for _, t in panels)
+    fig, axes = plt.subplots(1, len(panels), figsize=(5.5 * len(panels), 0.32 * k + 1.6))
+    for ax, (name, tasks) in zip(np.atleast_1d(axes), panels, strict=True):
+        y = np.arange(len(tasks))
+        vals = [np.nan if t["success"] is None else t["success"] for t in tasks]
+        lo = [0.0 if t["success"] is None else max(0.0, t["success"] - t["ci"][0]) for t in tasks]
+        hi = [0.0 if t["success"] is None else max(0.0, t["ci"][1] - t["success"]) for t in tasks]
+        ax.barh(y, vals, xerr=[lo, hi], capsize=3, color="tab:blue")
+        labels = [f"{t['id']}: {t['instruction']} ({t['episodes']})" for t in tasks]
+        ax.set_yticks(y, labels, fontsize=7)
+        ax.invert_yaxis()
+        ax.set_xlim(0, 1.05)
+        ax.set_xlabel("success rate (95% CI)")
+        ax.set_title(f"success per task, {name} (episodes)", fontsize=9)
+    fig.tight_layout(rect=(0, 0.08 if footer else 0, 1, 1))
+    _footer(fig, footer)
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return path
+
+
 def _chain_plot(sets: dict[str, Any], path: Path, footer: str = "") -> Path | None:
     chains = {n: r["chain"] for n, r in sets.items() if r.get("chain") and r["chain"]["chains"]}
     if not chains:
@@ -423,6 +473,25 @@ def _chain_table(sets: dict[str, Any]) -> list[str]:
     return [*lines, ""]
 
 
+def _tasks_table(sets: dict[str, Any]) -> list[str]:
+    """Success per task of each set that has a fixed task set (none without one)."""
+    lines: list[str] = []
+    for name, r in sets.items():
+        if not r.get("tasks"):
+            continue
+        lines += [
+            f"### {name}",
+            "",
+            _row(["id", "task", "family", "success", "95% CI", "episodes", "steps to success"]),
+            "|---:|---|---|---:|---|---:|---:|",
+        ]
+        for t in r["tasks"]:
+            cells = [t.get("family") or "", _pct(t["success"]), _ci(t), t["episodes"], _steps(t)]
+            lines.append(_row([t["id"], t["instruction"], *cells]))
+        lines.append("")
+    return lines
+
+
 def _breakdown(name: str, r: dict[str, Any]) -> list[str]:
     lines = [
         f"### {name}",
@@ -495,8 +564,20 @@ def evaluation_markdown(doc: dict[str, Any], images: dict[str, str]) -> str:
         "`paraphrase`: seen meanings in unseen phrasings. Intervals are 95% Wilson score "
         "intervals; steps to success are means over the successful episodes."
     )
+    tasks = _tasks_table(doc["sets"])
+    if tasks:
+        k = max(len(r["tasks"]) for r in doc["sets"].values() if r.get("tasks"))
+        lines.append(
+            f"With a fixed task set, `train` is its {k} tasks: episode i runs task i mod {k} "
+            "from the first layout of its reset seed where the task is feasible (the "
+            "layouts of the training loop's evaluation)."
+        )
     if "sets" in images:
         lines += ["", f"![success per set]({images['sets']})"]
+    if tasks:
+        lines += ["", "## Success per task", "", *tasks]
+        if "tasks" in images:
+            lines += [f"![success per task]({images['tasks']})"]
     lines += ["", *_chain_table(doc["sets"])]
     if "chain" in images:
         lines += [f"![chains]({images['chain']})", ""]
@@ -528,6 +609,9 @@ def write_evaluation(doc: dict[str, Any], out: str | Path) -> dict[str, Path]:
     chain = _chain_plot(sets, out / "chain.png", footer)
     if chain is not None:
         paths["chain"] = chain
+    per_task = _task_bars(sets, out / "tasks.png", footer)
+    if per_task is not None:
+        paths["tasks"] = per_task
     if doc.get("run"):
         paths["curves"] = plot_run_curves(doc["run"], out / "curves.png", doc.get("step"), footer)
     json_path = out / "eval.json"
@@ -568,11 +652,11 @@ def write_report(
 
     lines = [f"# Run {run.name}", ""]
     what = task_name(config["env"])
-    buf = config.get("buffer", {})
+    algo = config.get("resolved_algo", config.get("algo", "?"))
     lines.append(
-        f"{what}, {config.get('resolved_algo', config.get('algo', '?'))}, relabelling "
-        f"{buf.get('strategy', '?')} k={buf.get('k', '?')}, "
-        f"{config.get('total_steps', 0):,} steps, seed {config.get('seed', '?')}."
+        f"{what}, {algo}, {learning_summary(config)}, "
+        f"{config.get('total_steps', 0):,} {'updates' if algo == 'bc' else 'steps'}, "
+        f"seed {config.get('seed', '?')}."
     )
     if progress:
         last_step = int(progress[-1]["step"])
@@ -604,6 +688,7 @@ def write_report(
             if "heldout" in final
             else ""
         )
+        lines += _tasks_section(final)
     if progress:
         last = progress[-1]
         speed = last.get("steps_per_s", float("nan"))
@@ -615,6 +700,38 @@ def write_report(
     path = dest / "report.md"
     path.write_text("\n".join(lines) + "\n")
     return path
+
+
+def learning_summary(config: dict[str, Any]) -> str:
+    """How a run learns, from its config: ``behavioural cloning from FILE (hindsight
+    segments on)``, ``task ids, no relabelling``, or the relabelling settings
+    (``relabelling future k=4``)."""
+    algo = config.get("resolved_algo", config.get("algo", "?"))
+    if algo == "bc":
+        hindsight = (config.get("bc") or {}).get("hindsight", True)
+        return (
+            f"behavioural cloning from {config.get('demos') or '?'} "
+            f"(hindsight segments {'on' if hindsight else 'off'})"
+        )
+    if (config.get("env") or {}).get("goal_type") == "task":
+        return "task ids, no relabelling"
+    buf = config.get("buffer", {})
+    return f"relabelling {buf.get('strategy', '?')} k={buf.get('k', '?')}"
+
+
+def _tasks_section(final: dict[str, Any]) -> list[str]:
+    """A table of success per task of a fixed task set (none without one)."""
+    lines: list[str] = []
+    for name, res in final.items():
+        tasks = res.get("tasks")
+        if not tasks:
+            continue
+        lines += ["", f"Success per task ({name}):", "", "| id | task | success | episodes |"]
+        lines.append("|---:|---|---:|---:|")
+        for t in tasks:
+            n = t.get("episodes", "")
+            lines.append(f"| {t['id']} | {t['instruction']} | {_pct(t['success'])} | {n} |")
+    return lines
 
 
 def _evaluations_section(run: Path, dest: Path) -> list[str]:
@@ -638,6 +755,8 @@ def _evaluations_section(run: Path, dest: Path) -> list[str]:
         ]
         if (folder / "sets.png").exists():
             lines += [f"![{folder.name}]({rel}/sets.png)", ""]
+        if (folder / "tasks.png").exists() and any(r.get("tasks") for r in doc["sets"].values()):
+            lines += [f"![{folder.name}: success per task]({rel}/tasks.png)", ""]
     return lines
 
 

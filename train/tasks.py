@@ -16,6 +16,9 @@ writes (achieved goals, or the captioner's labels of what every step achieved).
 * :class:`ImageGoalTask`: goal envs that can draw their desired goal (``goal_image()``):
   the goal is that camera frame, relabelled goals are frames of later steps, and rewards
   come from the privileged state behind them.
+* :class:`TaskIdTask`: a fixed set of ``K`` instructions (``EnvConfig.tasks``) given to the
+  policy as one-hot task ids (``goal_type="task"``): multi-task RL, each task rewarded by
+  its own rule-captioner check, nothing relabelled.
 
 With ``image_obs`` the policy sees the camera image and the robot's proprioception (the
 first ``proprio_dim`` values of ``observation``) instead of the privileged state.
@@ -23,6 +26,7 @@ first ``proprio_dim`` values of ``observation``) instead of the privileged state
 
 from __future__ import annotations
 
+import functools
 from collections.abc import Mapping
 from dataclasses import dataclass, field
 from typing import Any
@@ -32,10 +36,12 @@ import numpy as np
 
 from lcrl.algos import Problem
 from lcrl.errors import LcrlError
-from lcrl.goals import ImageGoals, LabelGoals, StateGoals
+from lcrl.goals import ImageGoals, LabelGoals, StateGoals, TaskGoals
 
 ENV_KINDS = ("lang2d", "state2d", "gym", "robosuite")
-GOAL_TYPES = ("language", "state", "image")
+GOAL_TYPES = ("language", "state", "image", "task")
+#: Layouts tried per episode for a layout in which the episode's task is feasible.
+FEASIBLE_TRIES = 100
 
 
 @dataclass
@@ -47,8 +53,17 @@ class EnvConfig:
     ``robosuite`` (the Panda tabletop; its goals are ``goal_type``) or ``gym`` (any
     registered goal env, e.g. gymnasium-robotics ``FetchReach-v4``)."""
     goal_type: str = "language"
-    """Goals on the robosuite tabletop: ``language`` (instructions), ``state`` (object or
-    gripper positions, see ``goal``) or ``image`` (a camera frame of the goal layout)."""
+    """Goals: ``language`` (instructions), ``task`` (one-hot ids of the ``tasks``: the
+    policy never sees their text; ``lang2d`` and ``robosuite``), and on the robosuite
+    tabletop ``state`` (object or gripper positions, see ``goal``) or ``image`` (a camera
+    frame of the goal layout)."""
+    tasks: tuple[str, ...] = ()
+    """A fixed task set of ``K`` instructions (multi-task RL). Each training episode's task
+    is drawn among them (``agent.multitask.sampling``) in a layout where it is feasible,
+    and evaluation runs them in turn. With ``goal_type=task`` the policy sees a one-hot
+    task id; with ``language`` the instruction table is exactly these instructions (ids
+    ``0 .. K-1``, relabelled among them), so the same tasks run either way. Empty: the
+    split's instructions (language goals)."""
     image_obs: bool = False
     """The policy sees the camera image and the robot's proprioception instead of the
     privileged object state (robosuite and the 2D tabletop)."""
@@ -107,6 +122,7 @@ def make_env(cfg: EnvConfig, split_set: str = "train", training: bool = False) -
         )
     if cfg.goal_type not in GOAL_TYPES:
         raise LcrlError(f"unknown goal_type {cfg.goal_type!r}; choose one of {GOAL_TYPES}")
+    check_tasks(cfg)
     if cfg.kind == "robosuite":
         return _make_robosuite(cfg, split_set, training)
     if cfg.kind == "gym":
@@ -171,13 +187,14 @@ def _make_robosuite(cfg: EnvConfig, split_set: str, training: bool) -> gym.Env:
     kwargs: dict[str, Any] = {"num_objects": (cfg.min_objects, cfg.max_objects), **cfg.extra}
     if cfg.image_obs or cfg.goal_type == "image":
         kwargs.update(image=True, image_size=cfg.image_size)
-    if cfg.goal_type != "language":
+    instructed = cfg.goal_type in ("language", "task")
+    if not instructed:
         goal = {"pusher": "gripper"}.get(cfg.goal, cfg.goal)
         if cfg.goal_type == "image" and goal != "object":
             raise LcrlError("image goals on the robosuite tabletop need goal='object'")
         kwargs["goal"] = goal
     base = _features(RobosuiteTabletopEnv(**kwargs), cfg)
-    if cfg.goal_type != "language":
+    if not instructed:
         return gym.wrappers.TimeLimit(base, cfg.max_episode_steps)
     from captioner.grammar import FAMILIES
     from captioner.lang_env import LanguageGoalWrapper
@@ -198,7 +215,84 @@ def _make_robosuite(cfg: EnvConfig, split_set: str, training: bool) -> gym.Env:
 
 def is_language(cfg: EnvConfig) -> bool:
     """Whether an env config gives language goals."""
+    if cfg.goal_type == "task":
+        return False
     return cfg.kind == "lang2d" or (cfg.kind == "robosuite" and cfg.goal_type == "language")
+
+
+def has_instructions(cfg: EnvConfig) -> bool:
+    """Whether an env config's episodes follow instructions (language goals or task ids
+    over instructions): the env is wrapped by the language-goal wrapper."""
+    return is_language(cfg) or (cfg.goal_type == "task" and cfg.kind in ("lang2d", "robosuite"))
+
+
+def task_texts(cfg: EnvConfig) -> tuple[str, ...]:
+    """The config's task set with whitespace normalised (what the env's observations say)."""
+    return tuple(" ".join(str(t).split()) for t in cfg.tasks)
+
+
+def check_tasks(cfg: EnvConfig) -> None:
+    """Refuse a task set that cannot run: task ids on an env without instructions, an
+    empty task set with task ids, an instruction that does not parse, that is outside the
+    env's families, or that repeats another (in any phrasing)."""
+    if cfg.goal_type == "task" and cfg.kind not in ("lang2d", "robosuite"):
+        raise LcrlError(
+            f"goal_type=task gives one-hot ids of instructions: it needs env.kind lang2d or "
+            f"robosuite, not {cfg.kind!r}"
+        )
+    tasks = task_texts(cfg)
+    if not tasks:
+        if cfg.goal_type == "task":
+            raise LcrlError(
+                "goal_type=task needs a task set: list the K instructions with --env.tasks "
+                "(e.g. --env.tasks 'reach the red cube' 'push the blue cube left'), or use "
+                "the lang2d-tasks preset"
+            )
+        return
+    if not has_instructions(cfg):
+        raise LcrlError(
+            f"env.tasks are instructions: they need language or task goals on lang2d or "
+            f"robosuite, not goal_type {cfg.goal_type!r} on {cfg.kind!r}"
+        )
+    from captioner.grammar import parse
+
+    seen: dict[str, str] = {}
+    for text in tasks:
+        if not text:
+            raise LcrlError("env.tasks holds an empty instruction")
+        meaning = parse(text)
+        if meaning.family not in cfg.families:
+            raise LcrlError(
+                f"task {text!r} is a {meaning.family} instruction, outside env.families "
+                f"{tuple(cfg.families)}: add the family or drop the task"
+            )
+        if meaning.text in seen:
+            raise LcrlError(
+                f"tasks {seen[meaning.text]!r} and {text!r} are the same instruction: list "
+                "each task once"
+            )
+        seen[meaning.text] = text
+
+
+def reset_feasible(
+    env: gym.Env, seed: int, instruction: str, tries: int = FEASIBLE_TRIES
+) -> tuple[dict[str, Any], dict[str, Any]]:
+    """Reset ``env`` with a fixed instruction in the first of ``tries`` layouts where it is
+    feasible: the layout of ``seed``, then layouts of seeds derived from it.
+
+    Raises:
+        LcrlError: the instruction is feasible in none of them.
+    """
+    for k in range(tries):
+        s = seed if k == 0 else int(np.random.SeedSequence([seed, k]).generate_state(1)[0])
+        obs, info = env.reset(seed=s, options={"instruction": instruction})
+        if info.get("feasible", True):
+            return obs, info
+    raise LcrlError(
+        f"task {instruction!r} is feasible in none of {tries} random layouts: check that its "
+        "objects can appear (env.min_objects, env.max_objects) and that it does not hold "
+        "from the start"
+    )
 
 
 def _proprio_dim(env: gym.Env) -> int:
@@ -232,6 +326,8 @@ class Task:
 
     goal_kind = "vector"
     sets: tuple[str, ...] = ("train",)
+    #: Size of the fixed task set whose ids are the goals (0: none).
+    num_tasks: int = 0
 
     def __init__(self, env: gym.Env) -> None:
         self.action_dim, self.discrete = _action_spec(env)
@@ -275,6 +371,7 @@ class Task:
             goal_shape=tuple(goal_shape) if goal_shape else (self.goal_space.embed_dim,),
             action_dim=self.action_dim,
             discrete=self.discrete,
+            num_tasks=self.num_tasks,
         )
 
 
@@ -389,6 +486,9 @@ class LanguageTask(Task):
         table: the instruction table to use (e.g. from a checkpoint); default: the
             split's training instructions of the env's families first, then held-out and
             paraphrase ones.
+        tasks: a fixed task set: the table is exactly these instructions, all of them
+            training instructions (relabelled among themselves), and their ids are task
+            ids (:attr:`num_tasks`).
     """
 
     goal_kind = "text"
@@ -401,8 +501,17 @@ class LanguageTask(Task):
         table: list[str] | None = None,
         num_train: int | None = None,
         image_obs: bool = False,
+        tasks: tuple[str, ...] = (),
     ) -> None:
         super().__init__(env)
+        if tasks:
+            if table is not None and list(table) != list(tasks):
+                raise LcrlError(
+                    "the saved instruction table differs from env.tasks: resume with the "
+                    "run's own config"
+                )
+            table, num_train = list(tasks), len(tasks)
+            self.num_tasks = len(tasks)
         wrapper = find_language_wrapper(env)
         self.wrapper = wrapper
         self.split = wrapper.split
@@ -428,6 +537,10 @@ class LanguageTask(Task):
         self.num_train = int(num_train)
         self.ids = {t: i for i, t in enumerate(self.table)}
         self.train_ids = {t: i for t, i in self.ids.items() if i < self.num_train}
+        # the captioner names achievements in canonical phrasing
+        self.label_ids = dict(self.train_ids)
+        if tasks:
+            self.label_ids = {self.captioner.parse(t).text: i for t, i in self.train_ids.items()}
         self.embed_fn = embed
         self.embeddings = np.asarray(embed(self.table), np.float32)
         space = env.observation_space
@@ -482,7 +595,7 @@ class LanguageTask(Task):
         labels: list[list[int]] = [[]]
         for s in scenes[1:]:
             texts = (ins.text for ins in self.captioner.caption(s0, s))
-            labels.append([self.train_ids[t] for t in texts if t in self.train_ids])
+            labels.append([self.label_ids[t] for t in texts if t in self.label_ids])
         out: dict[str, Any] = {"goal_id": int(goal), "labels": labels}
         if lab is None:
             return out
@@ -506,6 +619,87 @@ class LanguageTask(Task):
         return self.embeddings[np.asarray(goals, np.int64)]
 
 
+class TaskIdTask(Task):
+    """A fixed set of ``K`` instructions given to the policy as one-hot task ids.
+
+    Multi-task RL in the same loop: the env is the language-goal env, each episode is
+    reset with one task's instruction, the policy sees the observation, the episode's
+    first observation and a one-hot id of the task (never its text), and the reward of a
+    step is the task's own reward function ``r_i(s0, s)``: the rule captioner's
+    ``satisfied`` check of task ``i``'s instruction on the privileged scenes. Nothing is
+    relabelled (:class:`lcrl.goals.TaskGoals`).
+
+    Args:
+        env: the wrapped env (:class:`captioner.lang_env.LanguageGoalWrapper` inside).
+        tasks: the ``K`` instructions; task ``i`` is id ``i``.
+        image_obs: the policy sees camera images and proprioception instead.
+    """
+
+    goal_kind = "onehot"
+    sets = ("train",)
+
+    def __init__(self, env: gym.Env, tasks: tuple[str, ...], image_obs: bool = False) -> None:
+        super().__init__(env)
+        if not tasks:
+            raise LcrlError("task ids need at least one task (env.tasks)")
+        wrapper = find_language_wrapper(env)
+        self.wrapper = wrapper
+        self.families = wrapper.families
+        self.captioner = wrapper.captioner
+        self.tasks = list(tasks)
+        self.num_tasks = len(self.tasks)
+        self.meanings = [self.captioner.parse(t) for t in self.tasks]
+        #: ``r_i(s0, s) -> bool``: whether the change from ``s0`` to ``s`` achieves task i.
+        self.reward_fns = [
+            functools.partial(self.captioner.satisfied, meaning) for meaning in self.meanings
+        ]
+        self.ids = {t: i for i, t in enumerate(self.tasks)}
+        self.ids.update({m.text: i for i, m in enumerate(self.meanings)})
+        shape = tuple(env.observation_space["observation"].shape)
+        self.obs_shapes = {"observation": shape, "initial": shape}
+        self._setup_image_obs(env, image_obs)
+        self.goal_space = TaskGoals(self.num_tasks, terminate_on_success=True)
+
+    def storage_obs(
+        self, obs: Mapping[str, Any], first: Mapping[str, Any]
+    ) -> dict[str, np.ndarray]:
+        """The observation and the episode's first observation (or, with image
+        observations, the image and the proprioception)."""
+        if self.image_obs:
+            return self._image_storage(obs)
+        return {
+            "observation": np.asarray(obs["observation"], np.float32),
+            "initial": np.asarray(first["observation"], np.float32),
+        }
+
+    def goal(self, obs: Mapping[str, Any], env: gym.Env) -> int:
+        """The task id of the episode's instruction."""
+        text = obs["instruction"]
+        task = self.ids.get(text)
+        if task is None:
+            task = self.ids.get(self.captioner.parse(text).text)
+        if task is None:
+            raise LcrlError(
+                f"instruction {text!r} is not one of the {self.num_tasks} tasks of this task-id "
+                "policy (env.tasks): reset the env with options={'instruction': TASK}"
+            )
+        return task
+
+    def step_record(self, obs: Mapping[str, Any], env: gym.Env) -> Any:
+        """The privileged scene after each step."""
+        return self.wrapper.env.unwrapped.scene()
+
+    def episode_fields(self, records: list[Any], goal: Any, env: gym.Env) -> dict[str, Any]:
+        """The task id and, per step, whether the episode achieved its own task."""
+        reward = self.reward_fns[int(goal)]
+        s0 = records[0]
+        return {"goal_id": int(goal), "success": [reward(s0, s) for s in records[1:]]}
+
+    def embed_goals(self, goals: np.ndarray) -> np.ndarray:
+        """Task ids as one-hot vectors."""
+        return np.eye(self.num_tasks, dtype=np.float32)[np.asarray(goals, np.int64)]
+
+
 class ScriptedActor:
     """The env's scripted controller as a policy-space actor for training episodes.
 
@@ -519,9 +713,9 @@ class ScriptedActor:
     """
 
     def __init__(self, cfg: EnvConfig, task: Task, noise: float) -> None:
-        if not is_language(cfg):
+        if not has_instructions(cfg):
             raise LcrlError(
-                "scripted episodes need language goals on the 2D tabletop or robosuite "
+                "scripted episodes need language or task goals on the 2D tabletop or robosuite "
                 f"(env kind {cfg.kind!r}, goal type {cfg.goal_type!r} has no scripted controller)"
             )
         if cfg.kind == "lang2d":
@@ -578,9 +772,14 @@ def find_language_wrapper(env: gym.Env) -> Any:
 
 def make_task(cfg: EnvConfig, env: gym.Env, embed: Any = None, **kwargs: Any) -> Task:
     """The task adapter for an env config."""
+    check_tasks(cfg)
+    if cfg.goal_type == "task":
+        return TaskIdTask(env, task_texts(cfg), image_obs=cfg.image_obs)
     if is_language(cfg):
         if embed is None:
             raise LcrlError("language tasks need a text encoder")
+        if cfg.tasks:
+            kwargs["tasks"] = task_texts(cfg)
         return LanguageTask(env, embed, image_obs=cfg.image_obs, **kwargs)
     if cfg.kind == "robosuite" and cfg.goal_type == "image":
         return ImageGoalTask(env, image_obs=cfg.image_obs)

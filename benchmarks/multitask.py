@@ -1,0 +1,367 @@
+"""Multi-task RL on the 2D tabletop: task ids against language goals, with and without PCGrad.
+
+Run from the repository root::
+
+    python benchmarks/multitask.py --parallel   # the 4 runs side by side, 30k steps each
+    python benchmarks/multitask.py --steps 1000 --eval-episodes 16   # a quick check
+    python benchmarks/multitask.py --report-only   # rebuild the results from runs/bench/
+
+The same 8 tasks (``train.config.TASKS_2D``: 4 reach and 4 push instructions of the 2D
+split's training set) are learned four ways, same seed and budget:
+
+``ids``
+    the ``lang2d-tasks`` preset: one-hot task ids, each task rewarded by its own rule
+    captioner check, no relabelling (multi-task RL).
+``ids-pcgrad``
+    the same with PCGrad on the critic and actor gradients.
+``lang``
+    the ``lang2d-tasks-lang`` preset: the same tasks as language goals (frozen text
+    embeddings), relabelled in hindsight among the 8 instructions (language HER).
+``lang-pcgrad``
+    the same with PCGrad.
+
+Every run measures gradient conflict between the tasks every 10 updates (the presets'
+``conflict_every``; PCGrad runs measure it at every update, before projecting), so all
+four report the same statistic: the mean pairwise cosine similarity of the tasks' critic
+and actor gradients and the fraction of task pairs whose gradients conflict (negative dot
+product), averaged over the run.
+
+The table gives, for the final evaluation (episodes run round robin over the tasks, fixed
+layouts), the success of every task and the mean over all episodes with 95% Wilson
+intervals. Results go to ``benchmarks/results/multitask.{json,md,png}``; the runs
+themselves to ``runs/bench/multitask-<run>/`` (not kept in the repository). ``--reuse``
+reads a finished run there instead of training it again when its config is the same.
+"""
+
+from __future__ import annotations
+
+import argparse
+import csv
+import dataclasses
+import json
+import math
+import multiprocessing
+import shutil
+import sys
+import time
+from concurrent.futures import ProcessPoolExecutor
+from pathlib import Path
+from typing import Any
+
+import matplotlib
+
+matplotlib.use("Agg")
+import matplotlib.pyplot as plt
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
+
+from benchmarks.common import RESULTS_DIR, machine, save_figure, save_json, save_markdown
+from benchmarks.learning_curves import reusable
+from train.config import PRESETS, TrainConfig
+from train.eval_suite import wilson_interval
+from train.loop import Trainer
+from train.tasks import task_texts
+
+NAME = "multitask"
+TITLE = "Multi-task RL on the 2D tabletop: 8 tasks as task ids or language goals, PCGrad"
+RUNS: dict[str, tuple[str, bool]] = {
+    "ids": ("lang2d-tasks", False),
+    "ids-pcgrad": ("lang2d-tasks", True),
+    "lang": ("lang2d-tasks-lang", False),
+    "lang-pcgrad": ("lang2d-tasks-lang", True),
+}
+#: Gradient-conflict columns of progress.csv, as (network, statistic, column).
+CONFLICT = [
+    (net, stat, f"grad/{net}_{stat}")
+    for net in ("critic", "actor")
+    for stat in ("cos_mean", "conflict")
+]
+
+
+def run_folder(name: str) -> Path:
+    """Where run ``name`` trains."""
+    return Path("runs/bench") / f"{NAME}-{name}"
+
+
+def run_config(
+    name: str, steps: int | None, seed: int, eval_episodes: int, device: str
+) -> TrainConfig:
+    """The training config of one run. A ``steps`` budget below the presets' learning
+    start and evaluation interval shrinks them to fit (a quick check of the script)."""
+    preset, pcgrad = RUNS[name]
+    cfg: TrainConfig = PRESETS[preset][1]
+    total = steps or cfg.total_steps
+    learning_starts = min(cfg.learning_starts, total // 4)
+    eval_every = cfg.eval_every if total >= 2 * cfg.eval_every else max(total // 2, 1)
+    cfg = dataclasses.replace(
+        cfg,
+        out=str(run_folder(name)),
+        total_steps=total,
+        learning_starts=learning_starts,
+        eval_every=eval_every,
+        eval_episodes=eval_episodes,
+        checkpoint_every=0,
+        save_buffer=False,
+        progress=False,
+        seed=seed,
+    )
+    cfg.agent = dataclasses.replace(
+        cfg.agent,
+        seed=seed,
+        device=device,
+        multitask=dataclasses.replace(cfg.agent.multitask, pcgrad=pcgrad),
+    )
+    return cfg
+
+
+def _one_thread() -> None:
+    import torch
+
+    torch.set_num_threads(1)
+
+
+def train_one(cfg: TrainConfig) -> float:
+    """Train one run from scratch; returns its wall-clock seconds."""
+    shutil.rmtree(cfg.out, ignore_errors=True)
+    t0 = time.perf_counter()
+    Trainer(cfg).run()
+    return time.perf_counter() - t0
+
+
+def _rows(path: Path, until: int) -> list[dict[str, float]]:
+    """A run's CSV log as floats, up to step ``until``."""
+    if not path.exists():
+        return []
+    with path.open() as f:
+        rows = [
+            {k: float(v) if v not in ("", None) else math.nan for k, v in r.items()}
+            for r in csv.DictReader(f)
+        ]
+    return [r for r in rows if r["step"] <= until]
+
+
+def per_task_counts(episodes: int, num_tasks: int) -> list[int]:
+    """Evaluation episodes of each task when ``episodes`` run round robin over the tasks."""
+    return [episodes // num_tasks + (i < episodes % num_tasks) for i in range(num_tasks)]
+
+
+def _interval(successes: int, n: int) -> dict[str, Any]:
+    low, high = wilson_interval(successes, n)
+    return {
+        "success": successes / n if n else math.nan,
+        "successes": successes,
+        "episodes": n,
+        "low": low,
+        "high": high,
+    }
+
+
+def summarise(name: str, cfg: TrainConfig, seconds: float | None) -> dict[str, Any]:
+    """A run's figures from its folder: evaluation curve, final per-task and mean success
+    with Wilson intervals, and the gradient conflict it measured (up to its budget)."""
+    folder = Path(cfg.out)
+    tasks = task_texts(cfg.env)
+    curve = _rows(folder / "eval.csv", cfg.total_steps)
+    if not curve:
+        raise SystemExit(f"no evaluation in {folder}/eval.csv: train the run first")
+    final = curve[-1]
+    counts = per_task_counts(cfg.eval_episodes, len(tasks))
+    per_task = []
+    for i, (text, n) in enumerate(zip(tasks, counts, strict=True)):
+        rate = final.get(f"tasks/{i}", math.nan)
+        k = 0 if math.isnan(rate) else round(rate * n)
+        per_task.append({"id": i, "instruction": text, **_interval(k, n)})
+    total = sum(t["successes"] for t in per_task)
+    progress = _rows(folder / "progress.csv", cfg.total_steps)
+    conflict = {}
+    for _, _, column in CONFLICT:
+        values = [r[column] for r in progress if not math.isnan(r.get(column, math.nan))]
+        conflict[column.removeprefix("grad/")] = float(np.mean(values)) if values else None
+    return {
+        "preset": RUNS[name][0],
+        "goal_type": cfg.env.goal_type,
+        "pcgrad": cfg.agent.multitask.pcgrad,
+        "total_steps": int(final["step"]),
+        "seconds": seconds,
+        "final": {"mean": _interval(total, sum(counts)), "tasks": per_task},
+        "conflict": conflict,
+        "curve": [
+            {k: v for k, v in r.items() if k == "step" or k.startswith(("train/", "tasks/"))}
+            for r in curve
+        ],
+        "conflict_curve": [
+            {"step": r["step"], **{c: r.get(c, math.nan) for _, _, c in CONFLICT}} for r in progress
+        ],
+    }
+
+
+def _keep_timings(results: dict[str, Any]) -> None:
+    """Runs read back (``--report-only``, ``--reuse``) keep the training time that the
+    previous results measured for the same evaluation curve."""
+    path = RESULTS_DIR / f"{NAME}.json"
+    if not path.exists():
+        return
+    old = json.loads(path.read_text()).get("runs", {})
+    for name, res in results.items():
+        prev = old.get(name, {})
+        if res["seconds"] is None and prev.get("seconds") and prev.get("curve") == res["curve"]:
+            res["seconds"] = prev["seconds"]
+
+
+def _cell(st: dict[str, Any]) -> str:
+    return f"{st['success']:.2f} [{st['low']:.2f}, {st['high']:.2f}]"
+
+
+def _num(x: float | None) -> str:
+    return "n/a" if x is None or (isinstance(x, float) and math.isnan(x)) else f"{x:.3f}"
+
+
+def markdown(results: dict[str, Any], tasks: tuple[str, ...], episodes: int) -> str:
+    """The two tables: runs (mean success, conflict, time) and success per task."""
+    lines = [
+        "| run | goals | PCGrad | steps | mean success [95% CI] | critic cos | critic conflict "
+        "| actor cos | actor conflict | time |",
+        "|---|---|---|---:|---|---:|---:|---:|---:|---:|",
+    ]
+    for name, r in results.items():
+        c = r["conflict"]
+        goals = "task ids" if r["goal_type"] == "task" else "language (HER)"
+        secs = f"{r['seconds']:.0f} s" if r.get("seconds") else "n/a"
+        lines.append(
+            f"| {name} | {goals} | {'yes' if r['pcgrad'] else 'no'} | {r['total_steps']:,} | "
+            f"{_cell(r['final']['mean'])} | {_num(c['critic_cos_mean'])} | "
+            f"{_num(c['critic_conflict'])} | {_num(c['actor_cos_mean'])} | "
+            f"{_num(c['actor_conflict'])} | {secs} |"
+        )
+    lines += [
+        "",
+        "Mean success: all final evaluation episodes "
+        f"({episodes}, round robin over the {len(tasks)} tasks, fixed layouts). cos: mean "
+        "pairwise cosine similarity of the tasks' gradients; conflict: fraction of task pairs "
+        "with a negative dot product; both averaged over the run's measurements (before any "
+        "PCGrad projection).",
+        "",
+        "| task | " + " | ".join(results) + " |",
+        "|---|" + "---|" * len(results),
+    ]
+    for i, text in enumerate(tasks):
+        cells = [_cell(r["final"]["tasks"][i]) for r in results.values()]
+        lines.append(f"| {i}: {text} | " + " | ".join(cells) + " |")
+    lines += ["", "Success per task with 95% Wilson intervals over that task's episodes."]
+    return "\n".join(lines)
+
+
+def figure(results: dict[str, Any], tasks: tuple[str, ...], info: dict[str, Any]) -> Path:
+    """Evaluation curves, final success per task, gradient conflict over training."""
+    fig, axes = plt.subplots(1, 3, figsize=(15, 4.6), gridspec_kw={"width_ratios": [1, 1.6, 1]})
+    colours = plt.rcParams["axes.prop_cycle"].by_key()["color"]
+    width = 0.8 / max(len(results), 1)
+    x = np.arange(len(tasks))
+    for k, (name, r) in enumerate(results.items()):
+        colour = colours[k % len(colours)]
+        ax = axes[0]
+        steps = [c["step"] for c in r["curve"]]
+        ax.plot(
+            steps,
+            [c["train/success"] for c in r["curve"]],
+            marker="o",
+            ms=3,
+            color=colour,
+            label=name,
+        )
+        per = r["final"]["tasks"]
+        ys = np.array([t["success"] for t in per])
+        err = np.array(
+            [[t["success"] - t["low"] for t in per], [t["high"] - t["success"] for t in per]]
+        )
+        offset = (k - (len(results) - 1) / 2) * width
+        axes[1].bar(x + offset, ys, width, yerr=err, capsize=2, color=colour, label=name)
+        cc = r["conflict_curve"]
+        steps = [c["step"] for c in cc]
+        critic = [c["grad/critic_conflict"] for c in cc]
+        actor = [c["grad/actor_conflict"] for c in cc]
+        axes[2].plot(steps, critic, marker="o", ms=3, color=colour, label=f"{name} critic")
+        axes[2].plot(steps, actor, "--", marker="x", ms=3, color=colour, label=f"{name} actor")
+    axes[0].set_title("evaluation, mean over tasks", fontsize=9)
+    axes[0].set_xlabel("environment steps")
+    axes[0].set_ylabel("success rate")
+    axes[1].set_title("final success per task (95% Wilson)", fontsize=9)
+    labels = [f"{i}: {t}" for i, t in enumerate(tasks)]
+    axes[1].set_xticks(x, labels, rotation=30, ha="right", fontsize=7)
+    axes[2].set_title("fraction of conflicting task pairs", fontsize=9)
+    axes[2].set_xlabel("environment steps")
+    for ax in axes:
+        ax.set_ylim(-0.02, 1.02)
+        ax.legend(fontsize=6)
+    fig.suptitle(TITLE, fontsize=10)
+    fig.tight_layout(rect=(0, 0.06, 1, 1))
+    return save_figure(NAME, fig, info)
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    parser.add_argument("--steps", type=int, default=None, help="override the step budget")
+    parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--eval-episodes", type=int, default=160, help="per evaluation")
+    parser.add_argument("--device", default="cpu", help="cpu, cuda or cuda:N")
+    parser.add_argument(
+        "--runs", nargs="+", choices=sorted(RUNS), default=list(RUNS), help="a subset of runs"
+    )
+    parser.add_argument(
+        "--parallel",
+        action="store_true",
+        help="train the runs side by side, one process and one thread each",
+    )
+    parser.add_argument(
+        "--reuse",
+        action="store_true",
+        help="read a finished run with the same config in runs/bench/multitask-<run> (cut at "
+        "this budget) instead of training it again",
+    )
+    parser.add_argument(
+        "--report-only",
+        action="store_true",
+        help="train nothing: rebuild the results from the runs in runs/bench/",
+    )
+    args = parser.parse_args(argv)
+    info = machine()
+    configs = {
+        name: run_config(name, args.steps, args.seed, args.eval_episodes, args.device)
+        for name in args.runs
+    }
+    seconds: dict[str, float | None] = {}
+    todo = {}
+    for name, cfg in configs.items():
+        if args.report_only:
+            seconds[name] = None
+        elif args.reuse and reusable(cfg, run_folder(name)) is not None:
+            print(f"== {name}: reusing {run_folder(name)}")
+            seconds[name] = None
+        else:
+            todo[name] = cfg
+    if args.parallel and len(todo) > 1:
+        info["torch_threads"] = 1
+        ctx = multiprocessing.get_context("spawn")
+        with ProcessPoolExecutor(len(todo), mp_context=ctx, initializer=_one_thread) as pool:
+            futures = {name: pool.submit(train_one, cfg) for name, cfg in todo.items()}
+            seconds.update({name: f.result() for name, f in futures.items()})
+    else:
+        for name, cfg in todo.items():
+            print(f"== {name}: {RUNS[name][0]}{' + PCGrad' if RUNS[name][1] else ''}", flush=True)
+            seconds[name] = train_one(cfg)
+    results = {name: summarise(name, configs[name], seconds[name]) for name in args.runs}
+    _keep_timings(results)
+    any_cfg = next(iter(configs.values()))
+    tasks = task_texts(any_cfg.env)
+    save_json(NAME, {"suite": NAME, "machine": info, "tasks": list(tasks), "runs": results})
+    table = markdown(results, tasks, any_cfg.eval_episodes)
+    print(table)
+    save_markdown(NAME, TITLE, table, info)
+    figure(results, tasks, info)
+    print(f"saved benchmarks/results/{NAME}.{{json,md,png}}")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
