@@ -55,10 +55,11 @@ from train.loop import (
     _tensorboard,
     checkpoint_meta,
     eval_row,
+    finish_run,
     open_run,
     prune_checkpoints,
+    save_interrupted,
 )
-from train.report import write_report
 from train.tasks import make_env, make_task
 
 #: What to do when no demonstration file is given.
@@ -259,20 +260,10 @@ class BCTrainer:
                     self._stream = None
         except KeyboardInterrupt:
             bar.close()
-            path = self.save()
-            print(f"interrupted at update {self.step}: saved {path}; continue with --resume")
-            self.close()
+            save_interrupted(self, "update")
             raise
         bar.close()
-        if self._last_logged != self.step:
-            self._log()
-        results = self.evaluate()
-        path = self.save()
-        report = write_report(self.out, results)
-        print(f"final checkpoint: {path}")
-        print(f"report: {report}")
-        self.close()
-        return results
+        return finish_run(self)
 
     def close(self) -> None:
         """Close the batch stream, the demonstration file, the env and TensorBoard."""

@@ -144,6 +144,28 @@ def prune_checkpoints(out: Path, keep: int) -> None:
         shutil.rmtree(old, ignore_errors=True)
 
 
+def save_interrupted(run: Any, unit: str) -> None:
+    """Ctrl-C: checkpoint the run (``Trainer`` or ``BCTrainer``), say how to continue it,
+    and close it."""
+    path = run.save()
+    print(f"interrupted at {unit} {run.step}: saved {path}; continue with --resume")
+    run.close()
+
+
+def finish_run(run: Any) -> dict[str, Any]:
+    """The end of a run (``Trainer`` or ``BCTrainer``): the last progress row, the final
+    evaluation, a checkpoint and the report; returns the evaluation."""
+    if run._last_logged != run.step:
+        run._log()
+    results = run.evaluate()
+    path = run.save()
+    report = write_report(run.out, results)
+    print(f"final checkpoint: {path}")
+    print(f"report: {report}")
+    run.close()
+    return results
+
+
 class Trainer:
     """Builds everything a run needs from a :class:`TrainConfig` and runs it.
 
@@ -268,20 +290,10 @@ class Trainer:
                 bar.set_postfix_str(self._postfix(), refresh=False)
         except KeyboardInterrupt:
             bar.close()
-            path = self.save()
-            print(f"interrupted at step {self.step}: saved {path}; continue with --resume")
-            self.close()
+            save_interrupted(self, "step")
             raise
         bar.close()
-        if self._last_logged != self.step:
-            self._log()
-        results = self.evaluate()
-        path = self.save()
-        report = write_report(self.out, results)
-        print(f"final checkpoint: {path}")
-        print(f"report: {report}")
-        self.close()
-        return results
+        return finish_run(self)
 
     def close(self) -> None:
         """Close the TensorBoard writer."""

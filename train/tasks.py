@@ -660,17 +660,8 @@ class TaskIdTask(Task):
         self._setup_image_obs(env, image_obs)
         self.goal_space = TaskGoals(self.num_tasks, terminate_on_success=True)
 
-    def storage_obs(
-        self, obs: Mapping[str, Any], first: Mapping[str, Any]
-    ) -> dict[str, np.ndarray]:
-        """The observation and the episode's first observation (or, with image
-        observations, the image and the proprioception)."""
-        if self.image_obs:
-            return self._image_storage(obs)
-        return {
-            "observation": np.asarray(obs["observation"], np.float32),
-            "initial": np.asarray(first["observation"], np.float32),
-        }
+    #: the observation and the episode's first one, as language goals store them
+    storage_obs = LanguageTask.storage_obs
 
     def goal(self, obs: Mapping[str, Any], env: gym.Env) -> int:
         """The task id of the episode's instruction."""
