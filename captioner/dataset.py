@@ -39,7 +39,7 @@ import os
 from collections.abc import Iterator, Sequence
 from dataclasses import asdict, dataclass
 from pathlib import Path
-from typing import Any
+from typing import Any, Protocol
 
 import numpy as np
 
@@ -470,13 +470,33 @@ def _choose(
     return ok[int(rng.integers(len(ok)))]
 
 
-def collect(cfg: CollectConfig) -> Path:
+class EpisodeSource(Protocol):
+    """Something that acts whole labelled episodes (a trained policy: see
+    :class:`train.captions.PolicyEpisodes`)."""
+
+    def episode(self, cfg: CollectConfig, seed: int, writer: CaptionDatasetWriter) -> dict:
+        """One episode from reset seed ``seed``: ``frames``, ``proprio``, ``labels`` (ids
+        of ``writer``), ``source`` and ``instruction`` (an id, or -1)."""
+        ...
+
+
+def collect(cfg: CollectConfig, policy: EpisodeSource | None = None) -> Path:
     """Collect ``cfg.episodes`` labelled episodes into ``cfg.out``; returns the path.
+
+    Args:
+        cfg: what to collect.
+        policy: acts the ``policy`` episodes (``lcrl caption collect`` loads
+            ``cfg.policy`` with :func:`train.captions.collect`).
 
     Ctrl-C stops collecting and keeps the episodes finished so far (the file is
     completed before the interrupt is raised again).
     """
     cfg.validate()
+    if "policy" in cfg.sources and policy is None:
+        raise LcrlError(
+            "policy episodes need a trained policy to act them: collect them with "
+            "lcrl caption collect --policy CHECKPOINT (train.captions.collect)"
+        )
     from tqdm import tqdm
 
     from captioner.grammar import parse
@@ -488,9 +508,6 @@ def collect(cfg: CollectConfig) -> Path:
     texts = [texts[i] for i in keep]
     sets = [sets[i] for i in keep]
     table = [parse(t) for t in texts]
-    policy = None
-    if "policy" in cfg.sources:
-        policy = _load_policy(cfg)
     src = _Source(cfg, families)
     rng = np.random.default_rng(cfg.seed)
     meta = {
@@ -518,7 +535,7 @@ def collect(cfg: CollectConfig) -> Path:
             kind = cfg.sources[e % len(cfg.sources)]
             seed = int(cfg.seed * 1_000_003 + e)
             if kind == "policy":
-                ep = _policy_episode(policy, cfg, seed, writer)
+                ep = policy.episode(cfg, seed, writer)
             else:
                 ep, _ = _episode(src, kind, cfg, seed, rng, table, sets, writer)
             writer.add_episode(**ep)
@@ -596,53 +613,6 @@ def _episode(
         "instruction": target,
     }
     return episode, scenes
-
-
-def _load_policy(cfg: CollectConfig) -> Any:
-    from train.evaluate import load_policy
-
-    p = load_policy(cfg.policy)
-    kind = p.cfg.env.kind
-    if kind != cfg.env or p.cfg.env.image_obs:
-        raise LcrlError(
-            f"the policy was trained on {kind!r}{' from images' if p.cfg.env.image_obs else ''}; "
-            f"policy episodes need a privileged-state {cfg.env!r} policy"
-        )
-    extra = {**p.cfg.env.extra, "image": True, "image_size": cfg.image_size}
-    return load_policy(cfg.policy, env_overrides={"extra": extra})
-
-
-def _policy_episode(p: Any, cfg: CollectConfig, seed: int, writer: CaptionDatasetWriter) -> dict:
-    from train.tasks import find_language_wrapper
-
-    env, task, agent = p.env, p.task, p.agent
-    obs, _ = env.reset(seed=seed)
-    first = obs
-    goal = np.asarray([task.goal(obs, env)])
-    base = env.unwrapped
-    dim = int(base.slot_layout[0])
-    wrapper = find_language_wrapper(env)
-    s0 = base.scene()
-    # the agent values lead the observation, unchanged by the slot feature wrappers
-    frames, proprio, scenes = [obs["image"]], [_proprio(obs, dim)], [s0]
-    for _ in range(cfg.max_episode_steps):
-        st = {k: v[None] for k, v in task.storage_obs(obs, first).items()}
-        a = agent.act(st, goal)[0]
-        obs, _, terminated, truncated, _ = env.step(task.scale_action(a))
-        frames.append(obs["image"])
-        proprio.append(_proprio(obs, dim))
-        scenes.append(base.scene())
-        if terminated or truncated:
-            break
-    labels = [writer.ids([i.text for i in wrapper.captioner.caption(s0, s)]) for s in scenes]
-    ids = writer.ids([wrapper.meaning.text])
-    return {
-        "frames": np.stack(frames),
-        "proprio": np.stack(proprio),
-        "labels": labels,
-        "source": "policy",
-        "instruction": ids[0] if ids else -1,
-    }
 
 
 def iter_pairs(

@@ -548,8 +548,8 @@ def test_compare_runs(lang_run, state_run, tmp_path, capsys):
     # both runs are called "run": their parent folders tell them apart
     la, lb = "copy/run", f"{state_run.parent.name}/run"
     rate = r"\d\.\d\d"
-    row_a = rf"^\| {la} \| lang2d reach \| sac \| 300 \| {rate} \| {rate} \| {rate} \|  \|$"
-    row_b = rf"^\| {lb} \| state2d \| sac \| 200 \|  \|  \|  \| {rate} \|$"
+    row_a = rf"^\| {la} \| 2D tabletop reach \| sac \| 300 \| {rate} \| {rate} \| {rate} \|  \|$"
+    row_b = rf"^\| {lb} \| 2D tabletop \(state goals\) \| sac \| 200 \|  \|  \|  \| {rate} \|$"
     assert re.search(row_a, md, re.M) and re.search(row_b, md, re.M)
     assert "| run | task | algo | steps | train (last eval) |" in md
     # the lcrl eval figures: the copy's heldout evaluation, nothing for the state run

@@ -29,7 +29,7 @@ from lcrl.errors import LcrlError
 from train.act import ActSession
 from train.config import PRESETS, TASKS_2D, config_to_dict
 from train.eval_suite import episode_seed, run_evaluation
-from train.evaluate import evaluate_tasks, load_policy, run_episode
+from train.evaluate import evaluate, load_policy, run_episode
 from train.loop import Trainer
 from train.policy import Policy
 from train.report import learning_summary, write_report
@@ -129,7 +129,7 @@ def test_task_layouts_are_those_of_the_training_evaluation(loaded):
     envs) equals that of the training loop's round-robin evaluation, layout for layout."""
     oracle = TaskOracle(loaded.task, loaded.env)
     n = 2 * K
-    loop = evaluate_tasks(oracle, loaded.task, loaded.cfg, n, seed=3)
+    loop = evaluate(oracle, loaded.task, loaded.cfg, n, seed=3)["train"]
     suite = run_evaluation(oracle, loaded.task, loaded.cfg, n, seed=3, num_envs=3)["train"]
     assert [t["success"] for t in suite["tasks"]] == pytest.approx(
         [t["success"] for t in loop["tasks"]]
@@ -150,7 +150,7 @@ def test_cli_eval_task_ids_writes_the_report_format(task_run, capsys):
     assert "task 7 'push the yellow cube backward'" in printed
     doc = json.loads((out / "eval.json").read_text())
     assert doc["format"] == "lcrl-eval" and list(doc["sets"]) == ["train"]
-    assert doc["task"] == "lang2d, 8 tasks as task ids"
+    assert doc["task"] == "2D tabletop, 8 tasks as task ids"
     assert doc["settings"]["tasks"] == list(TASKS_2D)
     assert [t["episodes"] for t in doc["sets"]["train"]["tasks"]] == [2] * 4 + [1] * 4
     for name in ("sets.png", "tasks.png", "heatmap.png", "curves.png", "eval.md"):
@@ -160,7 +160,7 @@ def test_cli_eval_task_ids_writes_the_report_format(task_run, capsys):
     assert "| 7 | push the yellow cube backward | push |" in md
     assert cli("report", str(task_run)) == 0
     report = (task_run / "report.md").read_text()
-    assert "lang2d, 8 tasks as task ids, sac, task ids, no relabelling, 200 steps" in report
+    assert "2D tabletop, 8 tasks as task ids, sac, task ids, no relabelling, 200 steps" in report
     assert "### final (checkpoint step 200)" in report
     assert "![final: success per task](evals/final/tasks.png)" in report
 
@@ -352,6 +352,6 @@ def test_report_summary_lines(tmp_path):
     assert "(hindsight segments off)" in learning_summary(config_to_dict(bc))
     tasks = config_to_dict(PRESETS["lang2d-tasks"][1])
     line = _run_with(tmp_path, "tasks", {**tasks, "resolved_algo": "sac"})
-    assert line.startswith("lang2d, 8 tasks as task ids, sac, task ids, no relabelling,")
+    assert line.startswith("2D tabletop, 8 tasks as task ids, sac, task ids, no relabelling,")
     lang = config_to_dict(PRESETS["lang2d-tasks-lang"][1])
     assert learning_summary({**lang, "resolved_algo": "sac"}) == "relabelling future k=4"

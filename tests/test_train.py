@@ -100,7 +100,7 @@ def test_lang2d_run_writes_all_outputs(lang_run):
 
     config = json.loads((out / "config.json").read_text())
     assert config["resolved_algo"] == "sac"
-    assert config["total_steps"] == 300 and config["env"]["kind"] == "lang2d"
+    assert config["total_steps"] == 300 and config["env"]["kind"] == "tabletop2d"
 
     fields, rows = read_csv(out / "progress.csv")
     assert {"step", "episodes", "success", "buffer", "updates"} <= set(fields)
@@ -480,5 +480,5 @@ def test_scripted_episode_settings_are_checked(text_encoder, tmp_path):
         Trainer(tiny("lang2d", tmp_path / "a", scripted_fraction=1.5))
     with pytest.raises(LcrlError, match="scripted_noise"):
         Trainer(tiny("lang2d", tmp_path / "b", scripted_fraction=0.5, scripted_noise=-1.0))
-    with pytest.raises(LcrlError, match="no scripted controller"):
+    with pytest.raises(LcrlError, match="scripted controller"):
         Trainer(tiny("state2d", tmp_path / "c", scripted_fraction=0.5))

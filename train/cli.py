@@ -443,8 +443,9 @@ class CaptionEvalCommand:
 
 
 def _caption(argv: Sequence[str]) -> None:
-    from captioner.dataset import CaptionDataset, CollectConfig, collect
+    from captioner.dataset import CaptionDataset, CollectConfig
     from captioner.learned import CaptionTrainConfig, train_models
+    from train.captions import collect
 
     cfg = tyro.extras.subcommand_cli_from_dict(
         {"collect": CollectConfig, "train": CaptionTrainConfig, "eval": CaptionEvalCommand},

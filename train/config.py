@@ -17,7 +17,7 @@ from lcrl.goals import STRATEGIES, TASK_RELABEL_ERROR
 from lcrl.multitask import MultiTaskOptions
 from lcrl.nets import NetConfig, check_task_heads
 from lcrl.text_encoder import TextEncoderConfig
-from train.tasks import EnvConfig, check_tasks, is_language
+from train.tasks import EnvConfig, check_tasks, goal_modality
 
 
 @dataclass
@@ -212,10 +212,10 @@ class TrainConfig:
         only over task ids, the multitask options (before any env is built)."""
         env = self.env
         check_tasks(env)
-        if env.goal_type == "task" and (self.buffer.k > 0 or self.buffer.random_fraction > 0):
+        modality = goal_modality(env.goal_type)
+        if not modality.relabel and (self.buffer.k > 0 or self.buffer.random_fraction > 0):
             raise LcrlError(TASK_RELABEL_ERROR)
-        kind = "onehot" if env.goal_type == "task" else "text" if is_language(env) else "vector"
-        check_task_heads(self.agent.net, kind, (len(env.tasks),))
+        check_task_heads(self.agent.net, modality.task.goal_kind, (len(env.tasks),))
         mt = self.agent.multitask
         mt.validate(len(env.tasks))
         if mt.active and self.algo in ("td3", "dqn", "bc"):
@@ -251,6 +251,10 @@ def config_from_dict(d: dict[str, Any]) -> TrainConfig:
                 kwargs[name] = value
         return cls(**kwargs)
 
+    env = d.get("env")
+    if isinstance(env, dict) and env.get("kind") == "gym" and env.get("goal_type") == "language":
+        # Saved when gym envs ignored the goal type: they always had state goals.
+        d = {**d, "env": {**env, "goal_type": "state"}}
     agent = d.get("agent")
     if isinstance(agent, dict) and "text_goal_norm" not in agent:
         # Saved before the option existed: those weights read standardised text goals.
@@ -284,7 +288,7 @@ def _env2d(**fields: Any) -> EnvConfig:
     the pusher and displacements since the reset (what reach and push are judged on)."""
     values: dict[str, Any] = {"families": ("reach", "push")}
     values.update(fields)
-    return EnvConfig(kind="lang2d", relative_positions=True, displacements=True, **values)
+    return EnvConfig(kind="tabletop2d", relative_positions=True, displacements=True, **values)
 
 
 def _net2d(**fields: Any) -> AgentOptions:
@@ -401,7 +405,7 @@ PRESETS: dict[str, tuple[str, TrainConfig]] = {
         "2D tabletop with state goals (pusher position), SAC + HER",
         TrainConfig(
             out="runs/state2d",
-            env=EnvConfig(kind="state2d", goal="pusher"),
+            env=EnvConfig(kind="tabletop2d", goal_type="state", goal="pusher"),
             total_steps=20_000,
             eval_every=5_000,
         ),
@@ -474,7 +478,7 @@ PRESETS: dict[str, tuple[str, TrainConfig]] = {
         "gymnasium-robotics FetchReach-v4 (state goals), SAC + HER, 10k steps",
         TrainConfig(
             out="runs/fetch-reach",
-            env=EnvConfig(kind="gym", gym_id="FetchReach-v4"),
+            env=EnvConfig(kind="gym", goal_type="state", gym_id="FetchReach-v4"),
             sac=SACConfig(gamma=0.95),
             total_steps=10_000,
             learning_starts=1_000,

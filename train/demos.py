@@ -197,8 +197,8 @@ class RecordConfig:
 
     def env_config(self) -> Any:
         """The recorded env config: the preset's, with this command's overrides."""
-        from captioner.grammar import FAMILIES, FAMILIES_2D
         from train.config import PRESETS
+        from train.environments import env_spec
         from train.tasks import is_language
 
         if self.preset not in PRESETS:
@@ -213,7 +213,7 @@ class RecordConfig:
             )
         changes: dict[str, Any] = {}
         if self.families:
-            allowed = FAMILIES_2D if env.kind == "lang2d" else FAMILIES
+            allowed = env_spec(env.kind).families
             bad = [f for f in self.families if f not in allowed]
             if bad:
                 raise LcrlError(f"the {env.kind} env has the families {allowed}, not {bad}")
@@ -440,16 +440,17 @@ def _record_episode(
 
 def _split_of(meta: Mapping[str, Any], path: Path) -> Any:
     """The compositional split a dataset was recorded with (from its meta)."""
-    from captioner.grammar import FAMILIES, FAMILIES_2D
     from captioner.splits import make_split
+    from train.environments import ENVS, canonical_kind
 
     env = meta.get("env")
-    if not isinstance(env, dict) or env.get("kind") not in ("lang2d", "robosuite"):
+    kind = canonical_kind(str(env.get("kind"))) if isinstance(env, dict) else ""
+    if kind not in ENVS or not ENVS[kind].families:
         raise LcrlError(
             f"{path} does not say which tabletop it was recorded on (no env in its meta): "
             "relabel needs a file written by lcrl demos record"
         )
-    families = meta.get("split_families") or (FAMILIES_2D if env["kind"] == "lang2d" else FAMILIES)
+    families = meta.get("split_families") or ENVS[kind].families
     split = make_split(int(meta.get("split_seed", env.get("split_seed", 0))), tuple(families))
     want = meta.get("split_fingerprint")
     if want and split.fingerprint() != want:

@@ -46,19 +46,18 @@ import numpy as np
 
 from lcrl.errors import LcrlError
 from train.config import TrainConfig
-from train.evaluate import EVAL_SEED_OFFSET
+from train.environments import env_spec
 from train.tasks import (
     FEASIBLE_TRIES,
-    ImageGoalTask,
-    LanguageTask,
     Task,
-    TaskIdTask,
     find_language_wrapper,
     make_env,
     reset_feasible,
     task_texts,
 )
 
+#: Reset seed of the first evaluation episode (seed 0): far from the training episodes' seeds.
+EVAL_SEED_OFFSET = 7_777_777
 #: Rows of every forward pass of the policy during evaluation (smaller batches are padded,
 #: larger ones split). A row's result then never depends on how many envs run together:
 #: matrix kernels pick their blocking by batch size, which changes the last bits.
@@ -264,7 +263,8 @@ class EvalEpisodes(gym.Wrapper):
         chain: instructions per episode at most (1: no chaining).
         pool: sentences to draw the next instruction of a chain from (default: the
             wrapper's instruction set).
-        goal_image: put the env's goal frame in ``info["goal"]`` at each start.
+        start_info: ``env -> goal information`` put in ``info["goal"]`` at each start
+            (:meth:`train.tasks.Task.start_info`: the goal frame of image goals).
     """
 
     def __init__(
@@ -275,7 +275,7 @@ class EvalEpisodes(gym.Wrapper):
         max_steps: int,
         chain: int = 1,
         pool: Sequence[str] | None = None,
-        goal_image: bool = False,
+        start_info: Callable[[gym.Env], Any] | None = None,
     ) -> None:
         if language and isinstance(env, gym.wrappers.TimeLimit):
             env = env.env  # the budget is counted here, per instruction
@@ -285,7 +285,7 @@ class EvalEpisodes(gym.Wrapper):
         self.max_steps = int(max_steps)
         self.chain = max(1, int(chain))
         self.pool = list(pool) if pool is not None else None
-        self.goal_image = goal_image
+        self.start_info = start_info
         self.lang = find_language_wrapper(env) if language else None
         self.features = _features_wrapper(env) if language else None
         self._next = 0
@@ -348,8 +348,10 @@ class EvalEpisodes(gym.Wrapper):
         self._attempt_steps = 0
         self._success_since = None
         info["start"] = True
-        if self.goal_image:
-            info["goal"] = np.asarray(self.env.unwrapped.goal_image(), np.uint8)
+        if self.start_info is not None:
+            goal = self.start_info(self.env)
+            if goal is not None:
+                info["goal"] = goal
         spec = self._spec
         if self.language:
             if spec.checked:
@@ -469,7 +471,8 @@ def _vector_kind(kind: str, cfg: TrainConfig, num_envs: int) -> str:
         return kind
     # the 2D tabletop and gymnasium-robotics envs step in microseconds: processes would
     # only add messaging; a robosuite step (physics and cameras) takes milliseconds
-    return "async" if num_envs > 1 and cfg.env.kind == "robosuite" else "sync"
+    slow = env_spec(cfg.env.kind).step_cost == "slow"
+    return "async" if num_envs > 1 and slow else "sync"
 
 
 class PolicyRunner:
@@ -483,7 +486,7 @@ class PolicyRunner:
 
     def __init__(self, agent: Any, task: Task, vectors: dict[str, np.ndarray] | None) -> None:
         self.agent, self.task, self.vectors = agent, task, vectors or {}
-        self.language = isinstance(task, LanguageTask)
+        self.language = bool(task.text_goals)
 
     def goal(self, obs: dict[str, Any], info_goal: Any) -> Any:
         """The goal of one env's current instruction or episode."""
@@ -492,9 +495,7 @@ class PolicyRunner:
             if text not in self.vectors:
                 raise LcrlError(f"no goal embedding for instruction {text!r}")
             return self.vectors[text]
-        if isinstance(self.task, ImageGoalTask):
-            return info_goal
-        return self.task.goal(obs, None)
+        return self.task.eval_goal(obs, info_goal)
 
     def act(self, obs: list[dict[str, np.ndarray]], goals: list[Any]) -> np.ndarray:
         """Deterministic actions (policy space) for the given rows."""
@@ -545,10 +546,10 @@ def run_set(
     """
     if not specs:
         return []
-    language = isinstance(task, (LanguageTask, TaskIdTask))  # instructions (or task ids of them)
+    language = task.instructed  # instructions (or task ids of them)
     n = max(1, min(int(num_envs), len(specs)))
     shares = [list(specs[j::n]) for j in range(n)]
-    image = isinstance(task, ImageGoalTask)
+    start_info = type(task).start_info
     env_cfg = cfg.env
 
     def factory(share: list[EpisodeSpec]) -> Callable[[], gym.Env]:
@@ -560,7 +561,7 @@ def run_set(
                 env_cfg.max_episode_steps,
                 chain=chain,
                 pool=pool,
-                goal_image=image,
+                start_info=start_info,
             )
 
         return make
@@ -748,7 +749,7 @@ def chain_stats(results: Sequence[EpisodeResult], chain: int) -> dict[str, Any]:
 def goal_vectors(task: Task, texts: Sequence[str]) -> dict[str, np.ndarray]:
     """Goal embeddings of ``texts``: the checkpoint's table row where the text is in it
     (what training saw), else the frozen encoder's embedding (one batch, in order)."""
-    if not isinstance(task, LanguageTask):
+    if not task.text_goals:
         return {}
     out = {t: task.embeddings[task.ids[t]] for t in texts if t in task.ids}
     missing = [t for t in dict.fromkeys(texts) if t not in out]
@@ -758,7 +759,7 @@ def goal_vectors(task: Task, texts: Sequence[str]) -> dict[str, np.ndarray]:
     return out
 
 
-def _set_texts(task: LanguageTask, name: str) -> list[str]:
+def _set_texts(task: Task, name: str) -> list[str]:
     """Sentences of one set that the task's env can draw (its families)."""
     split = task.wrapper.split
     pairs = zip(split.texts(name), split.instructions(name), strict=True)
@@ -805,9 +806,9 @@ def run_evaluation(
         LcrlError: bad counts, unknown sets, chains or instruction files on a task
             without language goals (task ids included).
     """
-    language = isinstance(task, LanguageTask)
+    language = task.text_goals
     tasks = list(task_texts(cfg.env))
-    if isinstance(task, TaskIdTask):
+    if task.instructed and not language:
         check_task_id_options(len(tasks), sets, bool(instructions), chain)
     if episodes <= 0:
         raise LcrlError("the number of episodes must be positive")
@@ -876,7 +877,7 @@ def run_evaluation(
                 pool=pool,
                 on_episode=(lambda _r: bar.update(1)) if bar is not None else None,
             )
-            key = name if language or isinstance(task, TaskIdTask) else "all"
+            key = name if task.instructed else "all"
             out[key] = summarise(results, chain, tasks if tasks and name == "train" else ())
             if name == CUSTOM_SET:
                 out[key]["file_instructions"] = [asdict(x) for x in instructions or ()]

@@ -3,13 +3,15 @@
 ``evaluate`` runs deterministic episodes on every instruction set of a task (seen
 instructions ``train``, held-out word combinations ``heldout``, unseen phrasings
 ``paraphrase``; state-goal tasks have one set) and reports success overall and per family.
-Evaluation episodes use fixed reset seeds, so two checkpoints are compared on the same
-layouts and instructions.
+It is the periodic evaluation of the training loops and runs on the engine of ``lcrl
+eval`` (:func:`train.eval_suite.run_evaluation`): the same seed gives the same episodes,
+and so the same figures, in both. Evaluation episodes use fixed reset seeds, so two
+checkpoints are compared on the same layouts and instructions.
 """
 
 from __future__ import annotations
 
-from collections import defaultdict
+import dataclasses
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -21,12 +23,10 @@ from lcrl.algos import ALGOS, DQN, SAC, TD3, Agent, Problem
 from lcrl.checkpoint import Checkpoint, find_latest, load_checkpoint
 from lcrl.errors import LcrlError
 from train.config import TrainConfig, config_from_dict
+from train.environments import env_spec
+from train.eval_suite import EVAL_SEED_OFFSET, run_evaluation
 from train.tasks import (
-    FEASIBLE_TRIES,
-    LanguageTask,
     Task,
-    TaskIdTask,
-    find_language_wrapper,
     is_language,
     make_env,
     make_task,
@@ -34,7 +34,20 @@ from train.tasks import (
     task_texts,
 )
 
-EVAL_SEED_OFFSET = 7_777_777
+__all__ = [
+    "EVAL_SEED_OFFSET",
+    "LoadedPolicy",
+    "build_agent",
+    "build_task",
+    "evaluate",
+    "format_results",
+    "load_policy",
+    "resolve_checkpoint",
+    "run_episode",
+]
+#: Sub-envs stepped together by the training loop's evaluation on a fast simulator (the
+#: figures do not depend on it; a slow simulator steps one env).
+EVAL_ENVS = 8
 
 
 def build_task(cfg: TrainConfig, env: gym.Env, ckpt: Checkpoint | None = None) -> Task:
@@ -138,12 +151,7 @@ def run_episode(
         if terminated or truncated:
             break
     out = {"success": bool(info.get("is_success", False)), "steps": steps, "return": ret}
-    if isinstance(task, (LanguageTask, TaskIdTask)):
-        wrapper = find_language_wrapper(env)
-        out["instruction"] = wrapper.instruction
-        out["family"] = wrapper.meaning.family if wrapper.meaning else "free"
-    else:
-        out["family"] = "all"
+    out.update(task.outcome(env))
     return out
 
 
@@ -155,76 +163,54 @@ def evaluate(
     seed: int = 0,
     sets: tuple[str, ...] | None = None,
 ) -> dict[str, Any]:
-    """Success rates per instruction set (and family) over ``episodes`` episodes per set.
+    """Success rates per instruction set (and family) over ``episodes`` episodes per set,
+    as the training loops log them.
 
-    With a fixed task set (``env.tasks``, task ids or language goals) there is one set,
-    ``train``, evaluated by :func:`evaluate_tasks`.
-    """
-    if task_texts(cfg.env):
-        return {"train": evaluate_tasks(agent, task, cfg, episodes, seed)}
-    results: dict[str, Any] = {}
-    for name in sets or task.sets:
-        env = make_env(cfg.env, name) if name != "train" or isinstance(task, LanguageTask) else None
-        if env is None:
-            env = make_env(cfg.env, "train")
-        fam: dict[str, list[float]] = defaultdict(list)
-        successes = []
-        for i in range(episodes):
-            r = run_episode(agent, task, env, seed=EVAL_SEED_OFFSET + seed * 10_007 + i)
-            successes.append(float(r["success"]))
-            fam[r["family"]].append(float(r["success"]))
-        env.close()
-        results[name if isinstance(task, LanguageTask) else "all"] = {
-            "success": float(np.mean(successes)),
-            "episodes": episodes,
-            "families": {f: float(np.mean(v)) for f, v in sorted(fam.items())},
-        }
-    return results
-
-
-def evaluate_tasks(
-    agent: Agent, task: Task, cfg: TrainConfig, episodes: int, seed: int = 0
-) -> dict[str, Any]:
-    """Success on a fixed task set (``env.tasks``): episode ``i`` runs task ``i mod K`` in
-    the first layout from its fixed seed where the task is feasible, so every task gets
-    ``episodes / K`` episodes and two checkpoints are compared on the same layouts.
+    The episodes are those of ``lcrl eval`` with the same seed
+    (:func:`train.eval_suite.run_evaluation`; seeds ``EVAL_SEED_OFFSET + seed * 10_007 +
+    i``). With a fixed task set (``env.tasks``, task ids or language goals) there is one
+    set, ``train``: episode ``i`` runs task ``i mod K``.
 
     Returns:
-        ``success`` (over all episodes), ``episodes``, ``families`` and ``tasks``: per
-        task ``{"id", "instruction", "success", "episodes"}`` (success NaN for a task
-        without episodes, when ``episodes < K``).
+        ``{set: {"success", "ci", "episodes", "families": {family: success}}}`` (plus
+        ``"tasks"``, one ``{"id", "instruction", "success", "episodes"}`` per task, for a
+        task set; success NaN where a task had no episode). Sets are keyed by name for
+        instruction-following tasks, ``all`` otherwise.
     """
-    tasks = task_texts(cfg.env)
-    env = make_env(cfg.env, "train")
-    per_task: list[list[float]] = [[] for _ in tasks]
-    fam: dict[str, list[float]] = defaultdict(list)
-    for i in range(episodes):
-        k = i % len(tasks)
-        r = run_episode(
-            agent,
-            task,
-            env,
-            seed=EVAL_SEED_OFFSET + seed * 10_007 + i,
-            options={"instruction": tasks[k]},
-            feasible_tries=FEASIBLE_TRIES,
-        )
-        per_task[k].append(float(r["success"]))
-        fam[r["family"]].append(float(r["success"]))
-    env.close()
-    return {
-        "success": float(np.mean([x for xs in per_task for x in xs])),
-        "episodes": episodes,
-        "families": {f: float(np.mean(v)) for f, v in sorted(fam.items())},
-        "tasks": [
-            {
-                "id": k,
-                "instruction": text,
-                "success": float(np.mean(xs)) if xs else float("nan"),
-                "episodes": len(xs),
-            }
-            for k, (text, xs) in enumerate(zip(tasks, per_task, strict=True))
-        ],
+    if task_texts(cfg.env):
+        sets = ("train",)
+    num_envs = 1 if env_spec(cfg.env.kind).step_cost == "slow" else min(EVAL_ENVS, episodes)
+    full = run_evaluation(
+        agent, task, cfg, episodes, seed=seed, sets=sets, num_envs=num_envs, vector="sync"
+    )
+    return {name: brief_results(res) for name, res in full.items()}
+
+
+def _rate(x: float | None) -> float:
+    return float("nan") if x is None else float(x)
+
+
+def brief_results(res: dict[str, Any]) -> dict[str, Any]:
+    """The figures of one set of :func:`train.eval_suite.run_evaluation` that the training
+    logs keep: success (NaN when no episode was checked), its interval, episodes, success
+    per family and per task."""
+    out: dict[str, Any] = {
+        "success": _rate(res["success"]),
+        "ci": list(res["ci"]),
+        "episodes": int(res["episodes"]),
+        "families": {f: _rate(st["success"]) for f, st in res["families"].items()},
     }
+    if res.get("tasks"):
+        out["tasks"] = [
+            {
+                "id": t["id"],
+                "instruction": t["instruction"],
+                "success": _rate(t["success"]),
+                "episodes": t["episodes"],
+            }
+            for t in res["tasks"]
+        ]
+    return out
 
 
 def format_results(results: dict[str, Any]) -> str:
@@ -287,6 +273,7 @@ def load_policy(
         if not hasattr(cfg.env, key):
             raise LcrlError(f"unknown env option {key!r}")
         setattr(cfg.env, key, value)
+    cfg.env = dataclasses.replace(cfg.env)  # older kind names, as on the command line
     if device is not None:
         cfg.agent.device = device
     if render:

@@ -29,9 +29,10 @@ from lcrl.checkpoint import find_latest, load_checkpoint, save_checkpoint, write
 from lcrl.errors import LcrlError
 from lcrl.multitask import CONFLICT_KEYS, TaskSampler
 from train.config import TrainConfig, config_from_dict, config_to_dict
+from train.environments import canonical_kind
 from train.evaluate import build_agent, build_task, evaluate, format_results
 from train.report import write_report
-from train.tasks import ScriptedActor, make_env, reset_feasible, task_texts
+from train.tasks import ScriptedActor, is_language, make_env, reset_feasible, task_texts
 
 
 class CsvLog:
@@ -528,8 +529,6 @@ def _learned_models(cfg: TrainConfig) -> Any:
     """The learned captioner / reward model a config asks for (None: rule captioner)."""
     if not cfg.relabel.learned:
         return None
-    from train.tasks import is_language
-
     if not is_language(cfg.env):
         raise LcrlError("learned relabelling is for language goals (lang2d, robosuite)")
     if cfg.env.image_obs:
@@ -538,7 +537,7 @@ def _learned_models(cfg: TrainConfig) -> Any:
 
     models = LearnedCaptioner.load(cfg.relabel.checkpoint, device=cfg.agent.device)
     trained_on = models.meta.get("dataset_meta", {}).get("env")
-    if trained_on is not None and trained_on != cfg.env.kind:
+    if trained_on is not None and canonical_kind(trained_on) != cfg.env.kind:
         raise LcrlError(
             f"the learned models in {cfg.relabel.checkpoint} read {trained_on!r} frames; this "
             f"run's env is {cfg.env.kind!r}"

@@ -60,15 +60,8 @@ from lcrl.algos import Agent
 from lcrl.checkpoint import Checkpoint
 from lcrl.errors import LcrlError
 from train.config import TrainConfig
-from train.tasks import (
-    ImageGoalTask,
-    LanguageTask,
-    StateTask,
-    Task,
-    TaskIdTask,
-    make_env,
-    task_texts,
-)
+from train.environments import describe
+from train.tasks import Task, make_env, task_texts
 
 
 class Neighbour(NamedTuple):
@@ -102,12 +95,7 @@ def check_instruction(text: Any) -> str:
 def describe_env(cfg: TrainConfig) -> str:
     """A few words naming a config's environment (for error messages)."""
     env = cfg.env
-    if env.kind == "gym":
-        name = f"gym {env.gym_id}"
-    elif env.kind == "robosuite":
-        name = f"robosuite tabletop ({env.goal_type} goals)"
-    else:
-        name = f"{env.kind} tabletop"
+    name = f"{describe(env)} ({env.goal_type} goals)"
     if env.goal_type == "task":
         name += f", {len(env.tasks)} task ids"
     return name + (", image observations" if env.image_obs else "")
@@ -136,12 +124,12 @@ class Policy:
     @property
     def language(self) -> bool:
         """Whether the policy follows instructions (else it reaches the env's goals)."""
-        return isinstance(self.task, LanguageTask)
+        return self.task.query == "text"
 
     @property
     def instructions(self) -> list[str]:
         """The instructions it was trained on (empty for state- and image-goal policies)."""
-        if not isinstance(self.task, LanguageTask):
+        if self.task.query != "text":
             return []
         return list(self.task.table[: self.task.num_train])
 
@@ -149,7 +137,7 @@ class Policy:
     def takes_task_ids(self) -> bool:
         """Whether the policy's goal is the one-hot id of one of its :attr:`tasks`
         (``env.goal_type="task"``): :meth:`act` takes a task id, not text."""
-        return isinstance(self.task, TaskIdTask)
+        return self.task.query == "task_id"
 
     @property
     def tasks(self) -> list[str]:
@@ -247,7 +235,6 @@ class Policy:
         if isinstance(k, bool) or not isinstance(k, (int, np.integer)) or k <= 0:
             raise LcrlError(f"k must be a positive integer, got {k!r}")
         query = self.embed(text)[0]
-        assert isinstance(self.task, LanguageTask)
         table = self.task.embeddings[: self.task.num_train]
         norms = np.linalg.norm(table, axis=1) * max(float(np.linalg.norm(query)), 1e-12)
         sims = table @ query / np.maximum(norms, 1e-12)
@@ -255,7 +242,7 @@ class Policy:
         return [Neighbour(self.task.table[i], float(sims[i])) for i in order]
 
     def _encoder(self) -> Any:
-        if not isinstance(self.task, LanguageTask):
+        if self.task.query != "text":
             raise LcrlError(
                 f"this policy was not trained with language goals ({describe_env(self.cfg)}): "
                 "it takes no instruction"
@@ -307,7 +294,7 @@ class Policy:
         """
         obs, batch = self._check_obs(observation, "observation")
         rows = 1 if batch is None else batch
-        if isinstance(self.task, TaskIdTask):
+        if self.task.query == "task_id":
             if goal is not None:
                 raise LcrlError(
                     "goal= is for state- and image-goal policies; this task-id policy takes a "
@@ -317,7 +304,7 @@ class Policy:
             first = self._first(initial, obs, batch)
             net_obs = self._storage(obs, first, batch)
             a = self.agent.act(net_obs, ids, deterministic=deterministic)
-        elif isinstance(self.task, LanguageTask):
+        elif self.task.query == "text":
             texts = self._texts(observation, instruction, batch)
             vectors = self.embed(texts)  # before remembering anything: the texts may be bad
             first = self._first(initial, obs, batch)
@@ -342,7 +329,7 @@ class Policy:
     def _required_keys(self) -> tuple[str, ...]:
         task = self.task
         keys = ["observation"]
-        if getattr(task, "image_obs", False) or isinstance(task, ImageGoalTask):
+        if "image" in task.obs_shapes:
             keys.append("image")
         return tuple(keys)
 
@@ -479,21 +466,16 @@ class Policy:
         return self._initial
 
     def _goals(self, observation: Mapping[str, Any], goal: Any, batch: int | None) -> np.ndarray:
-        if isinstance(self.task, ImageGoalTask):
-            if goal is None:
-                raise LcrlError(
-                    "an image-goal policy needs goal=, the goal frame (env.unwrapped.goal_image())"
-                )
-            want = tuple(self.task.problem().goal_shape)
-        else:
-            assert isinstance(self.task, StateTask)
-            if goal is None:
-                if "desired_goal" not in observation:
-                    raise LcrlError(
-                        "the observation has no 'desired_goal' entry: pass goal= (a goal vector)"
-                    )
-                goal = observation["desired_goal"]
-            want = (self.task.goal_dim,)
+        key = self.task.goal_key
+        if goal is None and key is None:
+            raise LcrlError(
+                "an image-goal policy needs goal=, the goal frame (env.unwrapped.goal_image())"
+            )
+        if goal is None:
+            if key not in observation:
+                raise LcrlError(f"the observation has no {key!r} entry: pass goal= (a goal vector)")
+            goal = observation[key]
+        want = tuple(self.task.problem().goal_shape)
         g = np.asarray(goal)
         if g.shape == want:
             g = g[None] if batch is None else np.repeat(g[None], batch, axis=0)

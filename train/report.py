@@ -30,6 +30,7 @@ from pathlib import Path
 from typing import Any
 
 from lcrl.errors import LcrlError
+from train.environments import ENVS, KIND_ALIASES, describe
 
 EVAL_FORMAT = "lcrl-eval"
 EVAL_VERSION = 1
@@ -94,23 +95,20 @@ def run_of_checkpoint(checkpoint: str | Path) -> Path | None:
 
 
 def task_name(env: dict[str, Any]) -> str:
-    """A short name of a run's task from its env config: ``lang2d reach/push``,
-    ``state2d``, ``robosuite reach (language goals)``, a gym id."""
-    kind = env.get("kind", "?")
-    if kind == "gym":
-        return str(env.get("gym_id", "gym"))
-    goal_type = env.get("goal_type", "language")
-    language = (kind == "lang2d" and goal_type != "task") or (
-        kind == "robosuite" and goal_type == "language"
-    )
-    name = kind
-    if language:
+    """A short name of a run's task from its (saved) env config: ``2D tabletop
+    reach/push``, ``2D tabletop (state goals)``, ``robosuite tabletop (image goals)``, a
+    gym id."""
+    kind, alias_goal = KIND_ALIASES.get(str(env.get("kind", "?")), (env.get("kind", "?"), None))
+    goal_type = alias_goal or env.get("goal_type", "language")
+    name = describe(env)
+    spec = ENVS.get(kind)
+    if goal_type == "language" and spec is not None and spec.families:
         name += " " + "/".join(env.get("families", ()))
     tasks = env.get("tasks") or ()
     if tasks:
         name += f", {len(tasks)} tasks"
-        name += " as task ids" if goal_type == "task" else " as language goals"
-    elif kind == "robosuite":
+        return name + (" as task ids" if goal_type == "task" else " as language goals")
+    if goal_type != "language":
         name += f" ({goal_type} goals)"
     return name
 

@@ -28,7 +28,7 @@ from __future__ import annotations
 
 import functools
 from collections.abc import Mapping
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from typing import Any
 
 import gymnasium as gym
@@ -37,193 +37,85 @@ import numpy as np
 from lcrl.algos import Problem
 from lcrl.errors import LcrlError
 from lcrl.goals import ImageGoals, LabelGoals, StateGoals, TaskGoals
+from train.environments import ENVS, EnvConfig, EnvSpec, check_env_config, env_spec
 
-ENV_KINDS = ("lang2d", "state2d", "gym", "robosuite")
-GOAL_TYPES = ("language", "state", "image", "task")
+__all__ = [
+    "ENVS",
+    "FEASIBLE_TRIES",
+    "GOALS",
+    "EnvConfig",
+    "GoalModality",
+    "ImageGoalTask",
+    "LanguageTask",
+    "ScriptedActor",
+    "StateTask",
+    "Task",
+    "TaskIdTask",
+    "check_tasks",
+    "env_spec",
+    "find_language_wrapper",
+    "goal_modality",
+    "has_instructions",
+    "is_language",
+    "make_env",
+    "make_task",
+    "reset_feasible",
+    "task_texts",
+]
+
 #: Layouts tried per episode for a layout in which the episode's task is feasible.
 FEASIBLE_TRIES = 100
 
 
-@dataclass
-class EnvConfig:
-    """Which environment to train on."""
-
-    kind: str = "lang2d"
-    """``lang2d`` (2D tabletop, language goals), ``state2d`` (2D tabletop, state goals),
-    ``robosuite`` (the Panda tabletop; its goals are ``goal_type``) or ``gym`` (any
-    registered goal env, e.g. gymnasium-robotics ``FetchReach-v4``)."""
-    goal_type: str = "language"
-    """Goals: ``language`` (instructions), ``task`` (one-hot ids of the ``tasks``: the
-    policy never sees their text; ``lang2d`` and ``robosuite``), and on the robosuite
-    tabletop ``state`` (object or gripper positions, see ``goal``) or ``image`` (a camera
-    frame of the goal layout)."""
-    tasks: tuple[str, ...] = ()
-    """A fixed task set of ``K`` instructions (multi-task RL). Each training episode's task
-    is drawn among them (``agent.multitask.sampling``) in a layout where it is feasible,
-    and evaluation runs them in turn. With ``goal_type=task`` the policy sees a one-hot
-    task id; with ``language`` the instruction table is exactly these instructions (ids
-    ``0 .. K-1``, relabelled among them), so the same tasks run either way. Empty: the
-    split's instructions (language goals)."""
-    image_obs: bool = False
-    """The policy sees the camera image and the robot's proprioception instead of the
-    privileged object state (robosuite and the 2D tabletop)."""
-    image_size: int = 64
-    """Camera image side in pixels (robosuite: 64 or 84)."""
-    gym_id: str = "FetchReach-v4"
-    """Environment id for ``kind=gym``."""
-    families: tuple[str, ...] = ("reach", "push")
-    """Instruction families to train and evaluate (language goals)."""
-    split_seed: int = 0
-    """Seed of the compositional instruction split (language goals)."""
-    min_objects: int = 2
-    """Fewest objects on the table."""
-    max_objects: int = 3
-    """Most objects on the table."""
-    discrete: bool = False
-    """Discrete pusher moves (8 directions) instead of continuous ones (2D tabletop)."""
-    max_episode_steps: int = 50
-    """Time limit of an episode (a truncation: the value bootstraps through it)."""
-    goal: str = "object"
-    """State goal of ``state2d`` and robosuite state or image goals: ``object`` (all object
-    positions), ``pusher`` (2D) or ``gripper`` (robosuite)."""
-    relative_positions: bool = False
-    """Add each object's position relative to the gripper (pusher) to its observation
-    slot (:class:`envs.features.RelativePositions`); pair with ``--agent.net.slots``
-    ``(2, 8, 5)`` on the 2D tabletop or ``(4, 8, 7)`` on robosuite."""
-    displacements: bool = False
-    """Add each object's displacement since the episode's reset to its observation slot
-    (:class:`envs.features.SlotFeatures`): push and put are judged on it. Widens each slot
-    by 2 values on the 2D tabletop (3 on robosuite); set ``--agent.net.slots`` to match."""
-    train_until_success: bool = True
-    """Language goals: training episodes end when their instruction is achieved. ``False``
-    runs them to the time limit and keeps what happens after the success (an object
-    touched, then pushed), which the relabelled goals learn from; the value target still
-    ends at the success step. Evaluation episodes always end at success."""
-    extra: dict[str, Any] = field(default_factory=dict)
-    """Extra keyword arguments for the environment constructor."""
-
-
-def _register_gym_robotics() -> None:
-    try:
-        import gymnasium_robotics
-    except ImportError:
-        return
-    gym.register_envs(gymnasium_robotics)
-
-
 def make_env(cfg: EnvConfig, split_set: str = "train", training: bool = False) -> gym.Env:
-    """Build the environment of a config (``split_set`` picks the instruction set;
-    ``training`` applies the training-only options such as ``train_until_success``)."""
-    if cfg.kind not in ENV_KINDS:
-        raise LcrlError(f"unknown env kind {cfg.kind!r}; choose one of {ENV_KINDS}")
-    if cfg.min_objects > cfg.max_objects:
-        raise LcrlError(
-            f"min_objects ({cfg.min_objects}) is larger than max_objects ({cfg.max_objects})"
-        )
-    if cfg.goal_type not in GOAL_TYPES:
-        raise LcrlError(f"unknown goal_type {cfg.goal_type!r}; choose one of {GOAL_TYPES}")
+    """Build the environment of a config: the simulator of ``cfg.kind``
+    (:data:`train.environments.ENVS`), wrapped as its goal type asks
+    (:data:`GOALS`; instructions for language goals and task ids), with its time limit.
+
+    Args:
+        cfg: the env config.
+        split_set: the instruction set an instruction-following env draws from.
+        training: apply the training-only options (``train_until_success``).
+    """
+    spec = check_env_config(cfg)
+    modality = goal_modality(cfg.goal_type)
     check_tasks(cfg)
-    if cfg.kind == "robosuite":
-        return _make_robosuite(cfg, split_set, training)
-    if cfg.kind == "gym":
-        _register_gym_robotics()
-        try:
-            env = gym.make(
-                cfg.gym_id,
-                max_episode_steps=cfg.max_episode_steps,
-                disable_env_checker=True,
-                **cfg.extra,
-            )
-        except gym.error.Error as e:
-            hint = ""
-            if "Fetch" in cfg.gym_id:
-                hint = " (install gymnasium-robotics and mujoco: pip install -e '.[bench]')"
-            raise LcrlError(f"cannot make {cfg.gym_id!r}: {e}{hint}") from None
-        return env
-    from envs.tabletop2d import Tabletop2DEnv
-
-    kwargs: dict[str, Any] = {
-        "num_objects": (cfg.min_objects, cfg.max_objects),
-        "action_type": "discrete" if cfg.discrete else "continuous",
-        **cfg.extra,
-    }
-    if cfg.discrete:
-        kwargs.setdefault("num_directions", 8)
-    if cfg.image_obs:
-        kwargs.update(image=True, image_size=cfg.image_size)
-    if cfg.kind == "state2d":
-        kwargs["goal"] = cfg.goal
-        base: gym.Env = _features(Tabletop2DEnv(**kwargs), cfg)
-        return gym.wrappers.TimeLimit(base, cfg.max_episode_steps)
-    from captioner.grammar import FAMILIES_2D
-    from captioner.lang_env import LanguageGoalWrapper
-    from captioner.splits import make_split
-
-    bad = [f for f in cfg.families if f not in FAMILIES_2D]
-    if bad:
-        raise LcrlError(f"the 2D tabletop supports the families {FAMILIES_2D}, not {bad}")
-    env = LanguageGoalWrapper(
-        _features(Tabletop2DEnv(**kwargs), cfg),
-        split=make_split(cfg.split_seed, FAMILIES_2D),
-        split_set=split_set,
-        families=tuple(cfg.families),
-        terminate_on_success=cfg.train_until_success or not training,
-    )
-    return gym.wrappers.TimeLimit(env, cfg.max_episode_steps)
-
-
-def _features(env: gym.Env, cfg: EnvConfig) -> gym.Env:
-    """The observation feature wrappers a config asks for."""
-    if cfg.relative_positions or cfg.displacements:
-        from envs.features import SlotFeatures
-
-        return SlotFeatures(env, relative=cfg.relative_positions, displacement=cfg.displacements)
+    env = spec.make(cfg)
+    if modality.instructed:
+        env = _language_wrapper(env, cfg, spec, split_set, training)
+    if spec.time_limit:
+        env = gym.wrappers.TimeLimit(env, cfg.max_episode_steps)
     return env
 
 
-def _make_robosuite(cfg: EnvConfig, split_set: str, training: bool) -> gym.Env:
-    from envs.robosuite_tabletop import RobosuiteTabletopEnv
-
-    kwargs: dict[str, Any] = {"num_objects": (cfg.min_objects, cfg.max_objects), **cfg.extra}
-    if cfg.image_obs or cfg.goal_type == "image":
-        kwargs.update(image=True, image_size=cfg.image_size)
-    instructed = cfg.goal_type in ("language", "task")
-    if not instructed:
-        goal = {"pusher": "gripper"}.get(cfg.goal, cfg.goal)
-        if cfg.goal_type == "image" and goal != "object":
-            raise LcrlError("image goals on the robosuite tabletop need goal='object'")
-        kwargs["goal"] = goal
-    base = _features(RobosuiteTabletopEnv(**kwargs), cfg)
-    if not instructed:
-        return gym.wrappers.TimeLimit(base, cfg.max_episode_steps)
-    from captioner.grammar import FAMILIES
+def _language_wrapper(
+    env: gym.Env, cfg: EnvConfig, spec: EnvSpec, split_set: str, training: bool
+) -> gym.Env:
+    """Instructions over a simulator: the compositional split of its families."""
     from captioner.lang_env import LanguageGoalWrapper
     from captioner.splits import make_split
 
-    bad = [f for f in cfg.families if f not in FAMILIES]
+    bad = [f for f in cfg.families if f not in spec.families]
     if bad:
-        raise LcrlError(f"unknown instruction families {bad}; choose among {FAMILIES}")
-    env = LanguageGoalWrapper(
-        base,
-        split=make_split(cfg.split_seed, FAMILIES),
+        raise LcrlError(f"the {cfg.kind} env supports the families {spec.families}, not {bad}")
+    return LanguageGoalWrapper(
+        env,
+        split=make_split(cfg.split_seed, spec.families),
         split_set=split_set,
         families=tuple(cfg.families),
         terminate_on_success=cfg.train_until_success or not training,
     )
-    return gym.wrappers.TimeLimit(env, cfg.max_episode_steps)
 
 
 def is_language(cfg: EnvConfig) -> bool:
-    """Whether an env config gives language goals."""
-    if cfg.goal_type == "task":
-        return False
-    return cfg.kind == "lang2d" or (cfg.kind == "robosuite" and cfg.goal_type == "language")
+    """Whether an env config gives language goals (texts the frozen encoder embeds)."""
+    return goal_modality(cfg.goal_type).text
 
 
 def has_instructions(cfg: EnvConfig) -> bool:
     """Whether an env config's episodes follow instructions (language goals or task ids
     over instructions): the env is wrapped by the language-goal wrapper."""
-    return is_language(cfg) or (cfg.goal_type == "task" and cfg.kind in ("lang2d", "robosuite"))
+    return goal_modality(cfg.goal_type).instructed
 
 
 def task_texts(cfg: EnvConfig) -> tuple[str, ...]:
@@ -235,24 +127,21 @@ def check_tasks(cfg: EnvConfig) -> None:
     """Refuse a task set that cannot run: task ids on an env without instructions, an
     empty task set with task ids, an instruction that does not parse, that is outside the
     env's families, or that repeats another (in any phrasing)."""
-    if cfg.goal_type == "task" and cfg.kind not in ("lang2d", "robosuite"):
-        raise LcrlError(
-            f"goal_type=task gives one-hot ids of instructions: it needs env.kind lang2d or "
-            f"robosuite, not {cfg.kind!r}"
-        )
+    spec = check_env_config(cfg)
+    modality = goal_modality(cfg.goal_type)
     tasks = task_texts(cfg)
     if not tasks:
-        if cfg.goal_type == "task":
+        if modality.needs_tasks:
             raise LcrlError(
-                "goal_type=task needs a task set: list the K instructions with --env.tasks "
-                "(e.g. --env.tasks 'reach the red cube' 'push the blue cube left'), or use "
-                "the lang2d-tasks preset"
+                f"goal_type={cfg.goal_type} needs a task set: list the K instructions with "
+                "--env.tasks (e.g. --env.tasks 'reach the red cube' 'push the blue cube left'), "
+                "or use the lang2d-tasks preset"
             )
         return
-    if not has_instructions(cfg):
+    if not modality.instructed or not spec.families:
         raise LcrlError(
-            f"env.tasks are instructions: they need language or task goals on lang2d or "
-            f"robosuite, not goal_type {cfg.goal_type!r} on {cfg.kind!r}"
+            f"env.tasks are instructions: they need language or task goals on a simulator "
+            f"with instructions, not goal_type {cfg.goal_type!r} on {cfg.kind!r}"
         )
     from captioner.grammar import parse
 
@@ -322,12 +211,54 @@ def _action_spec(env: gym.Env) -> tuple[int, bool]:
 
 
 class Task:
-    """Base class: storage layout, goals and episode fields for one environment."""
+    """Base class of a goal modality's adapter: storage layout, goals and episode fields
+    for one environment (:data:`GOALS` names the subclass of each goal type).
 
+    A subclass sets :attr:`obs_shapes` and :attr:`goal_space` in ``__init__`` and defines
+    :meth:`storage_obs`, :meth:`goal`, :meth:`step_record`, :meth:`episode_fields` and
+    :meth:`embed_goals`; :meth:`from_config` builds it for a run.
+    """
+
+    #: The network's goal encoder (:class:`lcrl.nets.GoalEncoder` kinds: ``vector``,
+    #: ``text``, ``onehot``, ``image``); it also picks the goal normaliser of the learner.
     goal_kind = "vector"
+    #: Evaluation sets (seen instructions first).
     sets: tuple[str, ...] = ("train",)
     #: Size of the fixed task set whose ids are the goals (0: none).
     num_tasks: int = 0
+    #: Episodes follow instructions (a language-goal wrapper is inside the env): they
+    #: report their instruction and family, and evaluation reports its sets by name.
+    instructed = False
+    #: Goals are texts that the frozen text encoder embeds (free text can be asked).
+    text_goals = False
+    #: What a trained policy is asked with (:meth:`train.policy.Policy.act`): ``text``
+    #: (an instruction), ``task_id`` (an integer) or ``goal`` (a goal array, by default
+    #: the observation's :attr:`goal_key`).
+    query = "goal"
+    #: The observation entry that holds the goal when none is given (``query="goal"``).
+    goal_key: str | None = "desired_goal"
+
+    @classmethod
+    def from_config(cls, cfg: EnvConfig, env: gym.Env, embed: Any = None, **kwargs: Any) -> Task:
+        """The task of an env config over ``env`` (``embed``: the text encoder, for
+        text goals; ``kwargs``: a saved instruction table)."""
+        return cls(env, image_obs=cfg.image_obs)  # type: ignore[call-arg]
+
+    @staticmethod
+    def start_info(env: gym.Env) -> Any:
+        """What evaluation must read from the env when an episode starts, to know its
+        goal (image goals: the goal frame); None for most tasks. A static method: it runs
+        inside the evaluation's sub-envs, which may be other processes."""
+        return None
+
+    def eval_goal(self, obs: Mapping[str, Any], start: Any) -> Any:
+        """The goal of an evaluation episode from its observation and :meth:`start_info`."""
+        return self.goal(obs, None)  # type: ignore[arg-type]
+
+    def outcome(self, env: gym.Env) -> dict[str, Any]:
+        """How a finished episode is filed: its ``family`` (and for instruction-following
+        tasks its ``instruction``)."""
+        return {"family": "all"}
 
     def __init__(self, env: gym.Env) -> None:
         self.action_dim, self.discrete = _action_spec(env)
@@ -434,6 +365,7 @@ class ImageGoalTask(StateTask):
     the env's ``compute_reward`` on the privileged state behind each frame."""
 
     goal_kind = "image"
+    goal_key = None  # the goal frame is drawn by the env: env.unwrapped.goal_image()
 
     def __init__(self, env: gym.Env, image_obs: bool = False) -> None:
         super().__init__(env, image_obs)
@@ -460,6 +392,15 @@ class ImageGoalTask(StateTask):
     def goal(self, obs: Mapping[str, Any], env: gym.Env) -> np.ndarray:
         """The frame of the episode's desired goal."""
         return np.asarray(env.unwrapped.goal_image(), np.uint8)
+
+    @staticmethod
+    def start_info(env: gym.Env) -> Any:
+        """The goal frame, drawn when the episode starts."""
+        return np.asarray(env.unwrapped.goal_image(), np.uint8)
+
+    def eval_goal(self, obs: Mapping[str, Any], start: Any) -> Any:
+        """The goal frame drawn at the start."""
+        return start
 
     def step_record(self, obs: Mapping[str, Any], env: gym.Env) -> Any:
         """The achieved and desired state goals of each observation."""
@@ -493,6 +434,27 @@ class LanguageTask(Task):
 
     goal_kind = "text"
     sets = ("train", "heldout", "paraphrase")
+    instructed = True
+    text_goals = True
+    query = "text"
+
+    @classmethod
+    def from_config(
+        cls, cfg: EnvConfig, env: gym.Env, embed: Any = None, **kwargs: Any
+    ) -> LanguageTask:
+        """The language task of a config (``embed`` is required; ``kwargs`` may give a
+        saved ``table`` and ``num_train``)."""
+        if embed is None:
+            raise LcrlError("language tasks need a text encoder")
+        if cfg.tasks:
+            kwargs["tasks"] = task_texts(cfg)
+        return cls(env, embed, image_obs=cfg.image_obs, **kwargs)
+
+    def outcome(self, env: gym.Env) -> dict[str, Any]:
+        """The episode's instruction and its family (``free`` for unparsed text)."""
+        wrapper = find_language_wrapper(env)
+        family = wrapper.meaning.family if wrapper.meaning else "free"
+        return {"instruction": wrapper.instruction, "family": family}
 
     def __init__(
         self,
@@ -637,6 +599,18 @@ class TaskIdTask(Task):
 
     goal_kind = "onehot"
     sets = ("train",)
+    instructed = True
+    query = "task_id"
+
+    @classmethod
+    def from_config(
+        cls, cfg: EnvConfig, env: gym.Env, embed: Any = None, **kwargs: Any
+    ) -> TaskIdTask:
+        """The task-id task of a config's task set."""
+        return cls(env, task_texts(cfg), image_obs=cfg.image_obs)
+
+    #: the instruction and family, as language goals report them
+    outcome = LanguageTask.outcome
 
     def __init__(self, env: gym.Env, tasks: tuple[str, ...], image_obs: bool = False) -> None:
         super().__init__(env)
@@ -704,19 +678,14 @@ class ScriptedActor:
     """
 
     def __init__(self, cfg: EnvConfig, task: Task, noise: float) -> None:
-        if not has_instructions(cfg):
+        spec = env_spec(cfg.kind)
+        if not has_instructions(cfg) or spec.scripted is None:
             raise LcrlError(
-                "scripted episodes need language or task goals on the 2D tabletop or robosuite "
-                f"(env kind {cfg.kind!r}, goal type {cfg.goal_type!r} has no scripted controller)"
+                "scripted episodes need language or task goals on a simulator with a scripted "
+                f"controller (env kind {cfg.kind!r}, goal type {cfg.goal_type!r} has none)"
             )
-        if cfg.kind == "lang2d":
-            from captioner.scripted import ScriptedController2D
-
-            self.controller: Any = ScriptedController2D()
-        else:
-            from captioner.scripted3d import ScriptedController3D
-
-            self.controller = ScriptedController3D()
+        self.controller: Any = spec.scripted()
+        self.scene = spec.scene or (lambda env: env.unwrapped.scene())
         self.task, self.noise = task, float(noise)
 
     def reset(self) -> None:
@@ -728,7 +697,7 @@ class ScriptedActor:
     def act(self, env: gym.Env, rng: np.random.Generator) -> np.ndarray:
         """The controller's action for the env's current scene, in policy space."""
         wrapper = find_language_wrapper(env)
-        a = self.controller.act(wrapper.meaning, wrapper.s0, env.unwrapped.scene())
+        a = self.controller.act(wrapper.meaning, wrapper.s0, self.scene(env))
         if self.task.discrete:
             from captioner.scripted import to_discrete
 
@@ -762,16 +731,71 @@ def find_language_wrapper(env: gym.Env) -> Any:
 
 
 def make_task(cfg: EnvConfig, env: gym.Env, embed: Any = None, **kwargs: Any) -> Task:
-    """The task adapter for an env config."""
+    """The task adapter of an env config: its goal type's :class:`Task` subclass
+    (:data:`GOALS`).
+
+    Args:
+        cfg: the env config.
+        env: the env :func:`make_env` built for it.
+        embed: ``texts -> (N, d)`` embeddings (the frozen text encoder), for text goals.
+        kwargs: a saved instruction table (``table``, ``num_train``).
+    """
     check_tasks(cfg)
-    if cfg.goal_type == "task":
-        return TaskIdTask(env, task_texts(cfg), image_obs=cfg.image_obs)
-    if is_language(cfg):
-        if embed is None:
-            raise LcrlError("language tasks need a text encoder")
-        if cfg.tasks:
-            kwargs["tasks"] = task_texts(cfg)
-        return LanguageTask(env, embed, image_obs=cfg.image_obs, **kwargs)
-    if cfg.kind == "robosuite" and cfg.goal_type == "image":
-        return ImageGoalTask(env, image_obs=cfg.image_obs)
-    return StateTask(env, image_obs=cfg.image_obs)
+    return goal_modality(cfg.goal_type).task.from_config(cfg, env, embed, **kwargs)
+
+
+@dataclass(frozen=True)
+class GoalModality:
+    """One goal type of :data:`GOALS`.
+
+    Attributes:
+        task: the :class:`Task` subclass: it stores observations, gives the goal of an
+            episode, builds the goal space (:mod:`lcrl.goals`: relabelling and rewards)
+            and names the network's goal encoder and normaliser (``goal_kind``).
+        summary: a few words for help texts.
+        instructed: the simulator is wrapped with instructions
+            (:class:`captioner.lang_env.LanguageGoalWrapper`): it needs instruction
+            families (:attr:`train.environments.EnvSpec.families`).
+        needs_tasks: the goal type needs a fixed task set (``env.tasks``).
+        relabel: goals may be relabelled in hindsight (task ids may not).
+    """
+
+    task: type[Task]
+    summary: str = ""
+    instructed: bool = False
+    needs_tasks: bool = False
+    relabel: bool = True
+
+    @property
+    def text(self) -> bool:
+        """Goals are texts embedded by the frozen text encoder."""
+        return bool(self.task.text_goals)
+
+
+#: Every goal type, by ``EnvConfig.goal_type``.
+GOALS: dict[str, GoalModality] = {
+    "state": GoalModality(StateTask, "goal vectors (positions), HER over achieved goals"),
+    "image": GoalModality(ImageGoalTask, "goal camera frames, HER over later frames"),
+    "language": GoalModality(
+        LanguageTask, "instructions, language HER over captions", instructed=True
+    ),
+    "task": GoalModality(
+        TaskIdTask,
+        "one-hot ids of a fixed instruction set, no relabelling",
+        instructed=True,
+        needs_tasks=True,
+        relabel=False,
+    ),
+}
+
+
+def goal_modality(goal_type: str) -> GoalModality:
+    """The registry entry of a goal type.
+
+    Raises:
+        LcrlError: no goal type of that name.
+    """
+    modality = GOALS.get(goal_type)
+    if modality is None:
+        raise LcrlError(f"unknown goal_type {goal_type!r}; choose one of {tuple(GOALS)}")
+    return modality

@@ -1,0 +1,88 @@
+"""Caption datasets with episodes acted by a trained policy (``lcrl caption collect``).
+
+:func:`captioner.dataset.collect` writes random and scripted episodes by itself; episodes
+of the ``policy`` source need a trained policy, which lives in this layer: this module
+loads the checkpoint, acts its episodes and hands them to the collector.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from captioner.dataset import CaptionDatasetWriter, CollectConfig
+from captioner.dataset import collect as collect_dataset
+from lcrl.errors import LcrlError
+from train.environments import canonical_kind
+from train.evaluate import LoadedPolicy, load_policy
+from train.tasks import find_language_wrapper
+
+
+class PolicyEpisodes:
+    """Acts caption-dataset episodes with a trained privileged-state policy, rendering
+    the camera frames the learned captioner reads.
+
+    Args:
+        cfg: the collection config (``policy`` is the checkpoint or run folder).
+
+    Raises:
+        LcrlError: the policy was trained on another env, or from images.
+    """
+
+    def __init__(self, cfg: CollectConfig) -> None:
+        p = load_policy(cfg.policy)
+        kind = p.cfg.env.kind
+        if kind != canonical_kind(cfg.env) or p.cfg.env.image_obs:
+            images = " from images" if p.cfg.env.image_obs else ""
+            raise LcrlError(
+                f"the policy was trained on {kind!r}{images}; policy episodes need a "
+                f"privileged-state {cfg.env!r} policy"
+            )
+        extra = {**p.cfg.env.extra, "image": True, "image_size": cfg.image_size}
+        self.policy: LoadedPolicy = load_policy(cfg.policy, env_overrides={"extra": extra})
+
+    def episode(self, cfg: CollectConfig, seed: int, writer: CaptionDatasetWriter) -> dict:
+        """One episode of the policy from reset seed ``seed``, labelled by the rule
+        captioner at every step."""
+        env, task, agent = self.policy.env, self.policy.task, self.policy.agent
+        obs, _ = env.reset(seed=seed)
+        first = obs
+        goal = np.asarray([task.goal(obs, env)])
+        base = env.unwrapped
+        # the agent values lead the observation, unchanged by the slot feature wrappers
+        dim = int(base.slot_layout[0])
+        wrapper = find_language_wrapper(env)
+        s0 = base.scene()
+        frames, proprio, scenes = [obs["image"]], [_proprio(obs, dim)], [s0]
+        for _ in range(cfg.max_episode_steps):
+            st = {k: v[None] for k, v in task.storage_obs(obs, first).items()}
+            a = agent.act(st, goal)[0]
+            obs, _, terminated, truncated, _ = env.step(task.scale_action(a))
+            frames.append(obs["image"])
+            proprio.append(_proprio(obs, dim))
+            scenes.append(base.scene())
+            if terminated or truncated:
+                break
+        labels = [writer.ids([i.text for i in wrapper.captioner.caption(s0, s)]) for s in scenes]
+        ids = writer.ids([wrapper.meaning.text])
+        return {
+            "frames": np.stack(frames),
+            "proprio": np.stack(proprio),
+            "labels": labels,
+            "source": "policy",
+            "instruction": ids[0] if ids else -1,
+        }
+
+
+def _proprio(obs: dict[str, Any], dim: int) -> np.ndarray:
+    return np.asarray(obs["observation"][:dim], np.float32)
+
+
+def collect(cfg: CollectConfig) -> Path:
+    """:func:`captioner.dataset.collect`, with the ``policy`` source's episodes acted by
+    ``cfg.policy`` when the sources ask for them."""
+    cfg.validate()
+    policy = PolicyEpisodes(cfg) if "policy" in cfg.sources else None
+    return collect_dataset(cfg, policy)
