@@ -231,7 +231,7 @@ def test_observation_errors(policy):
     robo = {"observation": np.zeros(_OBS_DIM, np.float32), "image": np.zeros((84, 84, 3))}
     with pytest.raises(LcrlError) as e:
         policy.act(robo, TEXT, initial=robo)
-    assert "lang2d tabletop" in str(e.value) and f"({_OBS_DIM},)" in str(e.value)
+    assert "2D tabletop" in str(e.value) and f"({_OBS_DIM},)" in str(e.value)
 
     # batch sizes: texts, initial observations and remembered first observations
     with pytest.raises(LcrlError, match="2 instructions for a batch of 3 observations"):

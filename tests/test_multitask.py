@@ -393,7 +393,7 @@ def _cfg(**env) -> TrainConfig:
         (_cfg(goal_type="task", tasks=("dance",)), "cannot parse 'dance'"),
         (
             TrainConfig(env=EnvConfig(kind="state2d", goal_type="task", tasks=TASKS_2D)),
-            "needs env.kind lang2d or robosuite",
+            "env.tasks are instructions",
         ),
         (
             TrainConfig(env=EnvConfig(kind="lang2d", goal_type="task", tasks=TASKS_2D)),

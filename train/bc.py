@@ -36,7 +36,6 @@ import json
 import math
 import os
 import tempfile
-import time
 from collections.abc import Iterator, Mapping, Sequence
 from pathlib import Path
 from typing import Any
@@ -46,21 +45,11 @@ import numpy as np
 from lcrl.bc import BC
 from lcrl.checkpoint import save_checkpoint, write_latest
 from lcrl.errors import LcrlError
-from train.config import PRESETS, TrainConfig, config_to_dict
-from train.evaluate import build_agent, build_task, evaluate, format_results
-from train.loop import (
-    CsvLog,
-    _next,
-    _progress,
-    _tensorboard,
-    checkpoint_meta,
-    eval_row,
-    finish_run,
-    open_run,
-    prune_checkpoints,
-    save_interrupted,
-)
+from train.config import PRESETS, TrainConfig
+from train.evaluate import build_agent, build_task
+from train.loop import checkpoint_meta
 from train.tasks import make_env, make_task
+from train.trainer import BaseTrainer, open_run, prune_checkpoints
 
 #: What to do when no demonstration file is given.
 DEMOS_HINT = "pass --demos FILE (record one with lcrl demos record)"
@@ -85,7 +74,7 @@ def open_demos(path: str) -> Any:
     return DemoDataset(path)
 
 
-class BCTrainer:
+class BCTrainer(BaseTrainer):
     """Builds a behavioural-cloning run from a :class:`TrainConfig` (``algo="bc"``) and
     runs it.
 
@@ -163,12 +152,10 @@ class BCTrainer:
         self.step = 0
         self._metrics: dict[str, float] = {}
         self._metric_count = 0
-        self.last_eval: dict[str, Any] | None = None
-        self._last_logged = -1
         self._stream: Iterator[Any] | None = None
-        self.tb: Any = None
+        self._last_metrics: Mapping[str, float] = {}
         if ckpt is not None:
-            self._restore(ckpt)
+            self.restore(ckpt)
         else:
             self.fit_normalisers()
 
@@ -218,52 +205,32 @@ class BCTrainer:
         return batch._replace(goal=self.goal_map[np.asarray(batch.goal, np.int64)])
 
     # --- the loop --------------------------------------------------------------------
-    def run(self) -> dict[str, Any]:
-        """Train to ``total_steps`` updates; returns the final evaluation."""
+    unit = "update"
+
+    # --- the loop ----------------------------------------------------------------------
+    def begin(self) -> None:
+        """Say what is cloned."""
         cfg = self.cfg
-        self.out.mkdir(parents=True, exist_ok=True)
-        _write_json(self.out / "config.json", {**config_to_dict(cfg), "resolved_algo": "bc"})
-        self.progress_log = CsvLog(self.out / "progress.csv")
-        self.eval_log = CsvLog(self.out / "eval.csv")
-        self.tb = _tensorboard(self.out / "tb") if cfg.tensorboard else None
         print(
             f"behavioural cloning on {cfg.demos}: {self.data.num_episodes} episodes, "
             f"{len(self.segments)} segments ({self.rows} transitions, hindsight "
             f"{'on' if cfg.bc.hindsight else 'off'}), {int((self.goal_map >= 0).sum())} "
             "instructions"
         )
-        bar = _progress(cfg.total_steps, self.step, cfg.progress)
-        bar.unit = "update"
-        self._t0, self._step0 = time.perf_counter(), self.step
-        next_eval = _next(self.step, cfg.eval_every)
-        next_ckpt = _next(self.step, cfg.checkpoint_every)
-        next_log = _next(self.step, cfg.log_every)
-        try:
-            while self.step < cfg.total_steps:
-                metrics = self.agent.update(self._batch())
-                self.step += 1
-                for k, v in metrics.items():
-                    self._metrics[k] = self._metrics.get(k, 0.0) + v
-                self._metric_count += 1
-                bar.update(1)
-                if self.step >= next_log:
-                    self._log()
-                    next_log = _next(self.step, cfg.log_every)
-                    bar.set_postfix_str(self._postfix(metrics), refresh=False)
-                if cfg.eval_every and self.step >= next_eval and self.step < cfg.total_steps:
-                    self.evaluate()
-                    next_eval = _next(self.step, cfg.eval_every)
-                if cfg.checkpoint_every and self.step >= next_ckpt and self.step < cfg.total_steps:
-                    self.save()
-                    next_ckpt = _next(self.step, cfg.checkpoint_every)
-                    _close(self._stream)  # the next block draws from a fresh stream
-                    self._stream = None
-        except KeyboardInterrupt:
-            bar.close()
-            save_interrupted(self, "update")
-            raise
-        bar.close()
-        return finish_run(self)
+
+    def advance(self) -> None:
+        """One gradient update on a batch of demonstration transitions."""
+        metrics = self.agent.update(self._batch())
+        self.step += 1
+        for k, v in metrics.items():
+            self._metrics[k] = self._metrics.get(k, 0.0) + v
+        self._metric_count += 1
+        self._last_metrics = metrics
+
+    def after_checkpoint(self) -> None:
+        """The next block of batches draws from a fresh stream (what resuming re-creates)."""
+        _close(self._stream)
+        self._stream = None
 
     def close(self) -> None:
         """Close the batch stream, the demonstration file, the env and TensorBoard."""
@@ -271,48 +238,30 @@ class BCTrainer:
         self._stream = None
         self.data.close()
         self.env.close()
-        if self.tb is not None:
-            self.tb.close()
-            self.tb = None
+        super().close()
 
-    # --- evaluation, logging ---------------------------------------------------------
-    def evaluate(self) -> dict[str, Any]:
-        """Evaluate on every instruction set; log and return the results."""
-        cfg = self.cfg
-        results = evaluate(self.agent, self.task, cfg, episodes=cfg.eval_episodes, seed=cfg.seed)
-        self.last_eval = results
-        row = eval_row(results, self.task, self.step, 0)
-        self.eval_log.write(row)
-        if self.tb is not None:
-            for k, v in row.items():
-                if k not in ("step", "episodes"):
-                    self.tb.add_scalar(f"eval/{k}", v, self.step)
-        print(f"[update {self.step}] " + format_results(results).replace("\n", " | "))
-        return results
+    # --- logging ---------------------------------------------------------------------
+    def postfix(self) -> str:
+        """The last update's loss and the last evaluation."""
+        loss = self._last_metrics.get("loss")
+        text = f"loss {loss:.4g} " if loss is not None else ""
+        return text + super().postfix()
 
-    def _postfix(self, metrics: Mapping[str, float]) -> str:
-        text = f"loss {metrics['loss']:.4g}"
-        if self.last_eval:
-            text += " eval " + " ".join(
-                f"{k} {v['success']:.2f}" for k, v in self.last_eval.items()
-            )
-        return text
-
-    def _log(self) -> None:
-        elapsed = time.perf_counter() - self._t0
+    def log(self) -> None:
+        """A progress.csv row: updates, epochs, speed, mean losses."""
         row: dict[str, Any] = {
             "step": self.step,
             "updates": self.agent.updates,
             "epochs": self.step * self.cfg.batch_size / max(self.rows, 1),
             # no training episodes: the curve of live success stays empty
             "success": float("nan"),
-            "steps_per_s": (self.step - self._step0) / max(elapsed, 1e-9),
+            "steps_per_s": self.rate(),
         }
         n = max(self._metric_count, 1)
         row.update({k: v / n for k, v in sorted(self._metrics.items())})
         self._metrics, self._metric_count = {}, 0
         self.progress_log.write(row)
-        self._last_logged = self.step
+        self.last_logged = self.step
         if self.tb is not None:
             for k, v in row.items():
                 if k not in ("step", "success"):
@@ -345,7 +294,8 @@ class BCTrainer:
         prune_checkpoints(self.out, cfg.keep_checkpoints)
         return path
 
-    def _restore(self, ckpt: Any) -> None:
+    def restore(self, ckpt: Any) -> None:
+        """Weights, optimiser and RNG states and the batch stream's place."""
         for name, module in self.agent.modules().items():
             ckpt.load_module(name, module)
         self.agent.load_states({name: ckpt.state(name) for name in self.agent.states()})

@@ -39,11 +39,12 @@ class EnvConfig:
     tabletop), ``robosuite`` (the Panda tabletop) or ``gym`` (any registered goal env,
     e.g. gymnasium-robotics ``FetchReach-v4``). The older names ``lang2d`` (= tabletop2d)
     and ``state2d`` (= tabletop2d with ``goal_type=state``) are still accepted."""
-    goal_type: str = "language"
+    goal_type: str = ""
     """Goals (:data:`train.tasks.GOALS`): ``language`` (instructions), ``task`` (one-hot
     ids of the ``tasks``: the policy never sees their text), ``state`` (object, pusher or
     gripper positions, see ``goal``; the only goal type of ``gym``) or ``image`` (a camera
-    frame of the goal layout; robosuite)."""
+    frame of the goal layout; robosuite). Empty: the simulator's first goal type
+    (``language`` on the tabletops, ``state`` on ``gym``)."""
     tasks: tuple[str, ...] = ()
     """A fixed task set of ``K`` instructions (multi-task RL). Each training episode's task
     is drawn among them (``agent.multitask.sampling``) in a layout where it is feasible,
@@ -96,6 +97,8 @@ class EnvConfig:
             self.kind = alias[0]
             if alias[1] is not None:
                 self.goal_type = alias[1]
+        if not self.goal_type and self.kind in ENVS:
+            self.goal_type = ENVS[self.kind].goal_types[0]
 
 
 @dataclass(frozen=True)
@@ -181,7 +184,7 @@ def check_env_config(cfg: EnvConfig) -> EnvSpec:
     if cfg.goal_type not in spec.goal_types:
         raise LcrlError(
             f"the {cfg.kind} env supports the goal types {spec.goal_types}, not "
-            f"{cfg.goal_type!r}: set --env.goal-type"
+            f"{cfg.goal_type!r}: set env.goal_type (--env.goal-type)"
         )
     if cfg.min_objects > cfg.max_objects:
         raise LcrlError(

@@ -1,23 +1,18 @@
 """The training loop: collect an episode, label it, store it, update, evaluate, checkpoint.
 
-Reads top to bottom in :meth:`Trainer.run`. One environment steps at a time; after
-``learning_starts`` steps of random actions every step is followed by
-``updates_per_step`` gradient updates on relabelled batches. Every ``eval_every`` steps
-the policy is evaluated (deterministically) on each instruction set; every
-``checkpoint_every`` steps, at the end, and on Ctrl-C the run is checkpointed (the
+:class:`Trainer` is the online-RL :class:`train.trainer.BaseTrainer`: the base class runs
+the loop (``run``), and :meth:`Trainer.collect_episode` reads top to bottom. One
+environment steps at a time; after ``learning_starts`` steps of random actions every step
+is followed by ``updates_per_step`` gradient updates on relabelled batches. Every
+``eval_every`` steps the policy is evaluated (deterministically) on each instruction set;
+every ``checkpoint_every`` steps, at the end, and on Ctrl-C the run is checkpointed (the
 unfinished episode of an interrupted run is discarded and collected again on resume).
 """
 
 from __future__ import annotations
 
-import csv
 import dataclasses
-import json
-import math
-import shutil
-import time
 from collections import deque
-from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
 
@@ -25,88 +20,16 @@ import numpy as np
 
 from lcrl.algos import Agent
 from lcrl.buffer import HindsightReplayBuffer
-from lcrl.checkpoint import find_latest, load_checkpoint, save_checkpoint, write_latest
+from lcrl.checkpoint import save_checkpoint, write_latest
 from lcrl.errors import LcrlError
 from lcrl.multitask import CONFLICT_KEYS, TaskSampler
-from train.config import TrainConfig, config_from_dict, config_to_dict
+from train.config import TrainConfig, config_to_dict
 from train.environments import canonical_kind
-from train.evaluate import build_agent, build_task, evaluate, format_results
-from train.report import write_report
+from train.evaluate import build_agent, build_task
 from train.tasks import ScriptedActor, is_language, make_env, reset_feasible, task_texts
+from train.trainer import BaseTrainer, eval_row, open_run, prune_checkpoints
 
-
-class CsvLog:
-    """Append rows to a CSV file; the header is fixed by the first row (or the file)."""
-
-    def __init__(self, path: Path) -> None:
-        self.path = path
-        self.fields: list[str] | None = None
-        if path.exists():
-            with path.open() as f:
-                header = f.readline().strip()
-            self.fields = header.split(",") if header else None
-
-    def write(self, row: Mapping[str, Any]) -> None:
-        """Write one row (keys outside the header are dropped)."""
-        new = self.fields is None
-        if new:
-            self.fields = list(row)
-        with self.path.open("a", newline="") as f:
-            w = csv.DictWriter(f, fieldnames=self.fields, extrasaction="ignore")
-            if new:
-                w.writeheader()
-            w.writerow({k: _fmt(v) for k, v in row.items()})
-
-
-def _fmt(v: Any) -> Any:
-    return f"{v:.6g}" if isinstance(v, float) else v
-
-
-def open_run(cfg: TrainConfig) -> tuple[TrainConfig, Any]:
-    """Prepare ``cfg.out`` for a run: with ``cfg.resume``, load its latest checkpoint and
-    the config saved there (keeping ``total_steps``, ``out`` and ``resume`` from ``cfg``);
-    otherwise refuse a folder that already holds a run unless ``cfg.overwrite``, in which
-    case its checkpoints and logs are removed.
-
-    Returns:
-        The config to run with and the checkpoint to resume from (None for a new run).
-    """
-    out = Path(cfg.out)
-    if cfg.resume:
-        latest = find_latest(out)
-        if latest is None:
-            raise LcrlError(f"--resume: no checkpoint in {out} (no latest.json)")
-        ckpt = load_checkpoint(latest)
-        saved = config_from_dict(ckpt.meta["config"])
-        saved.total_steps = cfg.total_steps
-        saved.resume = True
-        saved.out = cfg.out
-        return saved, ckpt
-    if (out / "latest.json").exists():
-        if not cfg.overwrite:
-            raise LcrlError(
-                f"{out} already holds a run; pass --resume to continue it, "
-                "--overwrite to replace it, or choose another --out"
-            )
-        for name in ("checkpoints", "tb"):
-            shutil.rmtree(out / name, ignore_errors=True)
-        for name in ("latest.json", "progress.csv", "eval.csv", "report.md", "curves.png"):
-            (out / name).unlink(missing_ok=True)
-    return cfg, None
-
-
-def eval_row(results: Mapping[str, Any], task: Any, step: int, episodes: int) -> dict[str, Any]:
-    """The eval.csv row of an evaluation: step, episodes, success per set and per family
-    (every family of the task gets a column, even one that no episode of this round drew)."""
-    row: dict[str, Any] = {"step": step, "episodes": episodes}
-    families = tuple(getattr(task, "families", ()))
-    for name, res in results.items():
-        row[f"{name}/success"] = res["success"]
-        for fam in dict.fromkeys((*families, *res["families"])):
-            row[f"{name}/{fam}"] = res["families"].get(fam, float("nan"))
-        for t in res.get("tasks", ()):  # a fixed task set: success per task id
-            row[f"tasks/{t['id']}"] = t["success"]
-    return row
+__all__ = ["Trainer", "checkpoint_meta", "eval_row", "open_run"]
 
 
 def checkpoint_meta(
@@ -138,36 +61,7 @@ def checkpoint_meta(
     return meta, json_files
 
 
-def prune_checkpoints(out: Path, keep: int) -> None:
-    """Delete all but the ``keep`` latest ``checkpoints/step_*`` folders of a run."""
-    kept = sorted((out / "checkpoints").glob("step_*"))
-    for old in kept[:-keep]:
-        shutil.rmtree(old, ignore_errors=True)
-
-
-def save_interrupted(run: Any, unit: str) -> None:
-    """Ctrl-C: checkpoint the run (``Trainer`` or ``BCTrainer``), say how to continue it,
-    and close it."""
-    path = run.save()
-    print(f"interrupted at {unit} {run.step}: saved {path}; continue with --resume")
-    run.close()
-
-
-def finish_run(run: Any) -> dict[str, Any]:
-    """The end of a run (``Trainer`` or ``BCTrainer``): the last progress row, the final
-    evaluation, a checkpoint and the report; returns the evaluation."""
-    if run._last_logged != run.step:
-        run._log()
-    results = run.evaluate()
-    path = run.save()
-    report = write_report(run.out, results)
-    print(f"final checkpoint: {path}")
-    print(f"report: {report}")
-    run.close()
-    return results
-
-
-class Trainer:
+class Trainer(BaseTrainer):
     """Builds everything a run needs from a :class:`TrainConfig` and runs it.
 
     Args:
@@ -251,56 +145,15 @@ class Trainer:
         self._credit = 0.0
         self._metrics: dict[str, float] = {}
         self._metric_count = 0
-        self.last_eval: dict[str, Any] | None = None
-        self._last_logged = -1
         if ckpt is not None:
-            self._restore(ckpt)
+            self.restore(ckpt)
         elif self.problem.goal_kind == "text":
             self.agent.observe({}, self.task.embeddings[: self.task.num_train])
 
-    # --- the loop --------------------------------------------------------------------
-    def run(self) -> dict[str, Any]:
-        """Train to ``total_steps``; returns the final evaluation."""
-        cfg = self.cfg
-        self.out.mkdir(parents=True, exist_ok=True)
-        (self.out / "config.json").write_text(
-            json.dumps({**config_to_dict(cfg), "resolved_algo": self.algo}, indent=1)
-        )
-        self.progress_log = CsvLog(self.out / "progress.csv")
-        self.eval_log = CsvLog(self.out / "eval.csv")
-        self.tb = _tensorboard(self.out / "tb") if cfg.tensorboard else None
-        bar = _progress(cfg.total_steps, self.step, cfg.progress)
-        self._t0, self._step0 = time.perf_counter(), self.step
-        next_eval = _next(self.step, cfg.eval_every)
-        next_ckpt = _next(self.step, cfg.checkpoint_every)
-        next_log = _next(self.step, cfg.log_every)
-        try:
-            while self.step < cfg.total_steps:
-                before = self.step
-                self.collect_episode()
-                bar.update(self.step - before)
-                if self.step >= next_log:
-                    self._log()
-                    next_log = _next(self.step, cfg.log_every)
-                if cfg.eval_every and self.step >= next_eval and self.step < cfg.total_steps:
-                    self.evaluate()
-                    next_eval = _next(self.step, cfg.eval_every)
-                if cfg.checkpoint_every and self.step >= next_ckpt and self.step < cfg.total_steps:
-                    self.save()
-                    next_ckpt = _next(self.step, cfg.checkpoint_every)
-                bar.set_postfix_str(self._postfix(), refresh=False)
-        except KeyboardInterrupt:
-            bar.close()
-            save_interrupted(self, "step")
-            raise
-        bar.close()
-        return finish_run(self)
-
-    def close(self) -> None:
-        """Close the TensorBoard writer."""
-        if getattr(self, "tb", None) is not None:
-            self.tb.close()
-            self.tb = None
+    # --- the loop ------------------------------------------------------------------
+    def advance(self) -> None:
+        """Collect one episode (acting, stepping, updating) and store it."""
+        self.collect_episode()
 
     def collect_episode(self) -> None:
         """Run one episode (acting, stepping, updating) and store it in the buffer."""
@@ -390,37 +243,19 @@ class Trainer:
                 self._metrics[k] = self._metrics.get(k, 0.0) + v
             self._metric_count += 1
 
-    # --- evaluation, logging ---------------------------------------------------------
-    def evaluate(self) -> dict[str, Any]:
-        """Evaluate on every instruction set; log and return the results."""
-        cfg = self.cfg
-        results = evaluate(self.agent, self.task, cfg, episodes=cfg.eval_episodes, seed=cfg.seed)
-        self.last_eval = results
-        row = eval_row(results, self.task, self.step, self.episodes)
-        self.eval_log.write(row)
-        if self.tb is not None:
-            for k, v in row.items():
-                if k not in ("step", "episodes"):
-                    self.tb.add_scalar(f"eval/{k}", v, self.step)
-        print(f"[step {self.step}] " + format_results(results).replace("\n", " | "))
-        return results
-
-    def _postfix(self) -> str:
+    # --- logging --------------------------------------------------------------------
+    def postfix(self) -> str:
+        """Episodes, the live success rate and the last evaluation."""
         sr = np.mean(self.recent) if self.recent else 0.0
-        text = f"ep {self.episodes} success {sr:.2f}"
-        if self.last_eval:
-            text += " eval " + " ".join(
-                f"{k} {v['success']:.2f}" for k, v in self.last_eval.items()
-            )
-        return text
+        return f"ep {self.episodes} success {sr:.2f} " + super().postfix()
 
-    def _log(self) -> None:
-        elapsed = time.perf_counter() - self._t0
+    def log(self) -> None:
+        """A progress.csv row: counts, live success, speed, mean update metrics."""
         row: dict[str, Any] = {
             "step": self.step,
             "episodes": self.episodes,
             "success": float(np.mean(self.recent)) if self.recent else 0.0,
-            "steps_per_s": (self.step - self._step0) / max(elapsed, 1e-9),
+            "steps_per_s": self.rate(),
             "updates": self.agent.updates,
             "buffer": self.buffer.size,
             "sim_errors": self.sim_errors,
@@ -434,7 +269,7 @@ class Trainer:
         self._metrics, self._metric_count = {}, 0
         row.update(self._multitask_columns())
         self.progress_log.write(row)
-        self._last_logged = self.step
+        self.last_logged = self.step
         if self.tb is not None:
             for k, v in row.items():
                 if k != "step":
@@ -497,7 +332,9 @@ class Trainer:
         prune_checkpoints(self.out, cfg.keep_checkpoints)
         return path
 
-    def _restore(self, ckpt: Any) -> None:
+    def restore(self, ckpt: Any) -> None:
+        """Weights, optimiser and RNG states, counters and the replay buffer of a
+        checkpoint."""
         for name, module in self.agent.modules().items():
             ckpt.load_module(name, module)
         states = {name: ckpt.state(name) for name in self.agent.states()}
@@ -543,31 +380,3 @@ def _learned_models(cfg: TrainConfig) -> Any:
             f"run's env is {cfg.env.kind!r}"
         )
     return models
-
-
-def _next(step: int, every: int) -> float:
-    if every <= 0:
-        return math.inf
-    return (step // every + 1) * every
-
-
-def _progress(total: int, initial: int, enabled: bool) -> Any:
-    from tqdm.auto import tqdm
-
-    return tqdm(
-        total=total,
-        initial=initial,
-        disable=not enabled,
-        unit="step",
-        dynamic_ncols=True,
-        smoothing=0.05,
-    )
-
-
-def _tensorboard(path: Path) -> Any:
-    try:
-        from torch.utils.tensorboard import SummaryWriter
-    except ImportError:
-        print("tensorboard is not installed: no TensorBoard logs (pip install tensorboard)")
-        return None
-    return SummaryWriter(str(path))
