@@ -177,7 +177,7 @@ class BCTrainer(BaseTrainer):
             for _ in range(math.ceil(rows / NORM_BATCH)):
                 self.agent.observe(next(stream).obs)
             _close(stream)
-        if self.problem.goal_kind == "text":
+        if self.task.text_goals:
             self.agent.observe({}, self.task.embeddings[: self.task.num_train])
 
     def _open_stream(self) -> Iterator[Any]:

@@ -147,7 +147,7 @@ class Trainer(BaseTrainer):
         self._metric_count = 0
         if ckpt is not None:
             self.restore(ckpt)
-        elif self.problem.goal_kind == "text":
+        elif self.task.text_goals:
             self.agent.observe({}, self.task.embeddings[: self.task.num_train])
 
     # --- the loop ------------------------------------------------------------------

@@ -77,8 +77,9 @@ def make_env(cfg: EnvConfig, split_set: str = "train", training: bool = False) -
         split_set: the instruction set an instruction-following env draws from.
         training: apply the training-only options (``train_until_success``).
     """
-    spec = check_env_config(cfg)
+    env_spec(cfg.kind)  # an unknown simulator first: its goal type cannot be resolved
     modality = goal_modality(cfg.goal_type)
+    spec = check_env_config(cfg)
     check_tasks(cfg)
     env = spec.make(cfg)
     if modality.instructed:
@@ -127,8 +128,9 @@ def check_tasks(cfg: EnvConfig) -> None:
     """Refuse a task set that cannot run: task ids on an env without instructions, an
     empty task set with task ids, an instruction that does not parse, that is outside the
     env's families, or that repeats another (in any phrasing)."""
-    spec = check_env_config(cfg)
+    env_spec(cfg.kind)  # an unknown simulator first: its goal type cannot be resolved
     modality = goal_modality(cfg.goal_type)
+    spec = check_env_config(cfg)
     tasks = task_texts(cfg)
     if not tasks:
         if modality.needs_tasks:
