@@ -155,6 +155,14 @@ def test_a_new_simulator_and_goal_modality_train_through_the_registries(
     assert cli("eval", str(tmp_path / "her"), "--episodes", "40", "--out", str(out)) == 0
     doc = json.loads((out / "eval.json").read_text())
     assert doc["sets"]["all"]["success"] == pytest.approx(her)  # one engine, one seed
+    # a policy that mostly fails: the same few successes, episode for episode
+    out = tmp_path / "eval-none"
+    assert cli("eval", str(tmp_path / "none"), "--episodes", "40", "--num-envs", "3",
+               "--out", str(out)) == 0  # fmt: skip
+    doc = json.loads((out / "eval.json").read_text())
+    assert doc["sets"]["all"]["success"] == pytest.approx(without)
+    last = (tmp_path / "none" / "eval.csv").read_text().splitlines()[-1].split(",")
+    assert float(last[2]) == pytest.approx(without, abs=1e-6)  # step, episodes, all/success
     loaded = load_policy(tmp_path / "her")
     assert isinstance(loaded.task, OffsetTask)
     assert run_episode(loaded.agent, loaded.task, loaded.env, seed=1)["family"] == "all"
