@@ -54,6 +54,7 @@ __all__ = [
     "find_latest",
     "flatten_state",
     "load_checkpoint",
+    "remove_stale",
     "save_checkpoint",
     "unflatten_state",
     "write_latest",
@@ -1002,11 +1003,11 @@ def find_latest(run_dir: str | Path) -> Path | None:
 
     Returns:
         The checkpoint path (``run_dir`` joined with the stored relative path), or ``None``
-        if ``latest.json`` is absent or the directory it names does not exist.
+        if ``latest.json`` is absent.
 
     Raises:
         CheckpointError: If ``latest.json`` exists but is not valid JSON of the form
-            ``{"checkpoint": "<path>"}``.
+            ``{"checkpoint": "<path>"}``, or names a checkpoint that does not exist.
     """
     latest = Path(run_dir) / LATEST_FILE
     if not latest.is_file():
@@ -1017,4 +1018,45 @@ def find_latest(run_dir: str | Path) -> Path | None:
             f'corrupt {latest}: expected {{"checkpoint": "<path>"}} but found {_describe(doc)}'
         )
     path = Path(run_dir) / doc["checkpoint"]
-    return path if path.is_dir() else None
+    if not path.is_dir():
+        raise CheckpointError(
+            f"{latest} points at the checkpoint {doc['checkpoint']!r}, which does not exist "
+            f"(deleted or moved?): restore it, or point {LATEST_FILE} at another checkpoint "
+            f"of {Path(run_dir) / 'checkpoints'}"
+        )
+    return path
+
+
+def remove_stale(run_dir: str | Path) -> list[Path]:
+    """Clean up after a process killed while writing a checkpoint of ``run_dir``.
+
+    :func:`save_checkpoint` writes into hidden ``.<name>.tmp-*`` folders and moves a
+    replaced checkpoint to ``.<name>.old-*`` until the new one is in place;
+    :func:`write_latest` writes ``.latest.json.*.tmp``. A kill between those steps leaves
+    them behind. Temporary folders and files are deleted; an ``.old`` folder whose
+    checkpoint is missing is the only complete copy and is renamed back, others are deleted.
+
+    Returns:
+        The paths removed or restored.
+    """
+    run = Path(run_dir)
+    done: list[Path] = []
+    for folder in (run, run / "checkpoints"):
+        if not folder.is_dir():
+            continue
+        for path in sorted(folder.glob(".*")):
+            name = path.name
+            if ".tmp-" in name or (name.startswith(f".{LATEST_FILE}.") and name.endswith(".tmp")):
+                if path.is_dir():
+                    shutil.rmtree(path, ignore_errors=True)
+                else:
+                    path.unlink(missing_ok=True)
+                done.append(path)
+            elif ".old-" in name and path.is_dir():
+                original = folder / name[1:].split(".old-")[0]
+                if not original.exists() and (path / META_FILE).is_file():
+                    os.rename(path, original)
+                else:
+                    shutil.rmtree(path, ignore_errors=True)
+                done.append(path)
+    return done

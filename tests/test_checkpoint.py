@@ -537,7 +537,8 @@ def test_write_and_find_latest(tmp_path):
     assert find_latest(moved) == moved / "checkpoints" / "step_200"
 
     shutil.rmtree(moved / "checkpoints" / "step_200")
-    assert find_latest(moved) is None
+    with pytest.raises(CheckpointError, match=r"step_200.*does not exist"):
+        find_latest(moved)
 
 
 def test_latest_errors(tmp_path):

@@ -411,7 +411,7 @@ def test_checkpoints_load_without_pickle(lang_run, state_full, monkeypatch):
     assert run_episode(policy.agent, policy.task, policy.env, seed=1)["steps"] > 0
 
     # a resume reads optimiser/RNG state and the replay buffer too
-    resumed = Trainer(tiny("state2d", state_full.out, resume=True))
+    resumed = Trainer(tiny("state2d", state_full.out, resume=True, total_steps=400))
     assert resumed.step == 300 and resumed.buffer.size == state_full.buffer.size
     for ckpt in (trainer.out, state_full.out):
         files = {p.suffix for p in find_latest(ckpt).iterdir()}

@@ -28,10 +28,12 @@ import json
 import sys
 from collections.abc import Sequence
 from dataclasses import dataclass
+from pathlib import Path
 
 import tyro
 
 from lcrl.errors import LcrlError
+from train.trainer import RunAlreadyDone, RunInterrupted
 
 
 @dataclass
@@ -161,6 +163,7 @@ class EvalCommand:
             raise LcrlError(f"--vector must be auto, sync or async, got {self.vector!r}")
         if self.out and Path(self.out).exists() and not Path(self.out).is_dir():
             raise LcrlError(f"--out {self.out} is a file, not a folder")
+        check_json_path(self.json)
         if self.instructions:
             read_instruction_file(self.instructions)  # bad lines fail before loading
         # a fixed task set: options that cannot apply fail before the policy is built
@@ -423,6 +426,7 @@ class CaptionEvalCommand:
     """Also write every figure to this JSON file."""
 
     def run(self) -> None:
+        check_json_path(self.json)
         from captioner.dataset import CaptionDataset
         from captioner.learned import (
             LearnedCaptioner,
@@ -440,6 +444,12 @@ class CaptionEvalCommand:
         print(format_results(results))
         if self.json:
             print(f"saved {save_results(results, self.json)}")
+
+
+def check_json_path(path: str | None) -> None:
+    """Refuse a ``--json`` path that names a folder, before any work is done."""
+    if path and Path(path).is_dir():
+        raise LcrlError(f"--json {path} is a folder: name a file, e.g. {Path(path) / 'eval.json'}")
 
 
 def _caption(argv: Sequence[str]) -> None:
@@ -524,9 +534,17 @@ def main(argv: Sequence[str] | None = None) -> None:
             run_demo(cfg)
         else:
             cfg.run()
+    except RunAlreadyDone as e:  # --resume of a run already at --total-steps
+        print(f"lcrl: {e}", file=sys.stderr)
     except LcrlError as e:
         print(f"lcrl: error: {e}", file=sys.stderr)
         sys.exit(2)
+    except OSError as e:  # a file or folder that cannot be read or written
+        where = f" {e.filename}" if e.filename else ""
+        print(f"lcrl: error: cannot use{where}: {e.strerror or e}", file=sys.stderr)
+        sys.exit(2)
+    except RunInterrupted as e:  # the run saved a checkpoint (train/trainer.py)
+        sys.exit(e.exit_status)
     except KeyboardInterrupt:
         print("lcrl: interrupted", file=sys.stderr)
         sys.exit(130)

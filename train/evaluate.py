@@ -22,7 +22,7 @@ import numpy as np
 from lcrl.algos import ALGOS, DQN, SAC, TD3, Agent, Problem
 from lcrl.checkpoint import Checkpoint, find_latest, load_checkpoint
 from lcrl.errors import LcrlError
-from train.config import TrainConfig, config_from_dict
+from train.config import TrainConfig
 from train.environments import env_spec
 from train.eval_suite import EVAL_SEED_OFFSET, run_evaluation
 from train.tasks import (
@@ -267,8 +267,11 @@ def load_policy(
     Raises:
         LcrlError: the checkpoint is missing or does not match the environment.
     """
+    from train.run_meta import run_meta
+
     ckpt = load_checkpoint(resolve_checkpoint(path))
-    cfg = config_from_dict(ckpt.meta["config"])
+    meta = run_meta(ckpt)
+    cfg = meta.config
     for key, value in (env_overrides or {}).items():
         if not hasattr(cfg.env, key):
             raise LcrlError(f"unknown env option {key!r}")
@@ -281,13 +284,13 @@ def load_policy(
     env = make_env(cfg.env, "train")
     task = build_task(cfg, env, ckpt)
     problem = task.problem()
-    saved = Problem.from_dict(ckpt.meta["problem"])
+    saved = meta.problem
     if problem != saved:
         raise LcrlError(
             f"checkpoint {ckpt.path} does not match the environment: it was trained with "
             f"{_describe(saved)}, the environment gives {_describe(problem)}"
         )
-    agent = build_agent(ckpt.meta["algo"], problem, cfg, task.goal_space.embed)
+    agent = build_agent(meta.algo, problem, cfg, task.goal_space.embed)
     for name, module in agent.modules().items():
         ckpt.load_module(name, module)
     return LoadedPolicy(cfg, agent, task, env, ckpt)

@@ -11,6 +11,7 @@ unfinished episode of an interrupted run is discarded and collected again on res
 
 from __future__ import annotations
 
+import copy
 import dataclasses
 from collections import deque
 from pathlib import Path
@@ -156,7 +157,12 @@ class Trainer(BaseTrainer):
         self.collect_episode()
 
     def collect_episode(self) -> None:
-        """Run one episode (acting, stepping, updating) and store it in the buffer."""
+        """Run one episode (acting, stepping, updating) and store it in the buffer.
+
+        The state at the episode's start is kept in memory (:meth:`snapshot`) until the
+        episode is stored: a run stopped in between goes back to it (:meth:`rollback`), so
+        its checkpoint, resumed, collects the same episode with the same updates."""
+        self._start = self.snapshot()
         cfg, task, env = self.cfg, self.task, self.env
         seed = int(cfg.seed * 1_000_003 + self.episodes)
         task_id = None
@@ -176,33 +182,46 @@ class Trainer(BaseTrainer):
         scripted = self.scripted is not None and self.scripted_rng.random() < cfg.scripted_fraction
         if scripted:
             self.scripted.reset()
-        try:
-            while True:
-                if scripted:
-                    a = self.scripted.act(env, self.scripted_rng)
-                elif self.step < cfg.learning_starts:
-                    if (self.step - start_step) % cfg.random_action_repeat == 0:
-                        random_a = task.random_action(self.rng)
-                    a = random_a
-                else:
-                    batch_obs = {k: v[None] for k, v in stored[-1].items()}
-                    a = self.agent.act(batch_obs, goal_batch)[0]
-                obs, reward, terminated, truncated, info = env.step(task.scale_action(a))
-                self.step += 1
-                stored.append(task.storage_obs(obs, first))
-                records.append(task.step_record(obs, env))
-                actions.append(a)
-                rewards.append(reward)
-                terms.append(terminated)
-                succeeded = succeeded or bool(info.get("is_success", False))
-                self._update(self._updates_due())
-                if terminated or truncated:
-                    break
-                if self.step >= cfg.total_steps and self.step - start_step >= 1:
-                    break  # the budget ends mid-episode: store what was collected
-        except BaseException:
-            self.step = start_step  # the unfinished episode is dropped: count it again
-            raise
+        while True:
+            if scripted:
+                a = self.scripted.act(env, self.scripted_rng)
+            elif self.step < cfg.learning_starts:
+                if (self.step - start_step) % cfg.random_action_repeat == 0:
+                    random_a = task.random_action(self.rng)
+                a = random_a
+            else:
+                batch_obs = {k: v[None] for k, v in stored[-1].items()}
+                a = self.agent.act(batch_obs, goal_batch)[0]
+            obs, reward, terminated, truncated, info = env.step(task.scale_action(a))
+            self.step += 1
+            stored.append(task.storage_obs(obs, first))
+            records.append(task.step_record(obs, env))
+            actions.append(a)
+            rewards.append(reward)
+            terms.append(terminated)
+            succeeded = succeeded or bool(info.get("is_success", False))
+            self._update(self._updates_due())
+            if terminated or truncated:
+                break
+            if self.step >= cfg.total_steps and self.step - start_step >= 1:
+                break  # the budget ends mid-episode: store what was collected
+        with self.holding_signals():  # the episode is stored whole, or not at all
+            self._store(stored, records, actions, rewards, terms, goal, info)
+            self._finish_episode(scripted, succeeded, task_id, info)
+            self._start = None
+
+    def _store(
+        self,
+        stored: list[dict[str, np.ndarray]],
+        records: list[Any],
+        actions: list[Any],
+        rewards: list[float],
+        terms: list[bool],
+        goal: Any,
+        info: dict[str, Any],
+    ) -> None:
+        """Label a finished episode and add it to the buffer."""
+        task, env = self.task, self.env
         episode_obs = {k: np.stack([s[k] for s in stored]) for k in stored[0]}
         episode = {
             "obs": episode_obs,
@@ -213,6 +232,11 @@ class Trainer(BaseTrainer):
         }
         self.buffer.add_episode(episode)
         self.agent.observe(episode_obs, episode.get("achieved_goal"))
+
+    def _finish_episode(
+        self, scripted: bool, succeeded: bool, task_id: int | None, info: dict[str, Any]
+    ) -> None:
+        """Count a stored episode."""
         self.episodes += 1
         if scripted:
             self.scripted_episodes += 1
@@ -222,6 +246,41 @@ class Trainer(BaseTrainer):
                 self.sampler.update(task_id, succeeded)
         if info.get("sim_error"):
             self.sim_errors += 1
+
+    def snapshot(self) -> dict[str, Any]:
+        """Everything an episode changes before it is stored, copied: the learner's
+        weights, optimiser and random states, the random generators, the step and the
+        update credit, the metrics gathered for the next progress row."""
+        return {
+            "modules": {
+                name: copy.deepcopy(module.state_dict())
+                for name, module in self.agent.modules().items()
+            },
+            "states": copy.deepcopy(self.agent.states()),
+            "rngs": [g.bit_generator.state for g in self._generators()],
+            "step": self.step,
+            "credit": self._credit,
+            "metrics": (dict(self._metrics), self._metric_count),
+            "grad": {k: list(v) for k, v in self._grad_metrics.items()},
+        }
+
+    def _generators(self) -> list[np.random.Generator]:
+        return [self.rng, self.scripted_rng, self.task_rng, self.buffer.rng]
+
+    def rollback(self) -> None:
+        """Undo the episode in hand (nothing when the run is between episodes)."""
+        start = getattr(self, "_start", None)
+        if start is None:
+            return
+        for name, module in self.agent.modules().items():
+            module.load_state_dict(start["modules"][name])
+        self.agent.load_states(start["states"])
+        for g, state in zip(self._generators(), start["rngs"], strict=True):
+            g.bit_generator.state = state
+        self.step, self._credit = start["step"], start["credit"]
+        (self._metrics, self._metric_count) = start["metrics"]
+        self._grad_metrics = start["grad"]
+        self._start = None
 
     def _updates_due(self) -> int:
         """Gradient updates due after this env step."""

@@ -13,27 +13,44 @@ behavioural cloning; offline and distillation trainers enter the same way) subcl
 
 The base class owns the loop (progress bar, periodic log, evaluation and checkpoint), the
 periodic evaluation (through :func:`train.evaluate.evaluate`, the engine of ``lcrl
-eval``), the end of a run (last row, final evaluation, checkpoint, report) and Ctrl-C (a
-checkpoint, a hint to ``--resume``); nothing outside a trainer touches its private state.
+eval``), the end of a run (last row, final evaluation, checkpoint, report) and stopping;
+nothing outside a trainer touches its private state.
+
+Stopping
+    Ctrl-C (SIGINT) and SIGTERM (what cluster schedulers send before they kill a job) stop
+    a run the same way: the trainer goes back to the state at the start of the unit in
+    hand (:meth:`BaseTrainer.rollback`: an episode's updates and random draws are undone),
+    writes a checkpoint and exits with status 130 (SIGINT) or 143 (SIGTERM); ``--resume``
+    then continues exactly as if nothing had happened. While a checkpoint is being
+    written, further SIGINT and SIGTERM are held back and reported, so the checkpoint is
+    always completed: stopping again only repeats the note. SIGKILL cannot be caught:
+    ``--resume`` continues from the last checkpoint, cuts ``progress.csv`` and
+    ``eval.csv`` back to its step and removes half-written checkpoint folders.
 """
 
 from __future__ import annotations
 
+import contextlib
 import csv
 import json
 import math
+import os
 import shutil
+import signal
+import sys
+import threading
 import time
 from abc import ABC, abstractmethod
-from collections.abc import Mapping
+from collections.abc import Iterator, Mapping
 from pathlib import Path
 from typing import Any
 
-from lcrl.checkpoint import find_latest, load_checkpoint
+from lcrl.checkpoint import find_latest, load_checkpoint, remove_stale
 from lcrl.errors import LcrlError
-from train.config import TrainConfig, config_from_dict, config_to_dict
+from train.config import TrainConfig, config_to_dict
 from train.evaluate import evaluate, format_results
 from train.report import write_report
+from train.run_meta import run_meta
 
 
 class CsvLog:
@@ -63,25 +80,114 @@ def _fmt(v: Any) -> Any:
     return f"{v:.6g}" if isinstance(v, float) else v
 
 
+class RunInterrupted(KeyboardInterrupt):
+    """A run stopped by a signal (SIGINT or SIGTERM); ``signum`` says which."""
+
+    def __init__(self, signum: int) -> None:
+        super().__init__(signal.Signals(signum).name)
+        self.signum = int(signum)
+
+    @property
+    def exit_status(self) -> int:
+        """The shell's status of a process ended by the signal (130, 143)."""
+        return 128 + self.signum
+
+
+class RunAlreadyDone(LcrlError):
+    """``--resume --total-steps N`` where the run is already at N or beyond."""
+
+
+class StopSignals:
+    """SIGINT and SIGTERM as :class:`RunInterrupted`, except while a checkpoint is written.
+
+    Installed for the duration of a run (main thread only; elsewhere it does nothing). The
+    first signal raises :class:`RunInterrupted` in the loop. Inside :meth:`holding` (a
+    checkpoint being written) a signal is remembered and reported instead, and raised once
+    the block ends, so no save is ever cut short.
+    """
+
+    SIGNALS = (signal.SIGINT, signal.SIGTERM)
+
+    def __init__(self) -> None:
+        self.pending: int | None = None
+        self._holding = 0
+        self._stopping = False
+        self._previous: dict[int, Any] = {}
+
+    def __enter__(self) -> StopSignals:
+        if threading.current_thread() is threading.main_thread():
+            for sig in self.SIGNALS:
+                self._previous[sig] = signal.signal(sig, self._handle)
+        return self
+
+    def __exit__(self, *exc: Any) -> None:
+        for sig, handler in self._previous.items():
+            signal.signal(sig, handler)
+        self._previous = {}
+
+    def _handle(self, signum: int, frame: Any) -> None:
+        if self._holding or self._stopping:
+            self.pending = self.pending or signum
+            print(
+                f"\nlcrl: {signal.Signals(signum).name} while the checkpoint is written: it "
+                "is completed first, then the run stops (kill -9 stops at once and keeps the "
+                "previous checkpoint)",
+                file=sys.stderr,
+                flush=True,
+            )
+            return
+        self._stopping = True  # later signals wait for the checkpoint of this one
+        raise RunInterrupted(signum)
+
+    @contextlib.contextmanager
+    def holding(self) -> Iterator[None]:
+        """Hold SIGINT and SIGTERM back while the block runs; raise the first one held
+        (as :class:`RunInterrupted`) when it ends, unless the run is already stopping."""
+        self._holding += 1
+        try:
+            yield
+        finally:
+            self._holding -= 1
+        if not self._holding and self.pending is not None and not self._stopping:
+            signum, self.pending = self.pending, None
+            self._stopping = True
+            raise RunInterrupted(signum)
+
+
 def open_run(cfg: TrainConfig) -> tuple[TrainConfig, Any]:
     """Prepare ``cfg.out`` for a run: with ``cfg.resume``, load its latest checkpoint and
-    the config saved there (keeping ``total_steps``, ``out`` and ``resume`` from ``cfg``);
-    otherwise refuse a folder that already holds a run unless ``cfg.overwrite``, in which
-    case its checkpoints and logs are removed.
+    the config saved there (keeping ``total_steps``, ``out`` and ``resume`` from ``cfg``),
+    remove what a killed process left half-written and cut the logs back to the
+    checkpoint's step; otherwise refuse a folder that already holds a run unless
+    ``cfg.overwrite``, in which case its checkpoints and logs are removed.
 
     Returns:
         The config to run with and the checkpoint to resume from (None for a new run).
+
+    Raises:
+        RunAlreadyDone: ``--resume`` with ``total_steps`` at or below the checkpoint's step.
+        LcrlError: no checkpoint to resume, a run in the way, an unusable ``out``.
     """
     out = Path(cfg.out)
+    check_out_dir(out)
     if cfg.resume:
+        remove_stale(out)
         latest = find_latest(out)
         if latest is None:
             raise LcrlError(f"--resume: no checkpoint in {out} (no latest.json)")
         ckpt = load_checkpoint(latest)
-        saved = config_from_dict(ckpt.meta["config"])
+        meta = run_meta(ckpt)
+        if cfg.total_steps <= meta.step:
+            raise RunAlreadyDone(
+                f"{out} is already at step {meta.step} (checkpoint {latest.name}): nothing to "
+                f"do for --total-steps {cfg.total_steps}; pass a larger --total-steps to train on"
+            )
+        saved = meta.config
         saved.total_steps = cfg.total_steps
         saved.resume = True
         saved.out = cfg.out
+        for name in ("progress.csv", "eval.csv"):
+            truncate_log(out / name, meta.step)
         return saved, ckpt
     if (out / "latest.json").exists():
         if not cfg.overwrite:
@@ -94,6 +200,56 @@ def open_run(cfg: TrainConfig) -> tuple[TrainConfig, Any]:
         for name in ("latest.json", "progress.csv", "eval.csv", "report.md", "curves.png"):
             (out / name).unlink(missing_ok=True)
     return cfg, None
+
+
+def check_out_dir(out: Path) -> None:
+    """Refuse a run folder that cannot be one: a file, or a folder that cannot be written.
+    Leaves nothing behind: folders made for the check are removed again.
+
+    Raises:
+        LcrlError: naming the path and the problem.
+    """
+    if out.exists() and not out.is_dir():
+        raise LcrlError(f"--out {out} is a file, not a folder: choose another --out")
+    made = [p for p in (out, *out.parents) if not p.exists()]
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+        probe = out / f".write-test-{os.getpid()}"
+        probe.write_text("")
+        probe.unlink()
+    except OSError as e:
+        raise LcrlError(f"cannot write the run folder {out}: {e.strerror or e}") from None
+    finally:
+        for p in made:  # innermost first
+            with contextlib.suppress(OSError):
+                p.rmdir()
+
+
+def truncate_log(path: Path, step: int) -> int:
+    """Drop the rows of a CSV log whose ``step`` is past ``step`` (what a killed run wrote
+    after its last checkpoint); returns how many were dropped."""
+    if not path.is_file():
+        return 0
+    with path.open(newline="") as f:
+        rows = list(csv.reader(f))
+    if not rows or "step" not in rows[0]:
+        return 0
+    col = rows[0].index("step")
+    keep = [rows[0]]
+    for row in rows[1:]:
+        try:
+            if float(row[col]) > step:
+                continue
+        except (IndexError, ValueError):
+            continue  # a row cut short by the kill
+        keep.append(row)
+    dropped = len(rows) - len(keep)
+    if dropped:
+        tmp = path.with_name(f".{path.name}.tmp")
+        with tmp.open("w", newline="") as f:
+            csv.writer(f).writerows(keep)
+        tmp.replace(path)
+    return dropped
 
 
 def eval_row(results: Mapping[str, Any], task: Any, step: int, episodes: int) -> dict[str, Any]:
@@ -194,6 +350,12 @@ class BaseTrainer(ABC):
     def restore(self, ckpt: Any) -> None:
         """Continue from a checkpoint written by :meth:`save`."""
 
+    def rollback(self) -> None:
+        """Go back to the state at the start of the unit in hand (called when a run is
+        stopped inside one, before its checkpoint): what :meth:`advance` changed must not
+        be saved half-done. Trainers whose unit cannot be interrupted need nothing."""
+        return None
+
     def close(self) -> None:
         """Release what the run holds (TensorBoard, files, environments)."""
         if self.tb is not None:
@@ -238,28 +400,63 @@ class BaseTrainer(ABC):
         next_eval = next_multiple(self.step, cfg.eval_every)
         next_ckpt = next_multiple(self.step, cfg.checkpoint_every)
         next_log = next_multiple(self.step, cfg.log_every)
-        try:
-            while self.step < cfg.total_steps:
-                before = self.step
-                self.advance()
-                bar.update(self.step - before)
-                if self.step >= next_log:
-                    self.log()
-                    next_log = next_multiple(self.step, cfg.log_every)
-                if cfg.eval_every and self.step >= next_eval and self.step < cfg.total_steps:
-                    self.evaluate()
-                    next_eval = next_multiple(self.step, cfg.eval_every)
-                if cfg.checkpoint_every and self.step >= next_ckpt and self.step < cfg.total_steps:
-                    self.save()
-                    next_ckpt = next_multiple(self.step, cfg.checkpoint_every)
-                    self.after_checkpoint()
-                bar.set_postfix_str(self.postfix(), refresh=False)
-        except KeyboardInterrupt:
+        with StopSignals() as self.signals:
+            try:
+                while self.step < cfg.total_steps:
+                    before = self.step
+                    self.advance()
+                    bar.update(self.step - before)
+                    if self.step >= next_log:
+                        self.log()
+                        next_log = next_multiple(self.step, cfg.log_every)
+                    if cfg.eval_every and self.step >= next_eval and self.step < cfg.total_steps:
+                        self.evaluate()
+                        next_eval = next_multiple(self.step, cfg.eval_every)
+                    if (
+                        cfg.checkpoint_every
+                        and self.step >= next_ckpt
+                        and self.step < cfg.total_steps
+                    ):
+                        self.checkpoint()
+                        next_ckpt = next_multiple(self.step, cfg.checkpoint_every)
+                        self.after_checkpoint()
+                    bar.set_postfix_str(self.postfix(), refresh=False)
+            except KeyboardInterrupt as e:
+                bar.close()
+                self.interrupted(e)
+                raise
             bar.close()
-            self.interrupted()
-            raise
-        bar.close()
-        return self.finish()
+            return self.finish()
+
+    def holding_signals(self) -> Any:
+        """A context in which SIGINT and SIGTERM wait (see :class:`StopSignals`)."""
+        signals = getattr(self, "signals", None)
+        return signals.holding() if signals is not None else contextlib.nullcontext()
+
+    def checkpoint(self) -> Path:
+        """:meth:`save`, with SIGINT and SIGTERM held back until it is complete; the path
+        is remembered so that stopping right after does not write it again."""
+        with self.holding_signals():
+            path = self.save_or_explain()
+        self._saved = (self.step, path)
+        return path
+
+    def save_or_explain(self) -> Path:
+        """:meth:`save`; a checkpoint that cannot be written (a full disk, a folder that
+        became read-only) is an :class:`LcrlError` naming it and the checkpoint kept."""
+        try:
+            return self.save()
+        except OSError as e:
+            try:
+                kept = find_latest(self.out)
+            except LcrlError:
+                kept = None
+            keep = f"the previous checkpoint {kept} is kept" if kept else "no checkpoint is kept"
+            where = e.filename or self.out / "checkpoints"
+            raise LcrlError(
+                f"cannot write a checkpoint at {self.unit} {self.step} in {where}: "
+                f"{e.strerror or e}; {keep} (latest.json points at it)"
+            ) from None
 
     def elapsed(self) -> float:
         """Seconds since this process started the loop."""
@@ -290,15 +487,28 @@ class BaseTrainer(ABC):
         if self.last_logged != self.step:
             self.log()
         results = self.evaluate()
-        path = self.save()
+        path = self.checkpoint()
         report = write_report(self.out, results)
         print(f"final checkpoint: {path}")
         print(f"report: {report}")
         self.close()
         return results
 
-    def interrupted(self) -> None:
-        """Ctrl-C: checkpoint the run, say how to continue it, and close it."""
-        path = self.save()
-        print(f"interrupted at {self.unit} {self.step}: saved {path}; continue with --resume")
+    def interrupted(self, why: BaseException | None = None) -> None:
+        """Stopped (Ctrl-C, SIGTERM): undo the unit in hand, checkpoint the run unless
+        that step is saved already, say how to continue it, and close it. Signals that
+        arrive meanwhile are held back and reported (:class:`StopSignals`)."""
+        name = why.args[0] if isinstance(why, RunInterrupted) else "SIGINT"
+        with self.holding_signals():
+            self.rollback()
+            saved = getattr(self, "_saved", None)
+            if saved is not None and saved[0] == self.step:
+                path = saved[1]
+            else:
+                path = self.save_or_explain()
+        print(
+            f"interrupted at {self.unit} {self.step} by {name}: saved {path}; continue with "
+            "--resume",
+            flush=True,
+        )
         self.close()
