@@ -229,7 +229,10 @@ def test_ctrl_c_saves_a_checkpoint_and_resumes_exactly(state_full, tmp_path, mon
     )
 
 
-def test_ctrl_c_mid_episode_saves_the_steps_of_completed_episodes(one_thread, tmp_path):
+def test_ctrl_c_mid_episode_rolls_back_and_resumes_exactly(state_full, tmp_path):
+    """Stopped 20 steps into the third episode, after 20 of its gradient updates: the
+    checkpoint is the state at the episode's start, and the resumed run ends with the
+    weights of the uninterrupted one."""
     out = tmp_path / "run"
     trainer = Trainer(tiny("state2d", out))
     env_step, calls = trainer.env.step, {"n": 0}
@@ -246,6 +249,15 @@ def test_ctrl_c_mid_episode_saves_the_steps_of_completed_episodes(one_thread, tm
     ckpt = load_checkpoint(find_latest(out))
     assert ckpt.meta["episodes"] == 2
     assert ckpt.meta["step"] == 2 * EPISODE
+    assert ckpt.state("counters")["updates"] == 2 * EPISODE - 100 + 1  # updates to step 100
+
+    resumed = Trainer(tiny("state2d", out, resume=True))
+    resumed.run()
+    assert resumed.step == 300
+    assert_same_tensors(
+        out / "checkpoints" / "step_000000300",
+        state_full.out / "checkpoints" / "step_000000300",
+    )
 
 
 # --- 4. refusing to clobber or to resume nothing -----------------------------------------

@@ -152,6 +152,7 @@ class EvalCommand:
             run_evaluation,
         )
         from train.evaluate import load_policy, resolve_checkpoint
+        from train.run_meta import run_meta
 
         if self.episodes <= 0:
             raise LcrlError("--episodes must be positive")
@@ -167,15 +168,14 @@ class EvalCommand:
         if self.instructions:
             read_instruction_file(self.instructions)  # bad lines fail before loading
         # a fixed task set: options that cannot apply fail before the policy is built
-        meta = load_checkpoint(resolve_checkpoint(self.checkpoint)).meta
-        saved_env = (meta.get("config") or {}).get("env") or {}
-        tasks = tuple(" ".join(str(t).split()) for t in saved_env.get("tasks") or ())
-        if saved_env.get("goal_type") == "task":
+        saved = run_meta(load_checkpoint(resolve_checkpoint(self.checkpoint))).config.env
+        tasks = tuple(" ".join(str(t).split()) for t in saved.tasks)
+        if saved.goal_type == "task":
             check_task_id_options(len(tasks), self.sets, bool(self.instructions), self.chain)
         if tasks and self.families:
             raise LcrlError(
                 f"--families cannot narrow a checkpoint trained on a fixed task set of "
-                f"{len(tasks)} tasks (families {tuple(saved_env.get('families', ()))}): drop "
+                f"{len(tasks)} tasks (families {tuple(saved.families)}): drop "
                 "it; the figures are broken down per family and per task anyway"
             )
         overrides = {"families": tuple(self.families)} if self.families else None

@@ -63,6 +63,20 @@ def _name(kind: type | tuple[type, ...]) -> str:
     return " or ".join(names.get(k, k.__name__) for k in _kinds(kind))
 
 
+def _config(config: dict[str, Any], where: Any) -> TrainConfig:
+    """The saved config, built and validated; any failure names the field."""
+    try:
+        cfg = config_from_dict(config)
+        cfg.validate()
+    except LcrlError as e:
+        raise CheckpointError(f"{where}: the field 'config' is not a valid config: {e}") from None
+    except (TypeError, ValueError, AttributeError, KeyError) as e:
+        raise CheckpointError(
+            f"{where}: the field 'config' is not a valid config ({type(e).__name__}: {e})"
+        ) from None
+    return cfg
+
+
 def run_meta(ckpt: Checkpoint) -> RunMeta:
     """Read and check the fields of a training checkpoint.
 
@@ -72,14 +86,7 @@ def run_meta(ckpt: Checkpoint) -> RunMeta:
     """
     where = ckpt.path / "meta.json"
     config = _field(ckpt, "config", dict, "the run's config")
-    try:
-        cfg = config_from_dict(config)
-    except LcrlError as e:
-        raise CheckpointError(f"{where}: the field 'config' is not a valid config: {e}") from None
-    except (TypeError, ValueError, AttributeError, KeyError) as e:
-        raise CheckpointError(
-            f"{where}: the field 'config' is not a valid config ({type(e).__name__}: {e})"
-        ) from None
+    cfg = _config(config, where)
     algo = _field(ckpt, "algo", str, "the algorithm")
     problem_doc = _field(ckpt, "problem", dict, "the learner's shapes and goals")
     try:

@@ -1,0 +1,175 @@
+"""Corrupt checkpoints and outputs that cannot be written end in one clear line.
+
+Checkpoint files are really edited or removed; outputs really fail: a file where a folder
+should be, a read-only file system and a full one (small tmpfs mounts where this machine
+allows them, else a writer that fails as a full disk does).
+"""
+
+from __future__ import annotations
+
+import errno
+import json
+import shutil
+import subprocess
+import uuid
+from pathlib import Path
+
+import pytest
+from helpers import cli, error_line
+
+import lcrl
+from lcrl.checkpoint import CheckpointError, find_latest, load_checkpoint
+
+TINY = [
+    "--learning-starts", "50",
+    "--batch-size", "16",
+    "--eval-every", "0",
+    "--eval-episodes", "2",
+    "--checkpoint-every", "0",
+    "--log-every", "50",
+    "--buffer.capacity", "2000",
+    "--agent.net.hidden", "16", "16",
+    "--no-progress",
+    "--no-tensorboard",
+]  # fmt: skip
+
+
+@pytest.fixture(scope="module")
+def state_run(tmp_path_factory) -> Path:
+    """A finished 100-step state2d run."""
+    out = tmp_path_factory.mktemp("state") / "run"
+    assert cli("train", "state2d", "--out", str(out), "--total-steps", "100", *TINY) == 0
+    return out
+
+
+@pytest.fixture
+def copy_run(state_run, tmp_path) -> Path:
+    out = tmp_path / "run"
+    shutil.copytree(state_run, out)
+    return out
+
+
+def edit_meta(run: Path, change) -> Path:
+    path = find_latest(run) / "meta.json"
+    meta = json.loads(path.read_text())
+    change(meta)
+    path.write_text(json.dumps(meta))
+    return path
+
+
+@pytest.mark.parametrize(
+    ("change", "field"),
+    [
+        (lambda m: m.pop("algo"), "'algo'"),
+        (lambda m: m.update(step="many"), "'step'"),
+        (lambda m: m.update(config=[1, 2]), "'config'"),
+        (lambda m: m["config"].update(env=7), "'config'"),
+        (lambda m: m["problem"].pop("goal_kind"), "'goal_kind'"),
+        (lambda m: m.pop("problem"), "'problem'"),
+    ],
+)
+def test_bad_meta_fields_name_the_file_and_the_field(copy_run, capsys, change, field):
+    meta = edit_meta(copy_run, change)
+    assert cli("eval", str(copy_run), "--episodes", "1", "--no-progress") == 2
+    line = error_line(capsys.readouterr().err)
+    assert line.startswith("lcrl: error:") and str(meta) in line and field in line
+    with pytest.raises(CheckpointError, match=field):
+        lcrl.load(copy_run)
+    assert resume(copy_run) == 2
+    line = error_line(capsys.readouterr().err)
+    assert str(meta) in line and field in line
+
+
+def resume(run: Path) -> int:
+    return cli("train", "state2d", "--out", str(run), "--resume", "--total-steps", "200")
+
+
+def test_latest_json_naming_a_missing_checkpoint(copy_run, capsys):
+    shutil.rmtree(find_latest(copy_run))
+    for args in (("train", "state2d", "--out", str(copy_run), "--resume"), ("eval", str(copy_run))):
+        assert cli(*args) == 2
+        line = error_line(capsys.readouterr().err)
+        assert "latest.json points at the checkpoint 'checkpoints/step_000000100'" in line
+        assert "does not exist" in line
+
+
+def test_out_that_is_a_file_and_json_that_is_a_folder(state_run, tmp_path, capsys):
+    file = tmp_path / "a-file"
+    file.write_text("x")
+    assert cli("train", "state2d", "--out", str(file), *TINY) == 2
+    line = error_line(capsys.readouterr().err)
+    assert line == f"lcrl: error: --out {file} is a file, not a folder: choose another --out"
+    assert cli("eval", str(state_run), "--episodes", "1", "--json", str(tmp_path)) == 2
+    line = error_line(capsys.readouterr().err)
+    assert line.startswith(f"lcrl: error: --json {tmp_path} is a folder")
+
+
+@pytest.fixture
+def small_fs(tmp_path):
+    """Mount a 2 MB tmpfs (read-write) at a fresh folder; yields a function that remounts
+    it read-only. Skipped where mounting is not allowed."""
+    where = tmp_path / f"fs-{uuid.uuid4().hex[:6]}"
+    where.mkdir()
+    done = subprocess.run(
+        ["mount", "-t", "tmpfs", "-o", "size=2m", "tmpfs", str(where)], capture_output=True
+    )
+    if done.returncode != 0:
+        pytest.skip(f"cannot mount a tmpfs here: {done.stderr.decode().strip()}")
+
+    def read_only() -> None:
+        subprocess.run(["mount", "-o", "remount,ro", str(where)], check=True)
+
+    yield where, read_only
+    subprocess.run(["umount", "-l", str(where)], check=False)
+
+
+def test_out_inside_a_read_only_folder(small_fs, capsys):
+    where, read_only = small_fs
+    read_only()
+    out = where / "runs" / "x"
+    assert cli("train", "state2d", "--out", str(out), *TINY) == 2
+    line = error_line(capsys.readouterr().err)
+    assert line == f"lcrl: error: cannot write the run folder {out}: Read-only file system"
+
+
+def test_a_full_disk_keeps_the_previous_checkpoint(small_fs, capsys):
+    """A real 2 MB file system: the first checkpoint fits, the replay buffer of the next
+    does not."""
+    where, _ = small_fs
+    out = where / "run"
+    args = ["train", "state2d", "--out", str(out), "--total-steps", "100", *TINY]
+    assert cli(*args) == 0
+    first = find_latest(out)
+    filler = where / "filler"
+    free = shutil.disk_usage(where).free
+    filler.write_bytes(b"\0" * max(free - 64 * 1024, 0))  # leave 64 kB: too little
+    capsys.readouterr()
+    assert resume(out) == 2
+    line = error_line(capsys.readouterr().err)
+    assert line.startswith("lcrl: error: cannot write a checkpoint at step 200")
+    assert "No space left on device" in line
+    assert f"the previous checkpoint {first} is kept" in line
+    assert find_latest(out) == first and load_checkpoint(first).meta["step"] == 100
+    assert not list((out / "checkpoints").glob(".*"))  # the half-written folder is gone
+
+
+def test_a_failing_writer_keeps_the_previous_checkpoint(copy_run, capsys, monkeypatch):
+    """The same, on any machine: the replay buffer's write fails as a full disk does."""
+    import numpy as np
+
+    first = find_latest(copy_run)
+
+    def full(*args, **kwargs):
+        raise OSError(errno.ENOSPC, "No space left on device")
+
+    monkeypatch.setattr(np, "savez", full)
+    monkeypatch.setattr(np, "savez_compressed", full)
+    assert resume(copy_run) == 2
+    line = error_line(capsys.readouterr().err)
+    assert line.startswith("lcrl: error: cannot write a checkpoint at step 200")
+    assert "No space left on device" in line and str(first) in line
+    assert find_latest(copy_run) == first
+    assert not list((copy_run / "checkpoints").glob(".*"))
+    monkeypatch.undo()
+    assert resume(copy_run) == 0  # space again: the run goes on from the kept checkpoint
+    assert load_checkpoint(find_latest(copy_run)).meta["step"] == 200

@@ -1,0 +1,176 @@
+"""Stopping a run, by signal or by kill, loses at most the steps since its last checkpoint.
+
+Real ``lcrl train`` processes get real signals: SIGTERM saves like Ctrl-C (exit 143); a
+second signal while the checkpoint is written does not cut it short; after SIGKILL,
+``--resume`` removes the half-written checkpoint folder and cuts the logs back to the
+checkpoint's step. To put a signal inside a checkpoint write, the process under test
+slows its writes down (:data:`RUNNER`); everything else is the real command.
+"""
+
+from __future__ import annotations
+
+import csv
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+from helpers import cli
+
+from lcrl.checkpoint import find_latest, load_checkpoint
+
+ROOT = Path(__file__).resolve().parent.parent
+#: Runs ``lcrl ARGS`` after making each weights write wait SLOW seconds (printing
+#: "writing" first): ``python -c RUNNER SLOW ARGS...``.
+RUNNER = """
+import sys, time
+import safetensors.torch
+slow = float(sys.argv[1])
+if slow:
+    write = safetensors.torch.save_file
+    def slow_write(*args, **kwargs):
+        print("writing", flush=True)
+        time.sleep(slow)
+        return write(*args, **kwargs)
+    safetensors.torch.save_file = slow_write
+from train.cli import main
+main(sys.argv[2:])
+"""
+TINY = [
+    "--learning-starts", "100",
+    "--batch-size", "16",
+    "--eval-every", "0",
+    "--eval-episodes", "2",
+    "--checkpoint-every", "0",
+    "--log-every", "50",
+    "--buffer.capacity", "20000",
+    "--agent.net.hidden", "16", "16",
+    "--no-progress",
+    "--no-tensorboard",
+]  # fmt: skip
+
+
+class Run:
+    """A real ``lcrl train state2d`` process writing to ``out``; its stdout and stderr go
+    to files in ``out``'s parent."""
+
+    def __init__(self, out: Path, *extra: str, slow: float = 0.0, steps: int = 100_000) -> None:
+        self.out = out
+        self.stdout = out.parent / f"{out.name}.out"
+        self.stderr = out.parent / f"{out.name}.err"
+        args = ["train", "state2d", "--out", str(out), "--total-steps", str(steps), *TINY]
+        env = {**os.environ, "OMP_NUM_THREADS": "1", "PYTHONUNBUFFERED": "1"}
+        with self.stdout.open("w") as o, self.stderr.open("w") as e:
+            self.proc = subprocess.Popen(
+                [sys.executable, "-c", RUNNER, str(slow), *args, *extra],
+                cwd=ROOT,
+                stdout=o,
+                stderr=e,
+                env=env,
+            )
+
+    def wait_for(self, ready, timeout: float = 120.0) -> None:
+        """Poll until ``ready()`` holds (the process must still run)."""
+        end = time.monotonic() + timeout
+        while not ready():
+            if self.proc.poll() is not None:
+                raise AssertionError(f"the run ended early: {self.err()}")
+            if time.monotonic() > end:
+                self.proc.kill()
+                raise AssertionError(f"timed out; stdout: {self.out_text()}")
+            time.sleep(0.05)
+
+    def logged(self, rows: int = 2) -> bool:
+        """progress.csv holds at least ``rows`` rows."""
+        return len(log_steps(self.out / "progress.csv")) >= rows
+
+    def finish(self, timeout: float = 120.0) -> int:
+        return self.proc.wait(timeout=timeout)
+
+    def out_text(self) -> str:
+        return self.stdout.read_text()
+
+    def err(self) -> str:
+        return self.stderr.read_text()
+
+
+def log_steps(path: Path) -> list[int]:
+    if not path.is_file():
+        return []
+    with path.open(newline="") as f:
+        return [int(float(row["step"])) for row in csv.DictReader(f) if row.get("step")]
+
+
+def latest_step(out: Path) -> int:
+    return int(load_checkpoint(find_latest(out)).meta["step"])
+
+
+def resume(out: Path, steps: int) -> int:
+    return cli("train", "state2d", "--out", str(out), "--resume", "--total-steps", str(steps))
+
+
+def test_sigterm_saves_like_ctrl_c_and_resumes(tmp_path, one_thread):
+    run = Run(tmp_path / "run")
+    run.wait_for(run.logged)
+    run.proc.send_signal(signal.SIGTERM)
+    assert run.finish() == 143
+    assert "by SIGTERM: saved" in run.out_text() and "--resume" in run.out_text()
+    assert "Traceback" not in run.err()
+    step = latest_step(run.out)
+    assert step >= 100 and step % 50 == 0  # episodes of 50 steps: a whole number of them
+    assert resume(run.out, step + 50) == 0
+    assert latest_step(run.out) == step + 50
+
+
+@pytest.mark.parametrize("second", [signal.SIGINT, signal.SIGTERM])
+def test_a_second_signal_during_the_save_keeps_the_checkpoint(tmp_path, second):
+    run = Run(tmp_path / "run", slow=1.5)
+    run.wait_for(run.logged)
+    run.proc.send_signal(signal.SIGINT)
+    run.wait_for(lambda: "writing" in run.out_text())
+    run.proc.send_signal(second)  # in the middle of the write
+    run.proc.send_signal(signal.SIGINT)
+    assert run.finish() == 130
+    err = run.err()
+    assert "while the checkpoint is written: it is completed first" in err
+    assert "Exception ignored" not in err and "Traceback" not in err
+    ckpt = load_checkpoint(find_latest(run.out))  # complete, and the one latest.json names
+    assert ckpt.meta["step"] >= 100 and ckpt.has_arrays()
+    assert "by SIGINT: saved" in run.out_text()
+
+
+def test_resume_after_sigkill_cleans_up_and_cuts_the_logs(tmp_path, one_thread):
+    out = tmp_path / "run"
+    run = Run(out, "--checkpoint-every", "200", "--log-every", "20", slow=3.0)
+    # killed in the middle of the second checkpoint's write, after rows past the first
+    run.wait_for(lambda: (out / "latest.json").is_file())
+    # two safetensors files per checkpoint: the third write is the second checkpoint's
+    run.wait_for(lambda: run.out_text().count("writing") >= 3)
+    run.proc.send_signal(signal.SIGKILL)
+    assert run.finish() == -signal.SIGKILL
+    stale = list((out / "checkpoints").glob(".*.tmp-*"))
+    assert stale, "the kill left no half-written folder"
+    kept = latest_step(out)
+    assert max(log_steps(out / "progress.csv")) > kept  # rows of the lost segment
+
+    assert resume(out, kept + 100) == 0
+    assert not list((out / "checkpoints").glob(".*"))
+    steps = log_steps(out / "progress.csv")
+    assert steps == sorted(set(steps)) and steps[-1] == kept + 100  # no step twice
+
+
+def test_resume_below_the_checkpoint_changes_nothing(tmp_path, capsys, one_thread):
+    out = tmp_path / "run"
+    assert cli("train", "state2d", "--out", str(out), "--total-steps", "150", *TINY) == 0
+    files = ("progress.csv", "eval.csv", "latest.json", "report.md")
+    before = {name: (out / name).read_bytes() for name in files}
+    capsys.readouterr()
+    for steps in ("100", "150"):
+        assert resume(out, int(steps)) == 0
+        err = capsys.readouterr().err
+        assert "already at step 150" in err and "nothing to do" in err
+    assert {name: (out / name).read_bytes() for name in files} == before
+    assert sorted(p.name for p in (out / "checkpoints").iterdir()) == ["step_000000150"]
