@@ -294,7 +294,7 @@ def _env2d(**fields: Any) -> EnvConfig:
 def _net2d(**fields: Any) -> AgentOptions:
     """Language goals pick object slots by position (``slot_mode="select"``) and read
     positions relative to the pusher: the critic learns the reach reward several times
-    faster than from the plain concatenation (see the README)."""
+    faster than from the plain concatenation (see docs/design.md)."""
     return AgentOptions(net=NetConfig(slots=SLOTS_2D, slot_mode="select", **fields))
 
 
