@@ -77,7 +77,7 @@ def problem(discrete: bool, obs_dim: int = 3, goal_dim: int = 2, action_dim: int
 
 
 def make_agent(algo: str, seed: int = 0, prob: Problem | None = None, config=None, **net):
-    cls = ALGOS[algo]
+    cls = ALGOS[algo].agent
     prob = prob or problem(algo == "dqn")
     return cls(prob, options(seed, **net), EMBEDS[prob.goal_kind], config)
 
@@ -448,7 +448,7 @@ def test_dqn_td_target(monkeypatch, terminated):
         captured["y"] = y.clone()
         return F.smooth_l1_loss(q, y)
 
-    monkeypatch.setattr(algos, "F", SimpleNamespace(smooth_l1_loss=spy))
+    monkeypatch.setattr(algos.dqn, "F", SimpleNamespace(smooth_l1_loss=spy))
     batch = repeated(
         batches(prob, 1)[0],
         0,
