@@ -77,7 +77,7 @@ def problem(discrete: bool, obs_dim: int = 3, goal_dim: int = 2, action_dim: int
 
 
 def make_agent(algo: str, seed: int = 0, prob: Problem | None = None, config=None, **net):
-    cls = ALGOS[algo]
+    cls = ALGOS[algo].agent
     prob = prob or problem(algo == "dqn")
     return cls(prob, options(seed, **net), EMBEDS[prob.goal_kind], config)
 
@@ -448,7 +448,7 @@ def test_dqn_td_target(monkeypatch, terminated):
         captured["y"] = y.clone()
         return F.smooth_l1_loss(q, y)
 
-    monkeypatch.setattr(algos, "F", SimpleNamespace(smooth_l1_loss=spy))
+    monkeypatch.setattr(algos.dqn, "F", SimpleNamespace(smooth_l1_loss=spy))
     batch = repeated(
         batches(prob, 1)[0],
         0,
@@ -962,3 +962,77 @@ def test_hindsight_bc_pulls_the_mean_action_to_relabelled_actions() -> None:
     assert "bc_loss" not in plain.update(batch)
     no_rel = make_agent("sac", config=algos.SACConfig(hindsight_bc=50.0))
     assert "bc_loss" not in no_rel.update(batch._replace(relabelled=np.zeros(32, bool)))
+
+
+# --- the SAC update over per-row weights ---------------------------------------------------
+def tasks_problem() -> Problem:
+    """Three-dimensional observations, one-hot ids of five tasks as goals."""
+    return Problem({"state": (3,)}, "onehot", (5,), 2, num_tasks=5)
+
+
+def multitask_sac(seed: int = 0, config: SACConfig | None = None, **multitask) -> SAC:
+    from lcrl.multitask import MultiTaskOptions
+
+    opts = AgentOptions(
+        net=NetConfig(hidden=(32, 32)), seed=seed, multitask=MultiTaskOptions(**multitask)
+    )
+    return SAC(tasks_problem(), opts, onehot_embed, config)
+
+
+def test_sac_multitask_update_without_weights_or_measurement_is_the_plain_update() -> None:
+    """Equal task weights on updates that measure nothing: the plain update, bit for bit."""
+    data = batches(tasks_problem(), 3, seed=4, size=20)
+    plain = multitask_sac()
+    quiet = multitask_sac(conflict_every=100, task_weights=(1.0,) * 5)
+    assert plain.multitask is None and quiet.multitask is not None
+    plain.updates = quiet.updates = 1  # update 0 would measure
+    for b in data:
+        assert plain.update(b) == quiet.update(b)
+    assert_identical(snapshot(plain), snapshot(quiet))
+
+
+@pytest.mark.parametrize("hindsight_bc", [0.0, 3.0])
+def test_sac_task_weights_weigh_rows_alike_with_and_without_measurement(hindsight_bc) -> None:
+    """``sum_i w_i L_i`` from per-row weights over the batch, and from per-task losses with
+    coefficients ``n_i / n * w_i`` on measured updates: the same critic gradient, losses and
+    behaviour-cloning loss (the actor's noise draws differ between the two)."""
+    weights = (2.0, 1.0, 0.5, 1.0, 0.0)
+    cfg = SACConfig(hindsight_bc=hindsight_bc)
+    batch = batches(tasks_problem(), 1, seed=6, size=40)[0]
+    batch = batch._replace(relabelled=np.arange(40) % 3 == 0)
+    weighted = multitask_sac(config=cfg, task_weights=weights, conflict_every=2)
+    measured = multitask_sac(config=cfg, task_weights=weights, conflict_every=1)
+    weighted.updates = 1  # not measured
+    a, b = weighted.update(batch), measured.update(batch)
+    assert not any(k.startswith("grad/") for k in a)
+    assert {"grad/critic_cos_mean", "grad/actor_conflict"} <= set(b)
+    torch.testing.assert_close(weighted.critic_opt.grad, measured.critic_opt.grad)
+    assert a["critic_loss"] == pytest.approx(b["critic_loss"], rel=1e-5)
+    assert a["q"] == pytest.approx(b["q"], rel=1e-5)
+    assert ("bc_loss" in a) == ("bc_loss" in b) == (hindsight_bc > 0)
+    if hindsight_bc:  # the mean action is deterministic: the same in both
+        assert a["bc_loss"] == pytest.approx(b["bc_loss"], rel=1e-5)
+        # by hand: sum of w_i * squared error over relabelled rows / their count
+        w = torch.tensor(weights) / torch.tensor(weights).mean()
+        rel = torch.as_tensor(batch.relabelled)
+        agent = multitask_sac(config=cfg, task_weights=weights, conflict_every=2)
+        with torch.no_grad():
+            o, g = agent.obs_tensors(batch.obs), agent.goal_tensor(batch.goal)
+            mean = torch.tanh(agent.actor(o, g).chunk(2, -1)[0])
+            err = (mean - torch.as_tensor(batch.action)).pow(2).sum(-1)
+            rw = w[torch.as_tensor(batch.goal)]
+            expected = float((err[rel] * rw[rel]).sum() / rel.sum())
+        assert a["bc_loss"] == pytest.approx(expected, rel=1e-5)
+
+
+def test_sac_target_temperature_and_polyak_steps_are_shared_by_both_updates() -> None:
+    """A measured multi-task update moves the target critics by ``tau`` and tunes the
+    temperature, as the plain update does."""
+    batch = batches(tasks_problem(), 1, seed=2, size=24)[0]
+    for agent in (multitask_sac(), multitask_sac(pcgrad=True)):
+        target = agent._target_flat.clone()
+        alpha = float(agent.log_alpha.detach())
+        agent.update(batch)
+        expected = target + agent.cfg.tau * (agent.critic_opt.flat - target)
+        torch.testing.assert_close(agent._target_flat, expected)
+        assert float(agent.log_alpha.detach()) != alpha

@@ -370,6 +370,7 @@ class ActCommand:
 
 
 def _train(argv: Sequence[str]) -> None:
+    from lcrl.algos import ALGOS
     from train.config import PRESETS, TrainConfig
     from train.loop import Trainer
 
@@ -382,7 +383,8 @@ def _train(argv: Sequence[str]) -> None:
         args=list(argv),
     )
     assert isinstance(cfg, TrainConfig)
-    if cfg.algo == "bc":  # behavioural cloning from --demos
+    spec = ALGOS.get(cfg.algo)
+    if spec is not None and spec.learns_from == "demos":  # behavioural cloning from --demos
         from train.bc import BCTrainer
 
         trainer: Trainer | BCTrainer = BCTrainer(cfg)

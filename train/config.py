@@ -7,11 +7,21 @@
 from __future__ import annotations
 
 import dataclasses
+import typing
 from dataclasses import dataclass, field
 from typing import Any
 
-from lcrl.algos import AgentOptions, DQNConfig, SACConfig, TD3Config
-from lcrl.bc import BCConfig
+from lcrl.algos import (
+    ALGOS,
+    AgentOptions,
+    BCConfig,
+    DQNConfig,
+    SACConfig,
+    TD3Config,
+    check_algo,
+    check_multitask,
+    resolve_algo,
+)
 from lcrl.errors import LcrlError
 from lcrl.goals import STRATEGIES, TASK_RELABEL_ERROR
 from lcrl.multitask import MultiTaskOptions
@@ -150,20 +160,19 @@ class TrainConfig:
 
     def resolved_algo(self, discrete: bool) -> str:
         """The algorithm after resolving ``auto`` (``bc`` for behavioural cloning)."""
-        if self.algo == "auto":
-            return "dqn" if discrete else "sac"
-        return self.algo
+        return resolve_algo(self.algo, discrete)
 
     def validate(self) -> None:
         """Raise :class:`LcrlError` for inconsistent settings."""
-        if self.algo not in ("auto", "sac", "td3", "dqn", "bc"):
-            raise LcrlError(f"unknown algo {self.algo!r}; choose auto, sac, td3, dqn or bc")
-        if self.algo == "bc":
-            self.bc.validate()
-        elif self.demos:
+        check_algo(self.algo)
+        # the chosen algorithm's config (for auto: both algorithms it may resolve to)
+        for name in dict.fromkeys(resolve_algo(self.algo, d) for d in (False, True)):
+            getattr(self, name).validate()
+        if self.demos and (self.algo == "auto" or ALGOS[self.algo].learns_from != "demos"):
+            learners = [name for name, spec in ALGOS.items() if spec.learns_from == "demos"]
             raise LcrlError(
-                "--demos is read by behavioural cloning only: add --algo bc (or train a -bc "
-                "preset such as lang2d-bc)"
+                f"--demos is read by behavioural cloning only: add --algo {' or '.join(learners)}"
+                " (or train a -bc preset such as lang2d-bc)"
             )
         if self.buffer.strategy not in STRATEGIES:
             raise LcrlError(
@@ -218,11 +227,7 @@ class TrainConfig:
         check_task_heads(self.agent.net, modality.task.goal_kind, (len(env.tasks),))
         mt = self.agent.multitask
         mt.validate(len(env.tasks))
-        if mt.active and self.algo in ("td3", "dqn", "bc"):
-            raise LcrlError(
-                f"PCGrad, task weights and gradient-conflict measurement are implemented for "
-                f"SAC, not {self.algo}: use --algo sac or turn the multitask options off"
-            )
+        check_multitask(self.algo, mt)
 
 
 def config_to_dict(cfg: Any) -> dict[str, Any]:
@@ -239,10 +244,11 @@ def config_from_dict(d: dict[str, Any]) -> TrainConfig:
         unknown = sorted(set(values) - set(fields))
         if unknown:
             raise LcrlError(f"unknown {cls.__name__} fields in a saved config: {unknown}")
+        nested = nested_configs(cls)
         kwargs = {}
         for name, value in values.items():
             ftype = fields[name].type
-            sub = _NESTED.get((cls.__name__, name))
+            sub = nested.get(name)
             if sub is not None and isinstance(value, dict):
                 kwargs[name] = build(sub, value)
             elif isinstance(value, list) and "tuple" in str(ftype):
@@ -262,19 +268,16 @@ def config_from_dict(d: dict[str, Any]) -> TrainConfig:
     return build(TrainConfig, d)
 
 
-_NESTED: dict[tuple[str, str], type] = {
-    ("TrainConfig", "env"): EnvConfig,
-    ("TrainConfig", "sac"): SACConfig,
-    ("TrainConfig", "td3"): TD3Config,
-    ("TrainConfig", "dqn"): DQNConfig,
-    ("TrainConfig", "bc"): BCConfig,
-    ("TrainConfig", "agent"): AgentOptions,
-    ("TrainConfig", "buffer"): BufferConfig,
-    ("TrainConfig", "relabel"): RelabelConfig,
-    ("TrainConfig", "text_encoder"): TextEncoderConfig,
-    ("AgentOptions", "net"): NetConfig,
-    ("AgentOptions", "multitask"): MultiTaskOptions,
-}
+def nested_configs(cls: type) -> dict[str, type]:
+    """The fields of a dataclass config that hold dataclass configs, with their classes, read
+    from the field annotations (strings under ``from __future__ import annotations``,
+    resolved in the class's module)."""
+    hints = typing.get_type_hints(cls)
+    return {
+        f.name: hint
+        for f in dataclasses.fields(cls)
+        if isinstance(hint := hints.get(f.name), type) and dataclasses.is_dataclass(hint)
+    }
 
 
 #: Object slots of the 2D tabletop's observation with relative positions and

@@ -19,7 +19,8 @@ from typing import Any
 import gymnasium as gym
 import numpy as np
 
-from lcrl.algos import ALGOS, DQN, SAC, TD3, Agent, Problem
+from lcrl import algos
+from lcrl.algos import Agent, Problem
 from lcrl.checkpoint import Checkpoint, find_latest, load_checkpoint
 from lcrl.errors import LcrlError
 from train.config import TrainConfig
@@ -89,22 +90,15 @@ def check_slots(cfg: TrainConfig, env: gym.Env) -> None:
 
 
 def build_agent(algo: str, problem: Problem, cfg: TrainConfig, goal_embed: Any) -> Agent:
-    """The learner named ``algo`` for ``problem``."""
-    if algo == "bc":  # behavioural cloning: continuous or discrete actions
-        from lcrl.bc import BC
+    """The learner named ``algo`` for ``problem`` (:func:`lcrl.algos.build_agent`), with the
+    options ``cfg.agent`` and its config from the field of ``cfg`` named after it.
 
-        return BC(problem, cfg.agent, goal_embed, cfg.bc)
-    if algo not in ALGOS:
-        raise LcrlError(f"unknown algo {algo!r}; choose one of {sorted([*ALGOS, 'bc'])}")
-    if problem.discrete and algo != "dqn":
-        raise LcrlError(f"{algo} needs continuous actions; this env has discrete actions: use dqn")
-    if not problem.discrete and algo == "dqn":
-        raise LcrlError("dqn needs discrete actions; this env has continuous actions: use sac")
-    if algo == "sac":
-        return SAC(problem, cfg.agent, goal_embed, cfg.sac)
-    if algo == "td3":
-        return TD3(problem, cfg.agent, goal_embed, cfg.td3)
-    return DQN(problem, cfg.agent, goal_embed, cfg.dqn)
+    Raises:
+        LcrlError: an unknown algorithm, or one that does not take ``problem``'s actions.
+    """
+    algo = algos.resolve_algo(algo, problem.discrete)
+    algos.check_algo(algo, problem.discrete)
+    return algos.build_agent(algo, problem, cfg.agent, goal_embed, getattr(cfg, algo))
 
 
 def run_episode(

@@ -1,0 +1,435 @@
+"""What every learner shares: the problem description, the agent options, the :class:`Agent`
+base class (device, normalisers, batch tensors, checkpoint state) and :class:`AlgoSpec`, the
+registry entry each algorithm module ends with.
+
+Targets bootstrap through time limits: only ``terminated`` transitions (goal reached,
+failure) stop the bootstrap, truncations do not (the buffer never marks a truncation as
+terminated). Runs are deterministic on the CPU under a seed: each agent draws its noise
+from its own ``torch.Generator``.
+"""
+
+from __future__ import annotations
+
+import copy
+import math
+from collections.abc import Callable, Iterable, Mapping
+from dataclasses import dataclass, field
+from typing import Any, Protocol
+
+import numpy as np
+import torch
+from torch import nn
+
+from lcrl.buffer import Batch
+from lcrl.errors import LcrlError
+from lcrl.multitask import MultiTaskOptions
+from lcrl.nets import (
+    GoalConditionedEnsemble,
+    GoalConditionedNet,
+    NetConfig,
+    RunningNorm,
+    WhiteningNorm,
+    flatten_parameters,
+    random_shift,
+)
+
+GoalEmbedder = Callable[[np.ndarray, torch.device], torch.Tensor]
+#: Normalisations of text goals (:attr:`AgentOptions.text_goal_norm`).
+TEXT_GOAL_NORMS = ("whiten", "standardize")
+#: Action spaces an algorithm can take (:attr:`AlgoSpec.actions`).
+ACTION_KINDS = ("continuous", "discrete", "any")
+#: Where an algorithm's data comes from (:attr:`AlgoSpec.learns_from`): ``env`` for
+#: online RL, ``demos`` for learning from demonstrations.
+DATA_SOURCES = ("env", "demos")
+
+
+@dataclass
+class Problem:
+    """What a learner must know about the task.
+
+    Attributes:
+        obs_shapes: ``{key: shape}`` of the stored observation (vectors ``(d,)``, uint8
+            images ``(H, W, C)``).
+        goal_kind: ``vector``, ``text``, ``onehot`` or ``image`` (see :mod:`lcrl.nets`).
+        goal_shape: shape of one embedded goal.
+        action_dim: continuous action width (actions in ``[-1, 1]``), or the number of
+            discrete actions.
+        discrete: whether actions are discrete.
+        num_tasks: the size of a fixed task set whose goal ids are batch goals (one-hot
+            task ids, or instruction ids of a table of exactly those tasks); 0 for none.
+    """
+
+    obs_shapes: dict[str, tuple[int, ...]]
+    goal_kind: str
+    goal_shape: tuple[int, ...]
+    action_dim: int
+    discrete: bool = False
+    num_tasks: int = 0
+
+    def to_dict(self) -> dict[str, Any]:
+        """JSON-able form."""
+        return {
+            "obs_shapes": {k: list(v) for k, v in self.obs_shapes.items()},
+            "goal_kind": self.goal_kind,
+            "goal_shape": list(self.goal_shape),
+            "action_dim": self.action_dim,
+            "discrete": self.discrete,
+            "num_tasks": self.num_tasks,
+        }
+
+    @classmethod
+    def from_dict(cls, d: Mapping[str, Any]) -> Problem:
+        """Inverse of :meth:`to_dict`."""
+        return cls(
+            obs_shapes={k: tuple(v) for k, v in d["obs_shapes"].items()},
+            goal_kind=d["goal_kind"],
+            goal_shape=tuple(d["goal_shape"]),
+            action_dim=int(d["action_dim"]),
+            discrete=bool(d["discrete"]),
+            num_tasks=int(d.get("num_tasks", 0)),
+        )
+
+
+@dataclass
+class AgentOptions:
+    """Options shared by every learner."""
+
+    net: NetConfig = field(default_factory=NetConfig)
+    """Network sizes and fusion."""
+    normalize_obs: bool = True
+    """Normalise vector observations with running statistics."""
+    normalize_goal: bool = True
+    """Normalise goals: state goals with running statistics of achieved goals, text goals
+    with the statistics of the training instructions' embeddings (see
+    ``text_goal_norm``)."""
+    text_goal_norm: str = "standardize"
+    """How text goals are normalised: ``standardize`` (each dimension on its own) or
+    ``whiten`` (regularised PCA whitening over the training instructions, so that the one
+    word telling two instructions apart, such as left and right, is as visible as the
+    rest: cosine 0.61 instead of 0.91 between those two). Whitening did not learn faster
+    in the runs measured so far (see the README), so it is not the default."""
+    text_whiten_eps: float = 0.01
+    """Ridge of the whitening, as a fraction of the embeddings' total variance (smaller
+    whitens harder)."""
+    reward_shift: float = 0.0
+    """Added to every reward the learner sees. -1 turns 0/1 success rewards into -1/0 ones
+    (as in gymnasium-robotics): every step that does not reach the goal then costs
+    something, which pins down the value of goals the policy does not reach far faster
+    than discounting alone."""
+    augment_pad: int = 0
+    """Random-shift augmentation of image inputs in updates (DrQ): each image (observation,
+    next observation, image goal) is padded by this many edge pixels and cropped back at a
+    random offset. 0 turns it off; 4 is DrQ's value for 84x84 images."""
+    device: str = "cpu"
+    """``cpu``, ``cuda`` or ``cuda:N``."""
+    seed: int = 0
+    """Seed of the network initialisation and of the agent's noise."""
+    multitask: MultiTaskOptions = field(default_factory=MultiTaskOptions)
+    """Multi-task training over a fixed task set (``env.tasks``): PCGrad, task weights,
+    gradient-conflict measurement (SAC) and how training tasks are drawn."""
+
+
+def resolve_device(name: str) -> torch.device:
+    """The torch device for a config string, with a clear error when it is unavailable.
+
+    Args:
+        name: ``cpu``, ``cuda`` or ``cuda:N``.
+
+    Raises:
+        LcrlError: an unknown device, or CUDA asked for on a machine without it.
+    """
+    try:
+        device = torch.device(name)
+    except RuntimeError as e:
+        raise LcrlError(f"unknown device {name!r}: {e}") from None
+    if device.type == "cuda" and not torch.cuda.is_available():
+        raise LcrlError(f"device {name!r} requested but CUDA is not available on this machine")
+    return device
+
+
+class Agent:
+    """Shared machinery: device, normalisers, tensors from batches, saving.
+
+    On construction an agent whose :attr:`name` is registered in :data:`lcrl.algos.ALGOS`
+    refuses an action space its :class:`AlgoSpec` does not take, and every agent refuses
+    active multi-task options unless its spec supports them.
+
+    Args:
+        problem: observation shapes, goal encoding, action space.
+        options: networks, normalisation, augmentation, device, seed, multi-task options.
+        goal_embed: ``(goal ids or vectors, device) -> embedded goals``.
+    """
+
+    name = "agent"
+    #: The algorithm's config; subclasses set it in ``__init__``.
+    cfg: Any
+
+    def __init__(self, problem: Problem, options: AgentOptions, goal_embed: GoalEmbedder) -> None:
+        self.problem = problem
+        self.options = options
+        self.device = resolve_device(options.device)
+        self.goal_embed = goal_embed
+        torch.manual_seed(options.seed)
+        self.gen = torch.Generator(device=self.device)
+        self.gen.manual_seed(options.seed)
+        self.np_rng = np.random.default_rng(options.seed)
+        self.norms = nn.ModuleDict()
+        if options.normalize_obs:
+            for key, shape in problem.obs_shapes.items():
+                if len(shape) == 1:
+                    self.norms[f"obs_{key}"] = RunningNorm(shape[0])
+        if options.text_goal_norm not in TEXT_GOAL_NORMS:
+            raise LcrlError(
+                f"unknown text_goal_norm {options.text_goal_norm!r}; choose one of "
+                f"{TEXT_GOAL_NORMS}"
+            )
+        if options.text_whiten_eps <= 0:
+            raise LcrlError(f"text_whiten_eps must be positive, got {options.text_whiten_eps}")
+        if options.normalize_goal and problem.goal_kind == "text":
+            # Frozen sentence embeddings of instructions are close to each other (cosine
+            # 0.98 between "push the red cube left" and "... right"); whitening over the
+            # instruction table spreads them apart (cosine 0.61), standardising each
+            # dimension much less (0.91).
+            if options.text_goal_norm == "whiten":
+                self.norms["goal"] = WhiteningNorm(
+                    problem.goal_shape[0], eps=options.text_whiten_eps
+                )
+            else:
+                self.norms["goal"] = RunningNorm(problem.goal_shape[0], eps=1e-3)
+        elif options.normalize_goal and problem.goal_kind == "vector":
+            self.norms["goal"] = RunningNorm(problem.goal_shape[0], eps=1e-2)
+        self.norms.to(self.device)
+        self.updates = 0
+        self.acts = 0
+        options.multitask.validate(problem.num_tasks)
+        # The registry imports this module, so it is imported when an agent is built.
+        from lcrl import algos
+
+        if self.name in algos.ALGOS:
+            algos.check_algo(self.name, problem.discrete)
+        algos.check_multitask(self.name, options.multitask)
+
+    # --- inputs ----------------------------------------------------------------------
+    def observe(self, obs: Mapping[str, np.ndarray], goals: np.ndarray | None = None) -> None:
+        """Update the running normalisers with observations and goal vectors (achieved state
+        goals, or the embeddings of the training instructions)."""
+        for key, arr in obs.items():
+            if f"obs_{key}" in self.norms:
+                self.norms[f"obs_{key}"].update(torch.as_tensor(np.asarray(arr, np.float32)))
+        if goals is not None and "goal" in self.norms:
+            g = np.asarray(goals)
+            if g.dtype.kind in "iu":  # ids: embed them first
+                t = self.goal_embed(g, self.device)
+            else:
+                t = torch.as_tensor(g, dtype=torch.float32)
+            self.norms["goal"].update(t)
+
+    def obs_tensors(self, obs: Mapping[str, np.ndarray]) -> dict[str, torch.Tensor]:
+        """Observation arrays as (normalised) tensors on the device."""
+        out = {}
+        for key, arr in obs.items():
+            t = torch.as_tensor(arr, device=self.device)
+            if t.dtype != torch.uint8:
+                t = t.float()
+                if f"obs_{key}" in self.norms:
+                    t = self.norms[f"obs_{key}"](t)
+            out[key] = t
+        return out
+
+    def goal_tensor(self, goal: np.ndarray | torch.Tensor, embedded: bool = False) -> torch.Tensor:
+        """Goals as network input: embedded by the goal space (unless already) and normalised."""
+        if embedded:
+            g = torch.as_tensor(goal, device=self.device)
+            g = g.float() if g.dtype != torch.uint8 else g
+        else:
+            g = self.goal_embed(np.asarray(goal), self.device)
+        if "goal" in self.norms:
+            g = self.norms["goal"](g)
+        return g
+
+    def batch_tensors(self, batch: Batch) -> tuple[Any, ...]:
+        """``obs, next_obs, goal, action, reward, bootstrap`` tensors of a batch.
+
+        ``bootstrap`` multiplies the next state's value in the target: the discount
+        (``gamma``, or :attr:`Batch.discount` for multi-step rows) where the row did not
+        terminate, 0 where it did.
+        """
+        obs = self.obs_tensors(batch.obs)
+        nobs = self.obs_tensors(batch.next_obs)
+        goal = self.goal_tensor(batch.goal)
+        pad = self.options.augment_pad
+        if pad:
+            for d in (obs, nobs):
+                for key, t in d.items():
+                    if t.dim() == 4:
+                        d[key] = random_shift(t, pad, self.gen)
+            if goal.dim() == 4:
+                goal = random_shift(goal, pad, self.gen)
+        act = torch.as_tensor(batch.action, device=self.device)
+        act = act.long() if self.problem.discrete else act.float()
+        rew = torch.as_tensor(batch.reward, device=self.device, dtype=torch.float32)
+        gamma = float(self.cfg.gamma)
+        if batch.discount is None:
+            disc = torch.full_like(rew, gamma)
+        else:
+            disc = torch.as_tensor(batch.discount, device=self.device, dtype=torch.float32)
+        if self.options.reward_shift:
+            # a shift per step: sum_j gamma**j over the row's m rewards, gamma**m = disc
+            per_row = 1.0 if batch.discount is None else (1.0 - disc) / (1.0 - gamma)
+            rew = rew + self.options.reward_shift * per_row
+        term = torch.as_tensor(batch.terminated, device=self.device, dtype=torch.float32)
+        return obs, nobs, goal, act, rew, (1.0 - term) * disc
+
+    def _critics(self, action_dim: int, n: int = 2) -> GoalConditionedEnsemble:
+        p = self.problem
+        return GoalConditionedEnsemble(
+            n, p.obs_shapes, p.goal_kind, p.goal_shape, 1, self.options.net, action_dim
+        ).to(self.device)
+
+    def _net(self, out_dim: int, action_dim: int = 0) -> GoalConditionedNet:
+        p = self.problem
+        return GoalConditionedNet(
+            p.obs_shapes, p.goal_kind, p.goal_shape, out_dim, self.options.net, action_dim
+        ).to(self.device)
+
+    # --- acting ----------------------------------------------------------------------
+    def act(
+        self,
+        obs: Mapping[str, np.ndarray],
+        goal: np.ndarray | torch.Tensor,
+        deterministic: bool = False,
+        embedded: bool = False,
+    ) -> np.ndarray:
+        """Actions for a batch of observations and goals (continuous in ``[-1, 1]``)."""
+        raise NotImplementedError
+
+    # --- learning --------------------------------------------------------------------
+    def update(self, batch: Any) -> dict[str, float]:
+        """One learning step on a batch; returns losses and diagnostics by name."""
+        raise NotImplementedError
+
+    # --- saving ----------------------------------------------------------------------
+    def modules(self) -> dict[str, nn.Module]:
+        """Weights to checkpoint, by name."""
+        return {"norms": self.norms}
+
+    def states(self) -> dict[str, Any]:
+        """Optimiser moments, noise generator and counters to checkpoint."""
+        return {
+            "generator": self.gen.get_state(),
+            "np_rng": self.np_rng.bit_generator.state,
+            "counters": {"updates": self.updates, "acts": self.acts},
+        }
+
+    def load_states(self, states: Mapping[str, Any]) -> None:
+        """Restore :meth:`states`."""
+        self.gen.set_state(torch.as_tensor(states["generator"], dtype=torch.uint8).cpu())
+        self.np_rng.bit_generator.state = states["np_rng"]
+        self.updates = int(states["counters"]["updates"])
+        self.acts = int(states["counters"]["acts"])
+
+
+# --- shared helpers -------------------------------------------------------------------------
+def flat_target(module: nn.Module) -> tuple[nn.Module, torch.Tensor]:
+    """A frozen copy of ``module`` for a target network, and one flat tensor that its
+    parameters are views of (so a Polyak step is one ``lerp_``).
+
+    Args:
+        module: the online network (its parameters are copied, not shared).
+
+    Returns:
+        ``(target, flat)``: the copy, with ``requires_grad`` off, and its flat parameters.
+    """
+    target = copy.deepcopy(module)
+    for p in target.parameters():
+        p.requires_grad_(False)
+    flat, _ = flatten_parameters(list(target.parameters()))
+    return target, flat
+
+
+def check_fields(
+    cfg: Any,
+    prefix: str,
+    *,
+    unit: Iterable[str] = (),
+    probability: Iterable[str] = (),
+    positive: Iterable[str] = (),
+    non_negative: Iterable[str] = (),
+    positive_or_none: Iterable[str] = (),
+    finite_or_none: Iterable[str] = (),
+) -> None:
+    """Check ranges of a config's fields, for ``validate`` methods.
+
+    Args:
+        cfg: the config.
+        prefix: its name in messages (``sac`` gives ``sac.gamma must be ...``).
+        unit: fields in ``(0, 1]`` (discounts, Polyak rates).
+        probability: fields in ``[0, 1]``.
+        positive: fields ``> 0`` (learning rates, counts).
+        non_negative: fields ``>= 0``.
+        positive_or_none: fields ``> 0`` or ``None`` (gradient clipping).
+        finite_or_none: finite numbers or ``None``.
+
+    Raises:
+        LcrlError: the first field outside its range (NaN is outside every range).
+    """
+    checks: tuple[tuple[Iterable[str], Callable[[Any], bool], str], ...] = (
+        (unit, lambda v: 0.0 < v <= 1.0, "must be in (0, 1]"),
+        (probability, lambda v: 0.0 <= v <= 1.0, "must be in [0, 1]"),
+        (positive, lambda v: v > 0, "must be positive"),
+        (non_negative, lambda v: v >= 0, "must be >= 0"),
+        (positive_or_none, lambda v: v is None or v > 0, "must be positive (or None)"),
+        (finite_or_none, lambda v: v is None or math.isfinite(v), "must be finite (or None)"),
+    )
+    for names, ok, what in checks:
+        for name in names:
+            value = getattr(cfg, name)
+            if not ok(value):
+                raise LcrlError(f"{prefix}.{name} {what}, got {value}")
+
+
+class AlgoConfig(Protocol):
+    """What an algorithm's config provides: a check of its own settings."""
+
+    def validate(self) -> None:
+        """Raise :class:`LcrlError` for settings the algorithm cannot train with."""
+
+
+@dataclass(frozen=True)
+class AlgoSpec:
+    """One algorithm, as listed in :data:`lcrl.algos.ALGOS`.
+
+    Attributes:
+        name: the key in ``ALGOS``, ``--algo`` on the command line, the ``TrainConfig``
+            field holding the config, and the agent class's ``name``.
+        agent: the learner class, built as ``agent(problem, options, goal_embed, config)``.
+        config: its config dataclass (with a ``validate()`` method).
+        actions: the action spaces it takes: ``continuous``, ``discrete`` or ``any``.
+        multitask: whether it implements the multi-task options (PCGrad, task weights,
+            gradient-conflict measurement).
+        learns_from: ``env`` (online RL on a replay buffer) or ``demos`` (demonstrations).
+        summary: one line for listings.
+    """
+
+    name: str
+    agent: type[Agent]
+    config: type[AlgoConfig]
+    actions: str
+    multitask: bool = False
+    learns_from: str = "env"
+    summary: str = ""
+
+    def __post_init__(self) -> None:
+        if self.actions not in ACTION_KINDS:
+            raise LcrlError(f"AlgoSpec {self.name!r}: actions must be one of {ACTION_KINDS}")
+        if self.learns_from not in DATA_SOURCES:
+            raise LcrlError(f"AlgoSpec {self.name!r}: learns_from must be one of {DATA_SOURCES}")
+        if self.agent.name != self.name:
+            raise LcrlError(
+                f"AlgoSpec {self.name!r} names agent class {self.agent.__name__} whose name is "
+                f"{self.agent.name!r}"
+            )
+
+    def takes(self, discrete: bool) -> bool:
+        """Whether the algorithm takes discrete (or continuous) actions."""
+        return self.actions in ("any", "discrete" if discrete else "continuous")

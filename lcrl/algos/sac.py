@@ -1,0 +1,353 @@
+"""Soft actor-critic (continuous actions), with the multi-task objective ``sum_i w_i L_i``:
+task weights, PCGrad and gradient-conflict measurement over a fixed task set."""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+import torch
+from torch import nn
+
+from lcrl.algos.base import (
+    Agent,
+    AgentOptions,
+    AlgoSpec,
+    GoalEmbedder,
+    Problem,
+    check_fields,
+    flat_target,
+)
+from lcrl.buffer import Batch
+from lcrl.multitask import TaskGradients, rows_by_task, task_weights
+from lcrl.nets import FlatAdam, gaussian_log_prob_tanh
+
+
+@dataclass
+class SACConfig:
+    """Soft actor-critic (continuous actions)."""
+
+    gamma: float = 0.98
+    """Discount factor."""
+    tau: float = 0.005
+    """Polyak rate of the target critics."""
+    actor_lr: float = 1e-3
+    """Actor learning rate."""
+    critic_lr: float = 1e-3
+    """Critic learning rate."""
+    alpha_lr: float = 1e-3
+    """Entropy temperature learning rate."""
+    init_alpha: float = 0.1
+    """Initial entropy temperature."""
+    autotune_alpha: bool = True
+    """Tune the temperature towards the target entropy."""
+    target_entropy: float | None = None
+    """Target entropy; default ``-action_dim``."""
+    max_grad_norm: float | None = None
+    """Clip gradient norms to this (``None``: no clipping)."""
+    hindsight_bc: float = 0.0
+    """Weight of a hindsight behaviour-cloning term in the actor loss: on relabelled rows
+    (whose goal the episode did achieve later), the squared distance between the policy's
+    mean action and the action taken, as in goal-conditioned supervised learning. 0 turns
+    it off."""
+
+    def validate(self) -> None:
+        """Raise :class:`LcrlError` for settings that cannot train."""
+        check_fields(
+            self,
+            "sac",
+            unit=("gamma", "tau"),
+            positive=("actor_lr", "critic_lr", "alpha_lr", "init_alpha"),
+            non_negative=("hindsight_bc",),
+            positive_or_none=("max_grad_norm",),
+            finite_or_none=("target_entropy",),
+        )
+
+
+def _weighted_mean(x: torch.Tensor, weights: torch.Tensor | None) -> torch.Tensor:
+    """Mean of ``x`` over its last dimension (batch rows), each row weighted (``None``: a
+    plain mean)."""
+    return x.mean(-1) if weights is None else (x * weights).mean(-1)
+
+
+def _weighted(coefs: np.ndarray, losses: list[torch.Tensor | None]) -> float:
+    """``sum_i c_i L_i`` over the parts that have a loss."""
+    return float(
+        sum(c * float(x.detach()) for c, x in zip(coefs, losses, strict=True) if x is not None)
+    )
+
+
+class SAC(Agent):
+    """Soft actor-critic with twin critics, target critics and a tuned temperature.
+
+    With active multi-task options (:class:`lcrl.multitask.MultiTaskOptions`) a batch
+    row's task is its goal id, and :meth:`update` optimises ``sum_i w_i L_i``.
+
+    Args:
+        problem: observation shapes, goal encoding, continuous action space.
+        options: networks, normalisation, augmentation, device, seed, multi-task options.
+        goal_embed: ``(goal ids or vectors, device) -> embedded goals``.
+        config: SAC's hyper-parameters (defaults when ``None``).
+    """
+
+    name = "sac"
+
+    def __init__(
+        self,
+        problem: Problem,
+        options: AgentOptions,
+        goal_embed: GoalEmbedder,
+        config: SACConfig | None = None,
+    ) -> None:
+        super().__init__(problem, options, goal_embed)
+        self.cfg = cfg = config or SACConfig()
+        n = problem.action_dim
+        self.actor = self._net(2 * n)
+        self.critic = self._critics(n)
+        self.critic_target, self._target_flat = flat_target(self.critic)
+        self.actor_opt = FlatAdam(
+            self.actor.parameters(), cfg.actor_lr, max_grad_norm=cfg.max_grad_norm
+        )
+        self.critic_opt = FlatAdam(
+            self.critic.parameters(), cfg.critic_lr, max_grad_norm=cfg.max_grad_norm
+        )
+        self.log_alpha = torch.tensor(
+            float(np.log(cfg.init_alpha)), device=self.device, requires_grad=True
+        )
+        self.alpha_opt = FlatAdam([self.log_alpha], cfg.alpha_lr)
+        self.target_entropy = float(-n if cfg.target_entropy is None else cfg.target_entropy)
+        mt = options.multitask
+        self.multitask = mt if mt.active else None
+        self._task_w: torch.Tensor | None = None  # w_i / mean(w) per task; None: all equal
+        if self.multitask is not None:
+            w = task_weights(mt.task_weights, problem.num_tasks)
+            if not np.allclose(w, 1.0):
+                self._task_w = torch.as_tensor(w, dtype=torch.float32, device=self.device)
+            self._critic_tasks = TaskGradients(self.critic_opt, pcgrad=mt.pcgrad)
+            self._actor_tasks = TaskGradients(self.actor_opt, pcgrad=mt.pcgrad)
+
+    def _policy(
+        self, obs: Mapping[str, torch.Tensor], goal: torch.Tensor, with_mean: bool = False
+    ) -> Any:
+        mean, log_std = self.actor(obs, goal).chunk(2, -1)
+        log_std = log_std.clamp(-20.0, 2.0)
+        noise = torch.randn(mean.shape, generator=self.gen, device=self.device)
+        a, logp = gaussian_log_prob_tanh(mean, log_std, noise)
+        return (a, logp, torch.tanh(mean)) if with_mean else (a, logp)
+
+    def act(
+        self,
+        obs: Mapping[str, np.ndarray],
+        goal: np.ndarray | torch.Tensor,
+        deterministic: bool = False,
+        embedded: bool = False,
+    ) -> np.ndarray:
+        """Sampled (or mean, when ``deterministic``) tanh-squashed actions."""
+        with torch.inference_mode():
+            o = self.obs_tensors(obs)
+            g = self.goal_tensor(goal, embedded)
+            if deterministic:
+                a = torch.tanh(self.actor(o, g).chunk(2, -1)[0])
+            else:
+                a = self._policy(o, g)[0]
+        self.acts += 1
+        return a.cpu().numpy()
+
+    def update(self, batch: Batch) -> dict[str, float]:
+        """One critic, actor and temperature step and a target step; returns losses and
+        diagnostics.
+
+        The critic and actor losses are per-row losses averaged over the batch with per-row
+        weights: ``w_i / mean(w)`` of the row's task under multi-task task weights, all
+        equal otherwise (the usual mean). The hindsight behaviour-cloning term averages over
+        the relabelled rows with the same weights.
+
+        On updates that measure gradient conflict between tasks (every update with PCGrad,
+        every ``conflict_every``-th otherwise) the batch is split by task instead: each
+        task's rows go through the networks on their own (so that the task gradients cost
+        about one backward pass together), the mean of their per-row losses is the task's
+        loss, and :class:`lcrl.multitask.TaskGradients` combines the task gradients
+        (projected first with PCGrad) with coefficients ``n_i / n * w_i`` and reports
+        their conflict (``grad/*`` metrics); without projection that is the gradient of
+        the same weighted loss. The targets, the temperature (tuned on the whole batch) and
+        the target critics' step are the same on every update.
+        """
+        obs, nobs, goal, act, rew, boot = self.batch_tensors(batch)
+        cfg = self.cfg
+        alpha = self.log_alpha.detach().exp()
+        with torch.no_grad():
+            next_a, next_logp = self._policy(nobs, goal)
+            target_q = self.critic_target(nobs, goal, next_a).min(0).values.squeeze(-1)
+            y = rew + boot * (target_q - alpha * next_logp)
+        measure = self._measures()
+        parts, coefs, weights = self._parts(batch, measure)
+        n = len(batch.reward)
+        relabelled = np.asarray(batch.relabelled, bool)
+        n_rel = int(relabelled.sum())
+
+        def take(rows: np.ndarray | None) -> tuple[Any, ...]:
+            """Observations, goals, actions, targets and row weights of a part."""
+            if rows is None:
+                return obs, goal, act, y, weights
+            idx = torch.as_tensor(rows, device=self.device)
+            return {k: v[idx] for k, v in obs.items()}, goal[idx], act[idx], y[idx], None
+
+        # critic: 0.5 (Q_k - y)^2 per critic and row
+        losses: list[torch.Tensor | None] = []
+        qs = []
+        for rows in parts:
+            if rows is not None and len(rows) == 0:
+                losses.append(None)
+                continue
+            o, g, a, target, w = take(rows)
+            q = self.critic(o, g, a).squeeze(-1)
+            losses.append(0.5 * _weighted_mean((q - target).pow(2), w).sum())
+            qs.append(q.detach().reshape(-1))
+        metrics = self._step("critic", measure, losses, coefs)
+        critic_value = _weighted(coefs, losses)
+
+        # actor: alpha log pi - min_k Q_k per row, plus hindsight BC on relabelled rows
+        self.critic.requires_grad_(False)
+        losses, bc_losses, logps = [], [], []
+        for rows in parts:
+            if rows is not None and len(rows) == 0:
+                losses.append(None)
+                bc_losses.append(None)
+                continue
+            o, g, a_taken, _, w = take(rows)
+            a, logp, mean_action = self._policy(o, g, with_mean=True)
+            q_pi = self.critic(o, g, a).min(0).values.squeeze(-1)
+            loss = _weighted_mean(alpha * logp - q_pi, w)
+            rel = relabelled if rows is None else relabelled[rows]
+            bc_loss = None
+            if cfg.hindsight_bc > 0.0 and rel.any():
+                mask = torch.as_tensor(rel, device=self.device)
+                bc_rows = (mean_action[mask] - a_taken[mask]).pow(2).sum(-1)
+                bc_loss = _weighted_mean(bc_rows, None if w is None else w[mask])
+                if rows is not None:  # the task's share of the mean over relabelled rows
+                    bc_loss = bc_loss * (int(rel.sum()) / n_rel * n / len(rows))
+                loss = loss + cfg.hindsight_bc * bc_loss
+            losses.append(loss)
+            bc_losses.append(bc_loss)
+            logps.append(logp)
+        metrics.update(self._step("actor", measure, losses, coefs))
+        self.critic.requires_grad_(True)
+        actor_value = _weighted(coefs, losses)
+        logp = torch.cat(logps)
+
+        if cfg.autotune_alpha:
+            alpha_loss = -(self.log_alpha * (logp.detach() + self.target_entropy)).mean()
+            self.alpha_opt.zero_grad()
+            alpha_loss.backward()
+            self.alpha_opt.step()
+        with torch.no_grad():
+            self._target_flat.lerp_(self.critic_opt.flat, cfg.tau)
+        self.updates += 1
+        out = {
+            "critic_loss": critic_value,
+            "actor_loss": actor_value,
+            "alpha": float(alpha),
+            "q": torch.cat(qs).mean().item(),
+            "entropy": -logp.detach().mean().item(),
+        }
+        if any(x is not None for x in bc_losses):
+            out["bc_loss"] = _weighted(coefs, bc_losses)
+        return {**out, **metrics}
+
+    def _measures(self) -> bool:
+        """Whether this update compares task gradients."""
+        mt = self.multitask
+        if mt is None:
+            return False
+        return mt.pcgrad or (mt.conflict_every > 0 and self.updates % mt.conflict_every == 0)
+
+    def _parts(
+        self, batch: Batch, measure: bool
+    ) -> tuple[list[np.ndarray | None], np.ndarray, torch.Tensor | None]:
+        """How an update splits the batch.
+
+        Returns:
+            ``(parts, coefs, weights)``: the rows of each part (``[None]``: the whole batch;
+            per task when ``measure``), the coefficient of each part's loss in the objective
+            (``n_i / n * w_i`` per task; ``[1]``), and the per-row weights of the whole
+            batch (``None`` for equal weights).
+        """
+        tasks = np.asarray(batch.goal)
+        if measure:
+            parts: list[np.ndarray | None] = list(rows_by_task(tasks, self.problem.num_tasks))
+            w = np.ones(len(parts)) if self._task_w is None else self._task_w.tolist()
+            n = len(tasks)
+            coefs = np.array([len(r) / n * wi for r, wi in zip(parts, w, strict=True)])
+            return parts, coefs, None
+        weights = None
+        if self._task_w is not None:
+            weights = self._task_w[torch.as_tensor(tasks.astype(np.int64), device=self.device)]
+        return [None], np.ones(1), weights
+
+    def _step(
+        self, net: str, measure: bool, losses: list[torch.Tensor | None], coefs: np.ndarray
+    ) -> dict[str, float]:
+        """The gradient step of the ``critic`` or the ``actor``: its one loss
+        back-propagated, or, when ``measure``, its per-task losses combined by
+        :class:`lcrl.multitask.TaskGradients`.
+
+        Returns:
+            ``grad/{net}_cos_mean``, ``grad/{net}_cos_min`` and ``grad/{net}_conflict``
+            when ``measure``; nothing otherwise.
+        """
+        opt = self.critic_opt if net == "critic" else self.actor_opt
+        if not measure:
+            (loss,) = losses
+            assert loss is not None
+            opt.zero_grad()
+            loss.backward()
+            opt.step()
+            return {}
+        tasks = self._critic_tasks if net == "critic" else self._actor_tasks
+        stats = tasks.step(losses, coefs, self.np_rng)
+        return {
+            f"grad/{net}_cos_mean": stats["cos_mean"],
+            f"grad/{net}_cos_min": stats["cos_min"],
+            f"grad/{net}_conflict": stats["conflict_fraction"],
+        }
+
+    def modules(self) -> dict[str, nn.Module]:
+        """Actor, critics, target critics and normalisers."""
+        return {
+            **super().modules(),
+            "actor": self.actor,
+            "critic": self.critic,
+            "critic_target": self.critic_target,
+        }
+
+    def states(self) -> dict[str, Any]:
+        """Optimiser states, temperature, generator and counters."""
+        return {
+            **super().states(),
+            "actor_opt": self.actor_opt.state_dict(),
+            "critic_opt": self.critic_opt.state_dict(),
+            "alpha_opt": self.alpha_opt.state_dict(),
+            "log_alpha": self.log_alpha.detach().cpu(),
+        }
+
+    def load_states(self, states: Mapping[str, Any]) -> None:
+        """Restore :meth:`states`."""
+        super().load_states(states)
+        self.actor_opt.load_state_dict(states["actor_opt"])
+        self.critic_opt.load_state_dict(states["critic_opt"])
+        self.alpha_opt.load_state_dict(states["alpha_opt"])
+        with torch.no_grad():
+            self.log_alpha.copy_(torch.as_tensor(states["log_alpha"]))
+
+
+SPEC = AlgoSpec(
+    name="sac",
+    agent=SAC,
+    config=SACConfig,
+    actions="continuous",
+    multitask=True,
+    learns_from="env",
+    summary="soft actor-critic: twin critics, tuned entropy temperature; multi-task options",
+)

@@ -1,0 +1,182 @@
+"""Twin delayed DDPG (TD3, continuous actions): twin critics, target policy smoothing and
+delayed actor and target updates."""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+import torch
+from torch import nn
+
+from lcrl.algos.base import (
+    Agent,
+    AgentOptions,
+    AlgoSpec,
+    GoalEmbedder,
+    Problem,
+    check_fields,
+    flat_target,
+)
+from lcrl.buffer import Batch
+from lcrl.nets import FlatAdam
+
+
+@dataclass
+class TD3Config:
+    """Twin delayed DDPG (continuous actions)."""
+
+    gamma: float = 0.98
+    """Discount factor."""
+    tau: float = 0.005
+    """Polyak rate of the target networks."""
+    actor_lr: float = 1e-3
+    """Actor learning rate."""
+    critic_lr: float = 1e-3
+    """Critic learning rate."""
+    policy_noise: float = 0.2
+    """Std of the target policy smoothing noise."""
+    noise_clip: float = 0.5
+    """Clip of the target policy smoothing noise."""
+    policy_delay: int = 2
+    """Critic updates per actor update."""
+    exploration_noise: float = 0.2
+    """Std of the Gaussian noise added to actions while collecting data."""
+    max_grad_norm: float | None = None
+    """Clip gradient norms to this (``None``: no clipping)."""
+
+    def validate(self) -> None:
+        """Raise :class:`LcrlError` for settings that cannot train."""
+        check_fields(
+            self,
+            "td3",
+            unit=("gamma", "tau"),
+            positive=("actor_lr", "critic_lr", "policy_delay"),
+            non_negative=("policy_noise", "noise_clip", "exploration_noise"),
+            positive_or_none=("max_grad_norm",),
+        )
+
+
+class TD3(Agent):
+    """Twin delayed deep deterministic policy gradient.
+
+    Args:
+        problem: observation shapes, goal encoding, continuous action space.
+        options: networks, normalisation, augmentation, device and seed.
+        goal_embed: ``(goal ids or vectors, device) -> embedded goals``.
+        config: TD3's hyper-parameters (defaults when ``None``).
+    """
+
+    name = "td3"
+
+    def __init__(
+        self,
+        problem: Problem,
+        options: AgentOptions,
+        goal_embed: GoalEmbedder,
+        config: TD3Config | None = None,
+    ) -> None:
+        super().__init__(problem, options, goal_embed)
+        self.cfg = cfg = config or TD3Config()
+        n = problem.action_dim
+        self.actor = self._net(n)
+        self.critic = self._critics(n)
+        self.actor_target, self._actor_target_flat = flat_target(self.actor)
+        self.critic_target, self._critic_target_flat = flat_target(self.critic)
+        self.actor_opt = FlatAdam(
+            self.actor.parameters(), cfg.actor_lr, max_grad_norm=cfg.max_grad_norm
+        )
+        self.critic_opt = FlatAdam(
+            self.critic.parameters(), cfg.critic_lr, max_grad_norm=cfg.max_grad_norm
+        )
+        self._last_actor_loss = 0.0
+
+    def act(
+        self,
+        obs: Mapping[str, np.ndarray],
+        goal: np.ndarray | torch.Tensor,
+        deterministic: bool = False,
+        embedded: bool = False,
+    ) -> np.ndarray:
+        """Deterministic actions, plus clipped Gaussian exploration noise when not
+        ``deterministic``."""
+        with torch.inference_mode():
+            a = torch.tanh(self.actor(self.obs_tensors(obs), self.goal_tensor(goal, embedded)))
+            if not deterministic:
+                noise = torch.randn(a.shape, generator=self.gen, device=self.device)
+                a = (a + self.cfg.exploration_noise * noise).clamp(-1.0, 1.0)
+        self.acts += 1
+        return a.cpu().numpy()
+
+    def update(self, batch: Batch) -> dict[str, float]:
+        """One critic step, and an actor and target step every ``policy_delay`` calls."""
+        obs, nobs, goal, act, rew, boot = self.batch_tensors(batch)
+        cfg = self.cfg
+        with torch.no_grad():
+            noise = torch.randn(act.shape, generator=self.gen, device=self.device)
+            noise = (cfg.policy_noise * noise).clamp(-cfg.noise_clip, cfg.noise_clip)
+            next_a = (torch.tanh(self.actor_target(nobs, goal)) + noise).clamp(-1.0, 1.0)
+            target_q = self.critic_target(nobs, goal, next_a).min(0).values.squeeze(-1)
+            y = rew + boot * target_q
+        q = self.critic(obs, goal, act).squeeze(-1)
+        critic_loss = 0.5 * (q - y).pow(2).mean(-1).sum()
+        self.critic_opt.zero_grad()
+        critic_loss.backward()
+        self.critic_opt.step()
+        self.updates += 1
+        if self.updates % cfg.policy_delay == 0:
+            self.critic.requires_grad_(False)
+            q_pi = self.critic(obs, goal, torch.tanh(self.actor(obs, goal)))[0]
+            actor_loss = -q_pi.mean()
+            self.actor_opt.zero_grad()
+            actor_loss.backward()
+            self.actor_opt.step()
+            self.critic.requires_grad_(True)
+            with torch.no_grad():
+                self._actor_target_flat.lerp_(self.actor_opt.flat, cfg.tau)
+                self._critic_target_flat.lerp_(self.critic_opt.flat, cfg.tau)
+            self._last_actor_loss = actor_loss.item()
+        return {
+            "critic_loss": critic_loss.item(),
+            "actor_loss": self._last_actor_loss,
+            "q": q.detach().mean().item(),
+        }
+
+    def modules(self) -> dict[str, nn.Module]:
+        """Actor, critics, their targets and normalisers."""
+        return {
+            **super().modules(),
+            "actor": self.actor,
+            "critic": self.critic,
+            "actor_target": self.actor_target,
+            "critic_target": self.critic_target,
+        }
+
+    def states(self) -> dict[str, Any]:
+        """Optimiser states, generator and counters."""
+        return {
+            **super().states(),
+            "actor_opt": self.actor_opt.state_dict(),
+            "critic_opt": self.critic_opt.state_dict(),
+            "last_actor_loss": self._last_actor_loss,
+        }
+
+    def load_states(self, states: Mapping[str, Any]) -> None:
+        """Restore :meth:`states`."""
+        super().load_states(states)
+        self.actor_opt.load_state_dict(states["actor_opt"])
+        self.critic_opt.load_state_dict(states["critic_opt"])
+        self._last_actor_loss = float(states.get("last_actor_loss", 0.0))
+
+
+SPEC = AlgoSpec(
+    name="td3",
+    agent=TD3,
+    config=TD3Config,
+    actions="continuous",
+    multitask=False,
+    learns_from="env",
+    summary="twin delayed DDPG: deterministic actor with Gaussian exploration noise",
+)
