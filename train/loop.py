@@ -19,7 +19,7 @@ from typing import Any
 
 import numpy as np
 
-from lcrl.algos import Agent
+from lcrl.algos import ALGOS, Agent
 from lcrl.buffer import HindsightReplayBuffer
 from lcrl.checkpoint import save_checkpoint, write_latest
 from lcrl.errors import LcrlError
@@ -72,10 +72,10 @@ class Trainer(BaseTrainer):
 
     def __init__(self, cfg: TrainConfig) -> None:
         cfg.validate()
-        if cfg.algo == "bc":
+        if cfg.algo in ALGOS and ALGOS[cfg.algo].learns_from != "env":
             raise LcrlError(
-                "behavioural cloning learns from demonstrations, not in this loop: run it "
-                "with lcrl train (train.bc.BCTrainer)"
+                f"{cfg.algo} learns from demonstrations, not in this loop: run it with lcrl "
+                "train (train.bc.BCTrainer)"
             )
         self.out = Path(cfg.out)
         cfg, ckpt = open_run(cfg)

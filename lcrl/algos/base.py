@@ -107,7 +107,7 @@ class AgentOptions:
     ``whiten`` (regularised PCA whitening over the training instructions, so that the one
     word telling two instructions apart, such as left and right, is as visible as the
     rest: cosine 0.61 instead of 0.91 between those two). Whitening did not learn faster
-    in the runs measured so far (see the README), so it is not the default."""
+    in the runs measured so far (see docs/design.md), so it is not the default."""
     text_whiten_eps: float = 0.01
     """Ridge of the whitening, as a fraction of the embeddings' total variance (smaller
     whitens harder)."""
