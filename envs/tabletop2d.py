@@ -476,7 +476,7 @@ class Tabletop2DEnv(gym.Env):
         if not self._has_reset:
             raise RuntimeError("Tabletop2DEnv.step() called before reset()")
         if self._discrete:
-            a = int(action)
+            a = _discrete_action(action)
             if not 0 <= a <= self.num_directions:
                 raise ValueError(
                     f"discrete action {action!r} is outside [0, {self.num_directions}]"
@@ -744,6 +744,21 @@ class Tabletop2DEnv(gym.Env):
             cy = max(ey - _H, 0.0)
             return math.hypot(cx, cy) - _R
         return math.hypot(ex, ey) - _R - _H
+
+
+def _discrete_action(action: Any) -> int:
+    """One whole number: an int, a numpy integer or a whole-valued float (``3.0``), alone
+    or in a one-element array. A fraction such as 2.5 names no move and is refused, as NaN
+    is, instead of being truncated to one."""
+    value = np.asarray(action)
+    if value.size != 1 or value.dtype.kind not in "iuf":
+        raise ValueError(f"discrete action {action!r} must be one integer (a move index)")
+    v = value.reshape(()).item()
+    if isinstance(v, float) and not (math.isfinite(v) and v == int(v)):
+        raise ValueError(
+            f"discrete action {action!r} is not a whole number: pass a move index (an integer)"
+        )
+    return int(v)
 
 
 def _clip_action(v: float) -> float:

@@ -169,6 +169,7 @@ class HindsightReplayBuffer:
         if callable(attach):
             attach(self.obs)
         self.ptr = 0
+        self.high = 0  # slots below this have been written at least once
         self.episodes_added = 0
         self.steps_added = 0
         self._valid_idx: np.ndarray | None = None
@@ -223,6 +224,7 @@ class HindsightReplayBuffer:
         self.valid[start : end - 1] = True
         self.valid[end - 1] = False
         self.ptr = end % self.capacity
+        self.high = max(self.high, end)
         self.episodes_added += 1
         self.steps_added += t
         self._valid_idx = None
@@ -363,8 +365,8 @@ class HindsightReplayBuffer:
         return ret.astype(np.float32), done.astype(np.float32), idx + steps, discount
 
     # --- saving ----------------------------------------------------------------------
-    def arrays(self) -> dict[str, np.ndarray]:
-        """All storage and counters as plain arrays (for checkpoints; no pickling)."""
+    def _full_arrays(self) -> dict[str, np.ndarray]:
+        """Every storage array at full capacity, and the counters."""
         out = {f"obs.{key}": arr for key, arr in self.obs.items()}
         out.update(
             action=self.action,
@@ -378,30 +380,70 @@ class HindsightReplayBuffer:
         out.update({f"goal.{key}": arr for key, arr in self.goal_space.arrays().items()})
         return out
 
+    def arrays(self) -> dict[str, np.ndarray]:
+        """Storage and counters as plain arrays (for checkpoints; no pickling).
+
+        Only the slots written so far are kept: every per-slot array (first dimension
+        ``capacity``) is cut to its first ``high`` rows, and ``extent`` holds
+        ``[high, capacity]``. Before the buffer first wraps around that is the part that
+        holds data; after, it is all of it.
+        """
+        out = {}
+        for key, arr in self._full_arrays().items():
+            per_slot = key != "counters" and arr.ndim >= 1 and arr.shape[0] == self.capacity
+            out[key] = arr[: self.high] if per_slot else arr
+        out["extent"] = np.array([self.high, self.capacity], np.int64)
+        return out
+
     def load_arrays(self, arrays: Mapping[str, np.ndarray]) -> None:
-        """Restore storage saved by :meth:`arrays` (capacity and shapes must match)."""
-        expected = self.arrays()
+        """Restore storage saved by :meth:`arrays` into this (fresh) buffer: its capacity
+        and shapes must match. Also reads the layout of earlier versions, which saved
+        every slot."""
+        if "extent" in arrays:
+            high, capacity = (int(x) for x in arrays["extent"])
+            if capacity != self.capacity:
+                raise LcrlError(
+                    f"saved replay buffer has capacity {capacity}; this buffer has "
+                    f"{self.capacity} (buffer.capacity differs)"
+                )
+        else:
+            high = self.capacity
+        # start from fresh storage: the slots past ``high`` were never written
+        for value in (*self.obs.values(), self.action, self.env_reward, self.terminated):
+            value[...] = 0
+        self.goal_space.allocate(self.capacity)
+        attach = getattr(self.goal_space, "attach", None)
+        if callable(attach):
+            attach(self.obs)
+        expected = self._full_arrays()
         missing = sorted(set(expected) - set(arrays))
         if missing:
             raise LcrlError(f"saved replay buffer lacks {missing}")
+        full: dict[str, np.ndarray] = {}
         for key, arr in expected.items():
-            if key == "counters" or key.startswith("goal."):
+            saved = np.asarray(arrays[key])
+            if key == "counters":
                 continue
-            if arrays[key].shape != arr.shape:
+            per_slot = arr.ndim >= 1 and arr.shape[0] == self.capacity
+            if per_slot and saved.shape == (high, *arr.shape[1:]):
+                saved = np.concatenate([saved, arr[high:]]) if high < self.capacity else saved
+            elif not key.startswith("goal.") and saved.shape != arr.shape:
                 raise LcrlError(
-                    f"saved replay buffer array {key!r} has shape {arrays[key].shape}; this "
+                    f"saved replay buffer array {key!r} has shape {saved.shape}; this "
                     f"buffer has {arr.shape} (capacity or observation shapes differ)"
                 )
+            full[key] = saved
         for key, value in self.obs.items():
-            value[...] = arrays[f"obs.{key}"]
-        self.action[...] = arrays["action"]
-        self.env_reward[...] = arrays["env_reward"]
-        self.terminated[...] = arrays["terminated"]
-        self.ep_start[...] = arrays["ep_start"]
-        self.ep_end[...] = arrays["ep_end"]
-        self.valid[...] = arrays["valid"]
+            value[...] = full[f"obs.{key}"]
+        self.action[...] = full["action"]
+        self.env_reward[...] = full["env_reward"]
+        self.terminated[...] = full["terminated"]
+        self.ep_start[...] = full["ep_start"]
+        self.ep_end[...] = full["ep_end"]
+        self.valid[...] = full["valid"]
         self.ptr, self.episodes_added, self.steps_added = (int(x) for x in arrays["counters"])
+        self.high = high
         self.goal_space.load_arrays(
-            {key[5:]: arr for key, arr in arrays.items() if key.startswith("goal.")}
+            {key[5:]: arr for key, arr in full.items() if key.startswith("goal.")}
         )
         self._valid_idx = None

@@ -26,9 +26,10 @@ from __future__ import annotations
 
 import json
 import sys
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import tyro
 
@@ -369,11 +370,26 @@ class ActCommand:
         env.close()
 
 
+def check_preset(argv: Sequence[str], presets: Mapping[str, Any]) -> None:
+    """Refuse an unknown preset name in one line naming the closest known ones, before
+    tyro would call the flags that follow it misplaced."""
+    import difflib
+
+    if not argv or argv[0].startswith("-") or argv[0] in presets:
+        return
+    close = difflib.get_close_matches(argv[0], list(presets), n=3, cutoff=0.5)
+    hint = f"did you mean {', '.join(close)}? " if close else ""
+    raise LcrlError(
+        f"unknown preset {argv[0]!r}: {hint}lcrl train --help lists all {len(presets)} presets"
+    )
+
+
 def _train(argv: Sequence[str]) -> None:
     from lcrl.algos import ALGOS
     from train.config import PRESETS, TrainConfig
     from train.loop import Trainer
 
+    check_preset(argv, PRESETS)
     presets = {name: cfg for name, (_, cfg) in PRESETS.items()}
     descriptions = {name: desc for name, (desc, _) in PRESETS.items()}
     cfg = tyro.cli(

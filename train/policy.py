@@ -78,11 +78,27 @@ def check_instruction(text: Any) -> str:
     and words are fine: the text encoder embeds whatever it is given."""
     from captioner.lang_env import MAX_INSTRUCTION_LENGTH
 
+    if isinstance(text, (bytes, bytearray)):
+        raise LcrlError(
+            f"an instruction must be text (str), not bytes: decode it first, e.g. "
+            f"{bytes(text)[:40]!r}.decode()"
+        )
     if not isinstance(text, str):
         raise LcrlError(f"an instruction must be a string, got {type(text).__name__}")
     norm = " ".join(text.split())
     if not norm:
         raise LcrlError("empty instruction: say what to do, e.g. 'push the red cube left'")
+    if any("\udc80" <= c <= "\udcff" for c in norm):  # bytes Python could not decode
+        raw = norm.encode("utf-8", "surrogateescape")
+        raise LcrlError(
+            f"instruction is not valid UTF-8: {raw!r} holds bytes that are no UTF-8 "
+            "character (is the terminal or file in another encoding?); pass UTF-8 text"
+        )
+    if "\ufffd" in norm:
+        raise LcrlError(
+            f"instruction holds U+FFFD, the mark of bytes that were not valid UTF-8: {norm!r}; "
+            "decode its source as UTF-8"
+        )
     if not norm.isprintable():
         raise LcrlError(f"instruction contains control characters: {norm!r}")
     if len(norm) > MAX_INSTRUCTION_LENGTH:
@@ -90,6 +106,20 @@ def check_instruction(text: Any) -> str:
             f"instruction is {len(norm)} characters long; the limit is {MAX_INSTRUCTION_LENGTH}"
         )
     return norm
+
+
+def check_finite(arr: np.ndarray, name: str) -> None:
+    """Refuse NaN and infinite values: a policy that drives a robot must not turn them
+    into actions silently."""
+    if arr.dtype.kind == "f" and not np.isfinite(arr).all():
+        flat = np.flatnonzero(~np.isfinite(arr))
+        first = np.unravel_index(flat[0], arr.shape)
+        value = arr[first]
+        where = ", ".join(map(str, first)) if arr.ndim else ""
+        raise LcrlError(
+            f"{name} holds {value} at index [{where}] ({flat.size} non-finite value"
+            f"{'s' if flat.size > 1 else ''}): a policy acts on finite observations only"
+        )
 
 
 def describe_env(cfg: TrainConfig) -> str:
@@ -225,7 +255,7 @@ class Policy:
     def embed(self, texts: str | Sequence[str]) -> np.ndarray:
         """Text embeddings ``(N, d)`` from the policy's frozen encoder (unit length)."""
         encoder = self._encoder()
-        texts = [texts] if isinstance(texts, str) else list(texts)
+        texts = [texts] if isinstance(texts, (str, bytes, bytearray)) else list(texts)
         return np.asarray(encoder.encode([check_instruction(t) for t in texts]), np.float32)
 
     def nearest(self, text: str, k: int = 3) -> list[Neighbour]:
@@ -352,6 +382,7 @@ class Policy:
             arr = np.asarray(observation[key])
             if arr.dtype.kind not in "fiub":
                 raise LcrlError(f"{name}[{key!r}] must be numbers, got dtype {arr.dtype}")
+            check_finite(arr, f"{name}[{key!r}]")
             want = tuple(self._spaces[key].shape)
             if arr.shape == want:
                 b = None
@@ -385,6 +416,14 @@ class Policy:
                 instruction = instruction.tolist()
         if isinstance(instruction, str):
             return [instruction]
+        if isinstance(instruction, (bytes, bytearray)) or (
+            isinstance(instruction, Sequence)
+            and any(isinstance(t, (bytes, bytearray)) for t in instruction)
+        ):
+            raise LcrlError(
+                "instructions must be text (str), not bytes: decode them first, e.g. "
+                "b'reach the red cube'.decode()"
+            )
         if not isinstance(instruction, Sequence):
             raise LcrlError(
                 f"an instruction must be a string or a list of strings, got "
@@ -477,6 +516,8 @@ class Policy:
             goal = observation[key]
         want = tuple(self.task.problem().goal_shape)
         g = np.asarray(goal)
+        if g.dtype.kind in "fiub":
+            check_finite(g, "goal")
         if g.shape == want:
             g = g[None] if batch is None else np.repeat(g[None], batch, axis=0)
         elif batch is None or g.shape != (batch, *want):
