@@ -84,8 +84,17 @@ def test_text_that_was_not_utf8_says_so():
 def test_non_utf8_argument_on_the_command_line(lang_run):
     """The real command: Linux hands the bytes over, Python keeps them as surrogates."""
     done = subprocess.run(
-        [sys.executable, "-m", "train.cli", "act", str(lang_run), "--instruction",
-         b"reach the r\xe9d cube", "--episodes", "1"],  # fmt: skip
+        [
+            sys.executable,
+            "-m",
+            "train.cli",
+            "act",
+            str(lang_run),
+            "--instruction",
+            b"reach the r\xe9d cube",
+            "--episodes",
+            "1",
+        ],
         cwd=ROOT,
         capture_output=True,
         timeout=300,
@@ -101,8 +110,13 @@ def test_discrete_actions_are_whole_numbers():
     env.reset(seed=0)
     for ok in (3, np.int64(3), 3.0, np.array(3), np.array([3])):
         env.step(ok)
-    for bad, why in ((2.5, "not a whole number"), (np.nan, "not a whole number"),
-                     (np.array([1, 2]), "must be one integer"), ("2", "must be one integer")):  # fmt: skip
+    refused = [
+        (2.5, "not a whole number"),
+        (np.nan, "not a whole number"),
+        (np.array([1, 2]), "must be one integer"),
+        ("2", "must be one integer"),
+    ]
+    for bad, why in refused:
         with pytest.raises(ValueError, match=why):
             env.step(bad)
 
