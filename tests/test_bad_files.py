@@ -61,6 +61,7 @@ def edit_meta(run: Path, change) -> Path:
     ("change", "field"),
     [
         (lambda m: m.pop("algo"), "'algo'"),
+        (lambda m: m.update(algo="ppo"), "'algo' is 'ppo'"),
         (lambda m: m.update(step="many"), "'step'"),
         (lambda m: m.update(config=[1, 2]), "'config'"),
         (lambda m: m["config"].update(env=7), "'config'"),

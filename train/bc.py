@@ -220,8 +220,10 @@ class BCTrainer(BaseTrainer):
 
     def advance(self) -> None:
         """One gradient update on a batch of demonstration transitions."""
-        metrics = self.agent.update(self._batch())
-        self.step += 1
+        batch = self._batch()
+        with self.holding_signals():  # an update is applied and counted whole
+            metrics = self.agent.update(batch)
+            self.step += 1
         for k, v in metrics.items():
             self._metrics[k] = self._metrics.get(k, 0.0) + v
         self._metric_count += 1

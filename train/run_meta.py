@@ -13,7 +13,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import Any
 
-from lcrl.algos import Problem
+from lcrl.algos import ALGOS, Problem
 from lcrl.checkpoint import Checkpoint, CheckpointError
 from lcrl.errors import LcrlError
 from train.config import TrainConfig, config_from_dict
@@ -88,6 +88,10 @@ def run_meta(ckpt: Checkpoint) -> RunMeta:
     config = _field(ckpt, "config", dict, "the run's config")
     cfg = _config(config, where)
     algo = _field(ckpt, "algo", str, "the algorithm")
+    if algo not in ALGOS:
+        raise CheckpointError(
+            f"{where}: the field 'algo' is {algo!r}, which is none of {tuple(ALGOS)}"
+        )
     problem_doc = _field(ckpt, "problem", dict, "the learner's shapes and goals")
     try:
         problem = Problem.from_dict(problem_doc)
