@@ -16,6 +16,11 @@ File layout (``format = "lcrl-caption-dataset"``, ``version = 1``)::
     instruction_set      (I,) str   "train" or "heldout" for each instruction
     frames               (N, H, W, 3) uint8  every observation's camera frame
     proprio              (N, P) float32      the robot's own state (pusher or gripper)
+    state                (N, S) float32      the privileged observation of each frame (the
+                                             env's ``observation``: the robot's state, then
+                                             the object slots of ``meta["slot_layout"]``);
+                                             what perception learns to read from frames.
+                                             Files written before it existed lack it.
     episode_start        (E + 1,) int64      episode e's observations are
                                              [episode_start[e], episode_start[e + 1])
     episode_source       (E,) uint8          index into meta["sources"] (random, scripted,
@@ -97,6 +102,7 @@ class CaptionDatasetWriter:
         frame_shape: ``(H, W, 3)`` of the camera frames.
         proprio_dim: width of the proprioception vector.
         meta: JSON-able description (env, families, settings).
+        state_dim: width of the privileged observation stored per frame (0: none).
         overwrite: replace an existing file instead of refusing.
     """
 
@@ -109,6 +115,7 @@ class CaptionDatasetWriter:
         proprio_dim: int,
         meta: dict[str, Any],
         overwrite: bool = False,
+        state_dim: int = 0,
     ) -> None:
         h5py = _h5py()
         self.path = Path(path)
@@ -141,6 +148,11 @@ class CaptionDatasetWriter:
             compression="lzf",
         )
         f.create_dataset("proprio", (0, proprio_dim), np.float32, maxshape=(None, proprio_dim))
+        self.state_dim = int(state_dim)
+        if self.state_dim:
+            f.create_dataset(
+                "state", (0, self.state_dim), np.float32, maxshape=(None, self.state_dim)
+            )
         f.create_dataset("episode_start", data=np.zeros(1, np.int64), maxshape=(None,))
         f.create_dataset("episode_source", (0,), np.uint8, maxshape=(None,))
         f.create_dataset("episode_instruction", (0,), np.int32, maxshape=(None,))
@@ -160,8 +172,10 @@ class CaptionDatasetWriter:
         labels: Sequence[Sequence[int]],
         source: str,
         instruction: int = -1,
+        state: np.ndarray | None = None,
     ) -> None:
-        """Append one episode: ``T + 1`` frames, proprioception rows and label-id lists."""
+        """Append one episode: ``T + 1`` frames, proprioception rows and label-id lists
+        (and privileged observations, when the file stores them)."""
         if source not in SOURCES:
             raise LcrlError(f"unknown episode source {source!r}; choose one of {SOURCES}")
         n = len(frames)
@@ -169,6 +183,11 @@ class CaptionDatasetWriter:
             raise LcrlError(
                 f"an episode needs as many frames ({n}), proprio rows ({len(proprio)}) and "
                 f"label lists ({len(labels)}), at least one"
+            )
+        if self.state_dim and (state is None or np.shape(state) != (n, self.state_dim)):
+            raise LcrlError(
+                f"this dataset stores privileged observations: give state of shape "
+                f"({n}, {self.state_dim}), got {None if state is None else np.shape(state)}"
             )
         if not -1 <= instruction < self.num_instructions:
             raise LcrlError(f"instruction id {instruction} is outside the table")
@@ -186,6 +205,8 @@ class CaptionDatasetWriter:
         lab_start = f["label_start"][-1] + np.cumsum([len(lab) for lab in labels])
         grow("frames", np.asarray(frames, np.uint8))
         grow("proprio", np.asarray(proprio, np.float32))
+        if self.state_dim:
+            grow("state", np.asarray(state, np.float32))
         grow("label_ids", flat.astype(np.int16))
         grow("label_start", lab_start.astype(np.int64))
         grow("episode_start", np.asarray([self.observations + n], np.int64))
@@ -252,6 +273,8 @@ class CaptionDataset:
         self.label_ids = f["label_ids"][:]
         self.frames = f["frames"]
         self.proprio = f["proprio"][:]
+        #: The privileged observation of every frame (None in files without it).
+        self.state = f["state"][:] if "state" in f else None
 
     def __enter__(self) -> CaptionDataset:
         return self
@@ -518,6 +541,8 @@ def collect(cfg: CollectConfig, policy: EpisodeSource | None = None) -> Path:
         "image_size": cfg.image_size,
         "sources": list(SOURCES),
         "collect": asdict(cfg),
+        # where the object slots are in each stored state (what perception predicts)
+        "slot_layout": [*map(int, src.env.slot_layout), int(src.env.position_dims)],
     }
     first = src.env.reset(seed=cfg.seed)[0]
     writer = CaptionDatasetWriter(
@@ -528,6 +553,7 @@ def collect(cfg: CollectConfig, policy: EpisodeSource | None = None) -> Path:
         src.proprio_dim,
         meta,
         overwrite=cfg.overwrite,
+        state_dim=int(np.shape(first["observation"])[0]),
     )
     bar = tqdm(total=cfg.episodes, disable=not cfg.progress, desc="collect", unit="ep")
     try:
@@ -585,6 +611,7 @@ def _episode(
             reset()
     frames = [obs["image"]]
     proprio = [_proprio(obs, src.proprio_dim)]
+    states = [np.asarray(obs["observation"], np.float32)]
     scenes = [s0]
     low, high = env.action_space.low, env.action_space.high
     action = None
@@ -599,6 +626,7 @@ def _episode(
         obs, _, terminated, truncated, info = env.step(action)
         frames.append(obs["image"])
         proprio.append(_proprio(obs, src.proprio_dim))
+        states.append(np.asarray(obs["observation"], np.float32))
         scenes.append(env.scene())
         if kind == "scripted" and src.captioner.satisfied(table[target], s0, scenes[-1]):
             break
@@ -608,6 +636,7 @@ def _episode(
     episode = {
         "frames": np.stack(frames),
         "proprio": np.stack(proprio),
+        "state": np.stack(states),
         "labels": labels,
         "source": kind,
         "instruction": target,

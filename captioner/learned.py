@@ -48,6 +48,7 @@ from captioner.dataset import CaptionDataset
 from captioner.grammar import FAMILIES, Instruction, all_instructions, try_parse
 from lcrl.checkpoint import CheckpointError, load_checkpoint, save_checkpoint
 from lcrl.errors import LcrlError
+from lcrl.nets import spatial_softmax
 
 SPECIALS: tuple[str, ...] = ("<pad>", "<bos>", "<eos>", "<none>")
 PAD, BOS, EOS, NONE = 0, 1, 2, 3
@@ -165,16 +166,6 @@ class CaptionModelConfig:
 
 
 ENCODERS: tuple[str, ...] = ("spatial", "flatten")
-
-
-def spatial_softmax(h: torch.Tensor, temperature: torch.Tensor) -> torch.Tensor:
-    """Expected image coordinates ``(B, 2C)`` in [-1, 1] of each channel's softmax over
-    the positions of ``h`` ``(B, C, H, W)``."""
-    b, c, hh, ww = h.shape
-    attn = torch.softmax(h.flatten(2) / temperature, -1).view(b, c, hh, ww)
-    ys = torch.linspace(-1.0, 1.0, hh, device=h.device, dtype=h.dtype)
-    xs = torch.linspace(-1.0, 1.0, ww, device=h.device, dtype=h.dtype)
-    return torch.cat([(attn.sum(3) * ys).sum(2), (attn.sum(2) * xs).sum(2)], -1)
 
 
 class FramePairEncoder(nn.Module):

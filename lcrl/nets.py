@@ -207,6 +207,16 @@ class SlotSelect(_SlotReader):
         return torch.cat([picked, *xs], -1)
 
 
+def spatial_softmax(h: torch.Tensor, temperature: torch.Tensor) -> torch.Tensor:
+    """Expected image coordinates ``(B, 2C)`` in [-1, 1] of each channel's softmax over
+    the positions of ``h`` ``(B, C, H, W)`` (rows first, then columns)."""
+    b, c, hh, ww = h.shape
+    attn = torch.softmax(h.flatten(2) / temperature, -1).view(b, c, hh, ww)
+    ys = torch.linspace(-1.0, 1.0, hh, device=h.device, dtype=h.dtype)
+    xs = torch.linspace(-1.0, 1.0, ww, device=h.device, dtype=h.dtype)
+    return torch.cat([(attn.sum(3) * ys).sum(2), (attn.sum(2) * xs).sum(2)], -1)
+
+
 def random_shift(images: torch.Tensor, pad: int, generator: torch.Generator) -> torch.Tensor:
     """DrQ's random shift: pad ``(B, H, W, C)`` images by ``pad`` edge pixels and crop each
     back to ``(H, W)`` at a random offset; returns float images on the same 0-255 scale."""

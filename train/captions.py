@@ -56,12 +56,14 @@ class PolicyEpisodes:
         wrapper = find_language_wrapper(env)
         s0 = base.scene()
         frames, proprio, scenes = [obs["image"]], [_proprio(obs, dim)], [s0]
+        states = [base_observation(obs, env)]
         for _ in range(cfg.max_episode_steps):
             st = {k: v[None] for k, v in task.storage_obs(obs, first).items()}
             a = agent.act(st, goal)[0]
             obs, _, terminated, truncated, _ = env.step(task.scale_action(a))
             frames.append(obs["image"])
             proprio.append(_proprio(obs, dim))
+            states.append(base_observation(obs, env))
             scenes.append(base.scene())
             if terminated or truncated:
                 break
@@ -70,10 +72,24 @@ class PolicyEpisodes:
         return {
             "frames": np.stack(frames),
             "proprio": np.stack(proprio),
+            "state": np.stack(states),
             "labels": labels,
             "source": "policy",
             "instruction": ids[0] if ids else -1,
         }
+
+
+def base_observation(obs: dict[str, Any], env: Any) -> np.ndarray:
+    """The simulator's own ``observation`` inside one widened by
+    :class:`envs.features.SlotFeatures`: the agent values, then each slot's original
+    values (the features come after them in every slot)."""
+    from envs.features import slot_layout
+
+    vec = np.asarray(obs["observation"], np.float32)
+    start, count, width = env.unwrapped.slot_layout
+    _, _, wide, _ = slot_layout(env)
+    slots = vec[start : start + count * wide].reshape(count, wide)[:, :width]
+    return np.concatenate([vec[:start], slots.reshape(-1)])
 
 
 def _proprio(obs: dict[str, Any], dim: int) -> np.ndarray:

@@ -495,6 +495,37 @@ def _caption(argv: Sequence[str]) -> None:
 
 
 @dataclass
+class PerceptionStub:
+    """Perception (camera frames -> object slots): ``lcrl perception train --help`` (also
+    collect, eval)."""
+
+    def run(self) -> None:
+        _perception(["--help"])
+
+
+def _perception(argv: Sequence[str]) -> None:
+    from captioner.dataset import CaptionDataset, CollectConfig
+    from train.captions import collect
+    from train.perception import PerceptionEvalCommand, PerceptionTrainConfig, train
+
+    cfg = tyro.extras.subcommand_cli_from_dict(
+        {"collect": CollectConfig, "train": PerceptionTrainConfig, "eval": PerceptionEvalCommand},
+        prog="lcrl perception",
+        description="Perception: collect camera frames labelled with the privileged state, "
+        "train a model that reads the object slots from them, evaluate it.",
+        args=list(argv),
+    )
+    if isinstance(cfg, CollectConfig):
+        path = collect(cfg)
+        with CaptionDataset(path) as data:
+            print(data.summary())
+    elif isinstance(cfg, PerceptionTrainConfig):
+        train(cfg)
+    else:
+        cfg.run()
+
+
+@dataclass
 class DemosStub:
     """Demonstration datasets: ``lcrl demos record --help`` (also relabel, info,
     import-robomimic)."""
@@ -530,11 +561,15 @@ def main(argv: Sequence[str] | None = None) -> None:
         "split": SplitCommand,
         "parse": ParseCommand,
         "caption": CaptionStub,
+        "perception": PerceptionStub,
         "demos": DemosStub,
     }
     try:
         if args and args[0] == "train":
             _train(args[1:])
+            return
+        if args and args[0] == "perception":
+            _perception(args[1:])
             return
         if args and args[0] == "caption":
             _caption(args[1:])

@@ -1,0 +1,257 @@
+"""Perception: camera frames and proprioception -> the object slots of the privileged state.
+
+A tabletop's privileged ``observation`` is the robot's own state followed by one slot per
+object kind, ``[position (d values), present]`` (``slot_layout = (start, count, width)``
+and ``position_dims = d`` on the env class). :class:`Perception` reads a camera frame and
+the proprioception (the first ``start`` values, which the robot always knows) and
+estimates every slot: the positions, in the env's units (metres), and whether the object
+is on the table. :meth:`Perception.observation` assembles the estimate in the same layout,
+so relative positions and displacements are computed from it exactly as from the true
+state, and a state policy's features apply unchanged.
+
+The network: the frame with two coordinate channels goes through a small convolution
+stack; each channel of the last map gives its maximum and its spatial-softmax keypoint
+(expected image coordinates), which with the normalised proprioception feed an MLP that
+outputs, per slot, the normalised position and a presence logit. It is trained by
+regression on frames the simulator labels for free (``train/perception.py``).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+import torch
+from torch import nn
+from torch.nn import functional as F
+
+from lcrl.errors import LcrlError
+from lcrl.nets import random_shift, spatial_softmax
+
+
+@dataclass
+class PerceptionConfig:
+    """The perception network."""
+
+    channels: tuple[int, ...] = (32, 32, 64, 64)
+    """Output channels of each convolution (3x3 kernels)."""
+    strides: tuple[int, ...] = (2, 1, 2, 1)
+    """Stride of each convolution."""
+    hidden: int = 256
+    """Width of the two hidden layers of the head."""
+    augment_pad: int = 2
+    """Random-shift augmentation in training: pixels of padding (0: off)."""
+
+    def validate(self) -> None:
+        """Raise :class:`LcrlError` for inconsistent settings."""
+        if not self.channels or len(self.channels) != len(self.strides):
+            raise LcrlError("perception channels and strides need one value per convolution")
+        if min(self.channels) < 1 or min(self.strides) < 1 or self.hidden < 1:
+            raise LcrlError("perception channels, strides and hidden must be positive")
+        if self.augment_pad < 0:
+            raise LcrlError("augment_pad must be >= 0")
+
+
+@dataclass(frozen=True)
+class SlotLayout:
+    """Where the object slots are in a privileged observation.
+
+    Attributes:
+        start: values before the first slot (the robot's state: the proprioception).
+        count: slots (object kinds).
+        width: values per slot: ``position_dims`` positions, then presence.
+        position_dims: position values per slot (2 on the 2D tabletop, 3 on robosuite).
+    """
+
+    start: int
+    count: int
+    width: int
+    position_dims: int
+
+    @classmethod
+    def of(cls, values: Sequence[int]) -> SlotLayout:
+        """From ``(start, count, width, position_dims)``."""
+        start, count, width, dims = (int(v) for v in values)
+        if width != dims + 1:
+            raise LcrlError(
+                f"a slot of width {width} with {dims} position values: perception expects "
+                "[positions, present] slots"
+            )
+        return cls(start, count, width, dims)
+
+    @property
+    def dim(self) -> int:
+        """Width of the whole observation."""
+        return self.start + self.count * self.width
+
+    def split(self, state: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """``(proprio (N, start), positions (N, count, d), present (N, count))`` of
+        privileged observations ``(N, dim)``."""
+        state = np.asarray(state, np.float32)
+        if state.ndim != 2 or state.shape[1] != self.dim:
+            raise LcrlError(
+                f"privileged observations of shape {state.shape}: this slot layout needs "
+                f"(N, {self.dim})"
+            )
+        slots = state[:, self.start :].reshape(-1, self.count, self.width)
+        return state[:, : self.start], slots[..., : self.position_dims], slots[..., -1] > 0.5
+
+    def to_list(self) -> list[int]:
+        """``[start, count, width, position_dims]``."""
+        return [self.start, self.count, self.width, self.position_dims]
+
+
+class Perception(nn.Module):
+    """Frames ``(B, H, W, 3)`` uint8 and proprioception ``(B, start)`` -> object slots.
+
+    Args:
+        frame_shape: ``(H, W, 3)``.
+        layout: the env's slot layout.
+        cfg: network settings.
+        stats: normalisers fitted on training data: ``pos_mean``/``pos_std``
+            ``(count, d)`` and ``proprio_mean``/``proprio_std`` ``(start,)``; defaults
+            0 and 1 (a loaded checkpoint restores them with the weights).
+    """
+
+    def __init__(
+        self,
+        frame_shape: Sequence[int],
+        layout: SlotLayout,
+        cfg: PerceptionConfig | None = None,
+        stats: Mapping[str, np.ndarray] | None = None,
+    ) -> None:
+        super().__init__()
+        self.cfg = cfg = cfg or PerceptionConfig()
+        cfg.validate()
+        self.frame_shape = tuple(int(v) for v in frame_shape)
+        if len(self.frame_shape) != 3 or self.frame_shape[2] != 3:
+            raise LcrlError(f"perception reads RGB frames (H, W, 3), not {self.frame_shape}")
+        self.layout = layout
+        convs, c_in = [], 5  # RGB and two coordinate channels
+        for c, s in zip(cfg.channels, cfg.strides, strict=True):
+            convs.append(nn.Conv2d(c_in, c, 3, stride=s, padding=1))
+            c_in = c
+        self.convs = nn.ModuleList(convs)
+        self.temperature = nn.Parameter(torch.ones(()))
+        k, d = layout.count, layout.position_dims
+        self.head = nn.Sequential(
+            nn.Linear(3 * c_in + layout.start, cfg.hidden),
+            nn.ReLU(),
+            nn.Linear(cfg.hidden, cfg.hidden),
+            nn.ReLU(),
+            nn.Linear(cfg.hidden, k * (d + 1)),
+        )
+        stats = dict(stats or {})
+        self.register_buffer("pos_mean", _stat(stats, "pos_mean", (k, d), 0.0))
+        self.register_buffer("pos_std", _stat(stats, "pos_std", (k, d), 1.0))
+        self.register_buffer("proprio_mean", _stat(stats, "proprio_mean", (layout.start,), 0.0))
+        self.register_buffer("proprio_std", _stat(stats, "proprio_std", (layout.start,), 1.0))
+
+    def check_frames(self, frames: torch.Tensor) -> None:
+        """Refuse frames of another size, naming both."""
+        if tuple(frames.shape[1:]) != self.frame_shape:
+            raise LcrlError(
+                f"frames of shape {tuple(frames.shape[1:])}: this perception model was trained "
+                f"on {self.frame_shape} frames (another camera size?)"
+            )
+
+    def forward(
+        self,
+        frames: torch.Tensor,
+        proprio: torch.Tensor,
+        generator: torch.Generator | None = None,
+    ) -> tuple[torch.Tensor, torch.Tensor]:
+        """Normalised positions ``(B, count, d)`` and presence logits ``(B, count)``;
+        with ``generator``, frames are randomly shifted (training augmentation)."""
+        self.check_frames(frames)
+        if generator is not None and self.cfg.augment_pad:
+            x = random_shift(frames, self.cfg.augment_pad, generator)
+        else:
+            x = frames.float()
+        x = x.permute(0, 3, 1, 2) / 255.0 - 0.5
+        b, _, h, w = x.shape
+        ys = torch.linspace(-1.0, 1.0, h, device=x.device).view(1, 1, h, 1).expand(b, 1, h, w)
+        xs = torch.linspace(-1.0, 1.0, w, device=x.device).view(1, 1, 1, w).expand(b, 1, h, w)
+        x = torch.cat([x, ys, xs], 1)
+        for conv in self.convs:
+            x = F.relu(conv(x))
+        temp = self.temperature.abs() + 1e-2
+        z = torch.cat(
+            [
+                x.amax((2, 3)),
+                spatial_softmax(x, temp),
+                (proprio - self.proprio_mean) / self.proprio_std,
+            ],
+            -1,
+        )
+        out = self.head(z).view(b, self.layout.count, self.layout.position_dims + 1)
+        return out[..., :-1], out[..., -1]
+
+    def positions(self, normalised: torch.Tensor) -> torch.Tensor:
+        """Positions in the env's units from normalised ones."""
+        return normalised * self.pos_std + self.pos_mean
+
+    @torch.no_grad()
+    def observation(self, frames: np.ndarray, proprio: np.ndarray) -> np.ndarray:
+        """The estimated privileged observation ``(B, dim)``: the proprioception, then per
+        slot the estimated position and presence (1 or 0; an absent object's position is 0,
+        as the envs write it)."""
+        device = self.pos_mean.device
+        f = torch.as_tensor(np.asarray(frames, np.uint8), device=device)
+        p = torch.as_tensor(np.asarray(proprio, np.float32), device=device)
+        pos, logit = self(f, p)
+        present = (logit > 0).float()
+        pos = self.positions(pos) * present[..., None]
+        slots = torch.cat([pos, present[..., None]], -1).flatten(1)
+        return torch.cat([p, slots], -1).cpu().numpy()
+
+
+def _stat(stats: Mapping[str, Any], name: str, shape: tuple[int, ...], fill: float) -> torch.Tensor:
+    value = stats.get(name)
+    if value is None:
+        return torch.full(shape, fill)
+    arr = torch.as_tensor(np.asarray(value, np.float32))
+    if tuple(arr.shape) != shape:
+        raise LcrlError(f"perception statistic {name} has shape {tuple(arr.shape)}, not {shape}")
+    return arr
+
+
+def fit_stats(layout: SlotLayout, state: np.ndarray) -> dict[str, np.ndarray]:
+    """Normalisers of positions (over frames where each object is present) and of the
+    proprioception, from privileged observations ``(N, dim)``."""
+    proprio, pos, present = layout.split(state)
+    counts = present.sum(0)[:, None]
+    mean = np.where(counts > 0, (pos * present[..., None]).sum(0) / np.maximum(counts, 1), 0.0)
+    var = (((pos - mean) ** 2) * present[..., None]).sum(0) / np.maximum(counts, 1)
+    return {
+        "pos_mean": mean.astype(np.float32),
+        "pos_std": np.maximum(np.sqrt(var), 1e-3).astype(np.float32),
+        "proprio_mean": proprio.mean(0).astype(np.float32),
+        "proprio_std": np.maximum(proprio.std(0), 1e-3).astype(np.float32),
+    }
+
+
+def perception_loss(
+    model: Perception,
+    frames: torch.Tensor,
+    proprio: torch.Tensor,
+    positions: torch.Tensor,
+    present: torch.Tensor,
+    generator: torch.Generator | None = None,
+) -> tuple[torch.Tensor, dict[str, float]]:
+    """Squared error of the normalised positions of present objects plus the presence
+    cross-entropy; returns the loss and its parts."""
+    pos, logit = model(frames, proprio, generator)
+    target = (positions - model.pos_mean) / model.pos_std
+    mask = present.float()
+    err = ((pos - target) ** 2).sum(-1)
+    pos_loss = (err * mask).sum() / mask.sum().clamp_min(1.0)
+    presence = F.binary_cross_entropy_with_logits(logit, mask)
+    loss = pos_loss + presence
+    return loss, {
+        "loss": float(loss),
+        "position_loss": float(pos_loss),
+        "presence": float(presence),
+    }

@@ -1,0 +1,328 @@
+"""``lcrl perception collect | train | eval``: learn to read object slots from camera frames.
+
+* ``collect`` writes a caption dataset (:mod:`captioner.dataset`): random, scripted and
+  policy episodes, every frame with the privileged observation the simulator labels it
+  with.
+* ``train`` fits :class:`lcrl.perception.Perception` by regression on the episodes of a
+  dataset, holding out a fraction of them (their layouts) for evaluation; Ctrl-C saves the
+  model trained so far.
+* ``eval`` reports, on held-out episodes (or another dataset: new layouts), the position
+  error per object kind in cm, the presence accuracy, and how often the error stays within
+  the rule captioner's success thresholds of reach (2 cm) and push (5 cm).
+"""
+
+from __future__ import annotations
+
+import json
+import time
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+import tyro
+
+from lcrl.checkpoint import CheckpointError, load_checkpoint, save_checkpoint
+from lcrl.errors import LcrlError
+from lcrl.perception import (
+    Perception,
+    PerceptionConfig,
+    SlotLayout,
+    fit_stats,
+    perception_loss,
+)
+
+FORMAT = "lcrl-perception"
+#: The rule captioner's reach margin and push distance, in metres (captioner.rule).
+REACH_MARGIN, PUSH_DISTANCE = 0.02, 0.05
+
+
+@dataclass
+class PerceptionTrainConfig:
+    """Train a perception model on a caption dataset (``lcrl perception train``)."""
+
+    data: str = "data/perception-robosuite.h5"
+    """Caption dataset with privileged observations (``lcrl perception collect``)."""
+    out: str = "runs/perception"
+    """Folder of the model checkpoint (and its evaluation, eval.json)."""
+    steps: int = 3000
+    """Gradient steps."""
+    batch_size: int = 64
+    """Frames per step."""
+    lr: float = 1e-3
+    """Adam learning rate (cosine decay to a tenth)."""
+    heldout_fraction: float = 0.1
+    """Fraction of the episodes (layouts) kept out of training, for evaluation."""
+    seed: int = 0
+    """Seed of the held-out episodes, the batches and the augmentation."""
+    model: PerceptionConfig = field(default_factory=PerceptionConfig)
+    """The network."""
+    device: str = "cpu"
+    """Torch device."""
+    threads: int = 0
+    """Torch threads (0: torch's default)."""
+    progress: bool = True
+    """Show a progress bar."""
+
+    def validate(self) -> None:
+        """Raise :class:`LcrlError` for inconsistent settings."""
+        if self.steps <= 0 or self.batch_size <= 0 or self.lr <= 0:
+            raise LcrlError("steps, batch_size and lr must be positive")
+        if not 0.0 <= self.heldout_fraction < 1.0:
+            raise LcrlError("heldout_fraction must be in [0, 1)")
+        self.model.validate()
+
+
+@dataclass
+class Frames:
+    """Frames, proprioception and privileged observations of some dataset episodes."""
+
+    frames: np.ndarray
+    proprio: np.ndarray
+    state: np.ndarray
+    episodes: np.ndarray
+
+
+def read_dataset(path: str, episodes: np.ndarray | None = None) -> tuple[Frames, dict[str, Any]]:
+    """The frames and labels of a caption dataset (all episodes, or the given ones), and
+    its meta.
+
+    Raises:
+        LcrlError: no such file, or a dataset without privileged observations.
+    """
+    from captioner.dataset import CaptionDataset
+
+    if not Path(path).is_file():
+        raise LcrlError(f"no dataset at {path}: collect one with lcrl perception collect")
+    with CaptionDataset(path) as data:
+        if data.state is None or "slot_layout" not in data.meta:
+            raise LcrlError(
+                f"{path} holds no privileged observations (written by an earlier lcrl): "
+                "collect it again with lcrl perception collect"
+            )
+        eps = np.arange(data.num_episodes) if episodes is None else np.asarray(episodes)
+        idx = np.concatenate(
+            [np.arange(data.episode_start[e], data.episode_start[e + 1]) for e in eps]
+        )
+        return (
+            Frames(data.read_frames(idx), data.proprio[idx], data.state[idx], data.episode_of(idx)),
+            dict(data.meta),
+        )
+
+
+def split_episodes(num: int, fraction: float, seed: int) -> tuple[np.ndarray, np.ndarray]:
+    """Training and held-out episode indices (at least one of each when ``fraction > 0``)."""
+    order = np.random.default_rng(seed).permutation(num)
+    held = round(num * fraction)
+    if fraction > 0:
+        held = min(max(held, 1), num - 1)
+    return np.sort(order[held:]), np.sort(order[:held])
+
+
+def train(cfg: PerceptionTrainConfig) -> dict[str, Any]:
+    """Train, save and evaluate a perception model; returns the held-out evaluation."""
+    cfg.validate()
+    if cfg.threads:
+        torch.set_num_threads(cfg.threads)
+    from captioner.dataset import CaptionDataset
+
+    if not Path(cfg.data).is_file():
+        raise LcrlError(f"no dataset at {cfg.data}: collect one with lcrl perception collect")
+    with CaptionDataset(cfg.data) as data:
+        num = data.num_episodes
+    if num < 2:
+        raise LcrlError(f"{cfg.data} has {num} episode(s): perception needs at least 2")
+    train_eps, held_eps = split_episodes(num, cfg.heldout_fraction, cfg.seed)
+    data, meta = read_dataset(cfg.data, train_eps)
+    layout = SlotLayout.of(meta["slot_layout"])
+    device = torch.device(cfg.device)
+    torch.manual_seed(cfg.seed)
+    model = Perception(data.frames.shape[1:], layout, cfg.model, fit_stats(layout, data.state))
+    model.to(device)
+    opt = torch.optim.Adam(model.parameters(), lr=cfg.lr)
+    sched = torch.optim.lr_scheduler.CosineAnnealingLR(opt, cfg.steps, eta_min=cfg.lr / 10)
+    gen = torch.Generator(device=device)
+    gen.manual_seed(cfg.seed)
+    rng = np.random.default_rng(cfg.seed)
+    _, positions, present = layout.split(data.state)
+    tensors = {
+        "frames": torch.as_tensor(data.frames),
+        "proprio": torch.as_tensor(data.proprio[:, : layout.start]),
+        "positions": torch.as_tensor(positions),
+        "present": torch.as_tensor(present),
+    }
+    from tqdm.auto import tqdm
+
+    bar = tqdm(total=cfg.steps, disable=not cfg.progress, unit="step", desc="perception")
+    history: list[dict[str, float]] = []
+    step, t0 = 0, time.perf_counter()
+    out = Path(cfg.out)
+    try:
+        for step in range(1, cfg.steps + 1):
+            idx = torch.as_tensor(rng.integers(len(data.frames), size=cfg.batch_size))
+            batch = {k: v[idx].to(device) for k, v in tensors.items()}
+            loss, parts = perception_loss(
+                model, batch["frames"], batch["proprio"], batch["positions"], batch["present"],
+                gen,
+            )  # fmt: skip
+            opt.zero_grad(set_to_none=True)
+            loss.backward()
+            opt.step()
+            sched.step()
+            if step % 50 == 0 or step == cfg.steps:
+                history.append({"step": step, **parts})
+                bar.set_postfix_str(f"loss {parts['loss']:.4f}", refresh=False)
+            bar.update(1)
+    except KeyboardInterrupt:
+        bar.close()
+        path = save_model(out, model, cfg, meta, step - 1, history, held_eps)
+        print(f"interrupted at step {step - 1}: saved {path}")
+        raise
+    bar.close()
+    path = save_model(out, model, cfg, meta, cfg.steps, history, held_eps)
+    print(f"trained in {time.perf_counter() - t0:.0f} s: {path}")
+    if not len(held_eps):
+        return {}
+    held, _ = read_dataset(cfg.data, held_eps)
+    results = evaluate(model, held, layout)
+    (out / "eval.json").write_text(json.dumps({"heldout_episodes": results}, indent=1))
+    print(format_results(results, "held-out episodes"))
+    return results
+
+
+def save_model(
+    out: Path,
+    model: Perception,
+    cfg: PerceptionTrainConfig,
+    meta: dict[str, Any],
+    step: int,
+    history: list[dict[str, float]],
+    heldout: np.ndarray,
+) -> Path:
+    """Write the model checkpoint ``out/model`` (weights, normalisers, layout, camera)."""
+    doc = {
+        "format": FORMAT,
+        "frame_shape": list(model.frame_shape),
+        "slot_layout": model.layout.to_list(),
+        "env": meta.get("env"),
+        "image_size": meta.get("image_size"),
+        "model": asdict(cfg.model),
+        "train": {**asdict(cfg), "model": None},
+        "step": int(step),
+        "heldout_episodes": [int(e) for e in heldout],
+    }
+    path = save_checkpoint(
+        out / "model", modules={"perception": model}, meta=doc, json_files={"history": history}
+    )
+    return path
+
+
+def load_model(path: str | Path, device: str = "cpu") -> tuple[Perception, dict[str, Any]]:
+    """A perception model and its meta from ``lcrl perception train --out`` (the folder or
+    its ``model`` checkpoint).
+
+    Raises:
+        CheckpointError: not a perception checkpoint, or a field missing.
+    """
+    p = Path(path)
+    if (p / "model" / "meta.json").is_file():
+        p = p / "model"
+    ckpt = load_checkpoint(p)
+    meta = ckpt.meta
+    if meta.get("format") != FORMAT:
+        raise CheckpointError(f"{p} is not a perception checkpoint (format {meta.get('format')!r})")
+    try:
+        layout = SlotLayout.of(meta["slot_layout"])
+        model = Perception(meta["frame_shape"], layout, PerceptionConfig(**meta["model"]))
+    except (KeyError, TypeError) as e:
+        raise CheckpointError(
+            f"{p / 'meta.json'}: a perception field is missing or wrong: {e}"
+        ) from None
+    ckpt.load_module("perception", model)
+    model.to(torch.device(device)).eval()
+    return model, meta
+
+
+def evaluate(
+    model: Perception, data: Frames, layout: SlotLayout, batch: int = 256
+) -> dict[str, Any]:
+    """Position error (cm) of present objects per object kind and overall, presence
+    accuracy, and the fractions of errors within the reach margin and push distance."""
+    rows = []
+    for s in range(0, len(data.frames), batch):
+        rows.append(
+            model.observation(
+                data.frames[s : s + batch], data.proprio[s : s + batch, : layout.start]
+            )
+        )
+    estimate = np.concatenate(rows)
+    _, pos_hat, present_hat = layout.split(estimate)
+    _, pos, present = layout.split(data.state)
+    err = np.linalg.norm(pos_hat - pos, axis=-1)  # metres
+    seen = present & present_hat
+    per_kind = {}
+    for k in range(layout.count):
+        e = err[seen[:, k], k]
+        per_kind[str(k)] = {
+            "position_error_cm": float(e.mean() * 100) if e.size else None,
+            "frames": int(e.size),
+        }
+    e = err[seen]
+    return {
+        "position_error_cm": float(e.mean() * 100) if e.size else None,
+        "position_error_cm_median": float(np.median(e) * 100) if e.size else None,
+        "position_error_cm_p90": float(np.percentile(e, 90) * 100) if e.size else None,
+        "within_reach_margin": float((e < REACH_MARGIN).mean()) if e.size else None,
+        "within_push_distance": float((e < PUSH_DISTANCE).mean()) if e.size else None,
+        "presence_accuracy": float((present_hat == present).mean()),
+        "frames": len(data.frames),
+        "objects": int(present.sum()),
+        "per_kind": per_kind,
+    }
+
+
+def format_results(res: dict[str, Any], name: str) -> str:
+    """Two lines for the terminal."""
+    if res.get("position_error_cm") is None:
+        return f"{name}: no present object was seen"
+    return (
+        f"{name}: position error {res['position_error_cm']:.2f} cm (median "
+        f"{res['position_error_cm_median']:.2f}, 90% {res['position_error_cm_p90']:.2f}), "
+        f"presence accuracy {res['presence_accuracy']:.3f}\n"
+        f"  within 2 cm (reach margin) {res['within_reach_margin']:.2f}, within 5 cm (push "
+        f"distance) {res['within_push_distance']:.2f}; {res['frames']} frames"
+    )
+
+
+@dataclass
+class PerceptionEvalCommand:
+    """Evaluate a perception model (``lcrl perception eval MODEL``): on its held-out
+    episodes, or on another dataset (new layouts)."""
+
+    model: tyro.conf.Positional[str]
+    """The folder of ``lcrl perception train --out``."""
+    data: str = ""
+    """Dataset to evaluate on (default: the training dataset's held-out episodes)."""
+    json: str = ""
+    """Also write the figures to this JSON file."""
+
+    def run(self) -> dict[str, Any]:
+        model, meta = load_model(self.model)
+        layout = model.layout
+        if self.data:
+            data, data_meta = read_dataset(self.data)
+            if SlotLayout.of(data_meta["slot_layout"]) != layout:
+                raise LcrlError(
+                    f"{self.data} has the slot layout {data_meta['slot_layout']}; the model "
+                    f"reads {layout.to_list()} (another object set?)"
+                )
+            name = f"{self.data}"
+        else:
+            data, _ = read_dataset(meta["train"]["data"], np.asarray(meta["heldout_episodes"]))
+            name = "held-out episodes"
+        results = evaluate(model, data, layout)
+        print(format_results(results, name))
+        if self.json:
+            Path(self.json).write_text(json.dumps(results, indent=1))
+        return results
