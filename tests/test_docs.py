@@ -79,12 +79,16 @@ TINY_CAPTION_TRAIN = [
     "--steps", "2", "--batch-size", "4", "--model.features", "16", "--model.hidden", "16",
     "--model.embed", "8", "--model.text-features", "8", "--no-progress",
 ]  # fmt: skip
+TINY_PERCEPTION_TRAIN = [
+    "--steps", "10", "--batch-size", "8", "--model.channels", "8", "8",
+    "--model.strides", "2", "2", "--model.hidden", "16", "--no-progress",
+]  # fmt: skip
 #: The lcrl subcommands that run on the 2D tabletop: each must appear in a page's
 #: default (not slow) commands.
 FAMILIES_2D = {
     "train", "eval", "act", "report", "demo", "split", "parse", "caption collect",
     "caption train", "caption eval", "demos record", "demos relabel", "demos info",
-    "demos import-robomimic",
+    "demos import-robomimic", "perception collect", "perception train", "perception eval",
 }  # fmt: skip
 INSTRUCTIONS_FILE = """\
 # mine.txt
@@ -192,12 +196,19 @@ def is_slow(argv: list[str]) -> bool:
     train_preset = argv[2] if argv[1:2] == ["train"] and len(argv) > 2 else ""
     values = {a for k, a in itertools.pairwise(argv) if k in ("--preset", "--env")}
     names = {train_preset, *values}
-    return any(n.startswith("robosuite") or n == "fetch-reach" for n in names)
+    data = {a for k, a in itertools.pairwise(argv) if k == "--data"}  # robosuite frames
+    return any(n.startswith("robosuite") or n == "fetch-reach" for n in names) or any(
+        "robosuite" in d for d in data
+    )
 
 
 def family(argv: list[str]) -> str:
     """The lcrl subcommand of a command line (``caption train``, ``demos record``, ...)."""
-    if argv[1] in ("caption", "demos") and len(argv) > 2 and not argv[2].startswith("-"):
+    if (
+        argv[1] in ("caption", "demos", "perception")
+        and len(argv) > 2
+        and not argv[2].startswith("-")
+    ):
         return f"{argv[1]} {argv[2]}"
     return argv[1]
 
@@ -244,6 +255,8 @@ def shrink(argv: list[str]) -> list[str]:
         "demos record": ["--episodes", "4", "--no-progress"],
         "demos relabel": ["--no-progress"],
         "demos import-robomimic": ["--no-progress"],
+        "perception collect": ["--episodes", "6", "--max-episode-steps", "5", "--no-progress"],
+        "perception train": TINY_PERCEPTION_TRAIN,
     }.get(sub, [])  # fmt: skip
 
 
