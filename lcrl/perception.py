@@ -250,8 +250,5 @@ def perception_loss(
     pos_loss = (err * mask).sum() / mask.sum().clamp_min(1.0)
     presence = F.binary_cross_entropy_with_logits(logit, mask)
     loss = pos_loss + presence
-    return loss, {
-        "loss": float(loss),
-        "position_loss": float(pos_loss),
-        "presence": float(presence),
-    }
+    parts = {"loss": loss, "position_loss": pos_loss, "presence": presence}
+    return loss, {k: float(v.detach()) for k, v in parts.items()}
