@@ -41,6 +41,7 @@ __all__ = [
     "build_agent",
     "build_task",
     "evaluate",
+    "evaluate_tasks",
     "format_results",
     "load_policy",
     "resolve_checkpoint",
@@ -178,6 +179,14 @@ def evaluate(
         agent, task, cfg, episodes, seed=seed, sets=sets, num_envs=num_envs, vector="sync"
     )
     return {name: brief_results(res) for name, res in full.items()}
+
+
+def evaluate_tasks(
+    agent: Agent, task: Task, cfg: TrainConfig, episodes: int, seed: int = 0
+) -> dict[str, Any]:
+    """The figures of a fixed task set (``env.tasks``): :func:`evaluate`'s ``train`` set,
+    episode ``i`` running task ``i mod K``."""
+    return evaluate(agent, task, cfg, episodes, seed=seed)["train"]
 
 
 def _rate(x: float | None) -> float:
