@@ -470,10 +470,19 @@ def check_json_path(path: str | None) -> None:
         raise LcrlError(f"--json {path} is a folder: name a file, e.g. {Path(path) / 'eval.json'}")
 
 
-def _caption(argv: Sequence[str]) -> None:
-    from captioner.dataset import CaptionDataset, CollectConfig
-    from captioner.learned import CaptionTrainConfig, train_models
+def _collect(cfg: Any) -> None:
+    """Collect a caption dataset (``lcrl caption collect``, ``lcrl perception collect``)
+    and print its summary."""
+    from captioner.dataset import CaptionDataset
     from train.captions import collect
+
+    with CaptionDataset(collect(cfg)) as data:
+        print(data.summary())
+
+
+def _caption(argv: Sequence[str]) -> None:
+    from captioner.dataset import CollectConfig
+    from captioner.learned import CaptionTrainConfig, train_models
 
     cfg = tyro.extras.subcommand_cli_from_dict(
         {"collect": CollectConfig, "train": CaptionTrainConfig, "eval": CaptionEvalCommand},
@@ -483,9 +492,7 @@ def _caption(argv: Sequence[str]) -> None:
         args=list(argv),
     )
     if isinstance(cfg, CollectConfig):
-        path = collect(cfg)
-        with CaptionDataset(path) as data:
-            print(data.summary())
+        _collect(cfg)
     elif isinstance(cfg, CaptionTrainConfig):
         path = train_models(cfg)
         print(f"saved {path}")
@@ -504,8 +511,7 @@ class PerceptionStub:
 
 
 def _perception(argv: Sequence[str]) -> None:
-    from captioner.dataset import CaptionDataset, CollectConfig
-    from train.captions import collect
+    from captioner.dataset import CollectConfig
     from train.perception import PerceptionEvalCommand, PerceptionTrainConfig, train
 
     cfg = tyro.extras.subcommand_cli_from_dict(
@@ -516,9 +522,7 @@ def _perception(argv: Sequence[str]) -> None:
         args=list(argv),
     )
     if isinstance(cfg, CollectConfig):
-        path = collect(cfg)
-        with CaptionDataset(path) as data:
-            print(data.summary())
+        _collect(cfg)
     elif isinstance(cfg, PerceptionTrainConfig):
         train(cfg)
     else:
