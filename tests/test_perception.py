@@ -115,3 +115,42 @@ def test_perception_statistics_ignore_absent_objects():
     np.testing.assert_allclose(stats["pos_mean"][1], [0.0, 0.0])  # never present
     model = Perception((8, 8, 3), layout, stats=stats)
     assert torch.equal(model.pos_mean, torch.as_tensor(stats["pos_mean"]))
+
+
+def test_a_policy_reads_the_estimate_not_the_privileged_state(trained, tmp_path):
+    """``--env.perception``: the env's observation is perception's estimate from the frame
+    (the privileged slots never reach the policy or the buffer), training and loading
+    work as for any run, and a checkpoint's policy acts on what make_env shows."""
+    from helpers import tiny
+
+    import lcrl
+    from train.loop import Trainer
+    from train.tasks import make_env
+
+    cfg = tiny("lang2d-quick", tmp_path / "run", total_steps=120, learning_starts=60)
+    cfg.env.perception = str(trained)
+    env = make_env(cfg.env, "train")
+    obs, _ = env.reset(seed=3)
+    model, _ = load_model(trained)
+    raw = env.unwrapped._observe()[0]  # the privileged observation of the same frame
+    estimate = model.observation(raw["image"][None], raw["observation"][None, :2])[0]
+    slots = obs["observation"][2:].reshape(8, 7)[:, :3].reshape(-1)  # base values of slots
+    np.testing.assert_allclose(slots, estimate[2:], atol=1e-6)
+    assert not np.allclose(estimate, raw["observation"])  # an estimate, not the truth
+
+    trainer = Trainer(cfg)
+    trainer.run()
+    stored = trainer.buffer.obs["observation"][: trainer.buffer.high]
+    assert np.isfinite(stored).all() and trainer.step == 120
+    policy = lcrl.load(tmp_path / "run", device="cpu")
+    o, _ = policy.make_env().reset(seed=0)
+    assert policy.act(o, "reach the red cube", initial=o).shape == (2,)
+
+
+def test_perception_that_does_not_fit_the_env_is_refused(trained, tmp_path, capsys):
+    args = ["train", "robosuite", "--env.perception", str(trained), "--out", str(tmp_path / "r")]
+    assert cli(*args) == 2
+    line = error_line(capsys.readouterr().err)
+    assert "the perception model reads [2, 8, 3, 2]" in line and "object slots are" in line
+    assert cli("train", "lang2d-quick", "--env.perception", str(tmp_path)) == 2
+    assert "no perception model at" in error_line(capsys.readouterr().err)

@@ -82,6 +82,11 @@ class EnvConfig:
     """Add each object's displacement since the episode's reset to its observation slot
     (:class:`envs.features.SlotFeatures`): push and put are judged on it. Widens each slot
     by 2 values on the 2D tabletop (3 on robosuite); set ``--agent.net.slots`` to match."""
+    perception: str = ""
+    """A perception model (``lcrl perception train --out``): the policy's ``observation``
+    is its estimate of the object slots from the camera frame and the proprioception
+    instead of the privileged state (:class:`train.perception.PerceptionObservation`;
+    frozen, computed once per frame). The frames are rendered at the model's size."""
     train_until_success: bool = True
     """Language goals: training episodes end when their instruction is achieved. ``False``
     runs them to the time limit and keeps what happens after the success (an object
@@ -194,13 +199,27 @@ def check_env_config(cfg: EnvConfig) -> EnvSpec:
 
 
 def features(env: gym.Env, cfg: EnvConfig) -> gym.Env:
-    """The observation feature wrappers a config asks for (relative positions,
-    displacements since the reset)."""
+    """The observation wrappers a config asks for: perception's estimate of the object
+    slots, then relative positions and displacements since the reset."""
+    if cfg.perception:
+        from train.perception import PerceptionObservation
+
+        env = PerceptionObservation(env, cfg.perception)
     if cfg.relative_positions or cfg.displacements:
         from envs.features import SlotFeatures
 
         return SlotFeatures(env, relative=cfg.relative_positions, displacement=cfg.displacements)
     return env
+
+
+def frame_size(cfg: EnvConfig) -> int:
+    """The camera frame side to render: a perception model's own (it reads frames of the
+    size it was trained on), else ``cfg.image_size``."""
+    if not cfg.perception:
+        return cfg.image_size
+    from train.perception import model_meta
+
+    return int(model_meta(cfg.perception)["frame_shape"][0])
 
 
 def unwrapped_scene(env: gym.Env) -> Any:
@@ -220,8 +239,8 @@ def make_tabletop2d(cfg: EnvConfig) -> gym.Env:
     }
     if cfg.discrete:
         kwargs.setdefault("num_directions", 8)
-    if cfg.image_obs:
-        kwargs.update(image=True, image_size=cfg.image_size)
+    if cfg.image_obs or cfg.perception:
+        kwargs.update(image=True, image_size=frame_size(cfg))
     if cfg.goal_type in ("state", "image"):
         kwargs["goal"] = cfg.goal
     return features(Tabletop2DEnv(**kwargs), cfg)
@@ -233,8 +252,8 @@ def make_robosuite(cfg: EnvConfig) -> gym.Env:
     from envs.robosuite_tabletop import RobosuiteTabletopEnv
 
     kwargs: dict[str, Any] = {"num_objects": (cfg.min_objects, cfg.max_objects), **cfg.extra}
-    if cfg.image_obs or cfg.goal_type == "image":
-        kwargs.update(image=True, image_size=cfg.image_size)
+    if cfg.image_obs or cfg.goal_type == "image" or cfg.perception:
+        kwargs.update(image=True, image_size=frame_size(cfg))
     if cfg.goal_type in ("state", "image"):
         goal = {"pusher": "gripper"}.get(cfg.goal, cfg.goal)
         if cfg.goal_type == "image" and goal != "object":

@@ -15,10 +15,12 @@ from __future__ import annotations
 
 import json
 import time
+from collections.abc import Mapping
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any
 
+import gymnasium as gym
 import numpy as np
 import torch
 import tyro
@@ -218,6 +220,23 @@ def save_model(
     return path
 
 
+def model_meta(path: str | Path) -> dict[str, Any]:
+    """The meta of a perception checkpoint (the folder or its ``model`` checkpoint).
+
+    Raises:
+        LcrlError: no perception checkpoint there.
+    """
+    p = Path(path)
+    if (p / "model" / "meta.json").is_file():
+        p = p / "model"
+    if not (p / "meta.json").is_file():
+        raise LcrlError(f"no perception model at {path} (train one with lcrl perception train)")
+    meta = load_checkpoint(p).meta
+    if meta.get("format") != FORMAT:
+        raise CheckpointError(f"{p} is not a perception checkpoint (format {meta.get('format')!r})")
+    return meta
+
+
 def load_model(path: str | Path, device: str = "cpu") -> tuple[Perception, dict[str, Any]]:
     """A perception model and its meta from ``lcrl perception train --out`` (the folder or
     its ``model`` checkpoint).
@@ -225,13 +244,12 @@ def load_model(path: str | Path, device: str = "cpu") -> tuple[Perception, dict[
     Raises:
         CheckpointError: not a perception checkpoint, or a field missing.
     """
+    model_meta(path)  # a perception checkpoint, or a clear error
     p = Path(path)
     if (p / "model" / "meta.json").is_file():
         p = p / "model"
     ckpt = load_checkpoint(p)
     meta = ckpt.meta
-    if meta.get("format") != FORMAT:
-        raise CheckpointError(f"{p} is not a perception checkpoint (format {meta.get('format')!r})")
     try:
         layout = SlotLayout.of(meta["slot_layout"])
         model = Perception(meta["frame_shape"], layout, PerceptionConfig(**meta["model"]))
@@ -326,3 +344,56 @@ class PerceptionEvalCommand:
         if self.json:
             Path(self.json).write_text(json.dumps(results, indent=1))
         return results
+
+
+class PerceptionObservation(gym.ObservationWrapper):
+    """A simulator whose ``observation`` is perception's estimate, not the privileged state.
+
+    Each step, the camera frame and the proprioception (the first ``start`` values) go
+    through the frozen perception model, and the estimate replaces the object slots of
+    ``observation``: everything downstream (relative positions, displacements, the policy,
+    the replay buffer) reads what the camera shows. The estimate is computed once per
+    frame and stored, so an update costs what a privileged-state update costs. Rewards and
+    relabelling still judge the privileged scene (``env.unwrapped.scene()``), as the rule
+    captioner does in training; acting never needs it.
+
+    Args:
+        env: a tabletop made with camera frames (``image=True``), not yet wrapped by
+            :class:`envs.features.SlotFeatures`.
+        model: the perception model (or the folder it was trained into).
+
+    Raises:
+        LcrlError: the env gives no frames, frames of another size, or another slot
+            layout than the model reads.
+    """
+
+    def __init__(self, env: gym.Env, model: Perception | str | Path) -> None:
+        super().__init__(env)
+        if not isinstance(model, Perception):
+            model = load_model(model)[0]
+        self.model = model
+        base = env.unwrapped
+        space = env.observation_space
+        if not isinstance(space, gym.spaces.Dict) or "image" not in space.spaces:
+            raise LcrlError("perception reads camera frames: the env gives no 'image'")
+        frame = tuple(space["image"].shape)
+        if frame != model.frame_shape:
+            raise LcrlError(
+                f"the env's camera frames are {frame}; the perception model reads "
+                f"{model.frame_shape} (set --env.image-size {model.frame_shape[0]})"
+            )
+        layout = [*map(int, base.slot_layout), int(base.position_dims)]
+        if layout != model.layout.to_list():
+            raise LcrlError(
+                f"the env's object slots are {layout}; the perception model reads "
+                f"{model.layout.to_list()} (trained on another object set or simulator)"
+            )
+
+    def observation(self, observation: Mapping[str, Any]) -> dict[str, Any]:
+        """The observation with perception's estimate of the object slots."""
+        out = dict(observation)
+        start = self.model.layout.start
+        state = np.asarray(observation["observation"], np.float32)
+        estimate = self.model.observation(observation["image"][None], state[None, :start])[0]
+        out["observation"] = estimate.astype(np.float32)
+        return out
