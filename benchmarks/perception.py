@@ -43,7 +43,6 @@ def main(argv: list[str] | None = None) -> int:
     from train.perception import (
         PerceptionEvalCommand,
         PerceptionTrainConfig,
-        format_results,
         train,
     )
 
@@ -74,7 +73,6 @@ def main(argv: list[str] | None = None) -> int:
     heldout = train(cfg)
     times["train_s"] = time.perf_counter() - t0
     layouts = PerceptionEvalCommand(str(work / "model"), data=str(work / "layouts.h5")).run()
-    print(format_results(layouts, "new layouts (seed 1)"))
     history = json.loads((work / "model" / "model" / "history.json").read_text())
 
     headline = {
