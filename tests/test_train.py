@@ -494,3 +494,16 @@ def test_scripted_episode_settings_are_checked(text_encoder, tmp_path):
         Trainer(tiny("lang2d", tmp_path / "b", scripted_fraction=0.5, scripted_noise=-1.0))
     with pytest.raises(LcrlError, match="scripted controller"):
         Trainer(tiny("state2d", tmp_path / "c", scripted_fraction=0.5))
+
+
+def test_a_stop_during_the_final_evaluation_keeps_the_last_step(one_thread, tmp_path, monkeypatch):
+    out = tmp_path / "run"
+    trainer = Trainer(tiny("state2d", out, total_steps=150))
+
+    def stopped(self):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(Trainer, "evaluate", stopped)
+    with pytest.raises(KeyboardInterrupt):
+        trainer.run()
+    assert load_checkpoint(find_latest(out)).meta["step"] == 150

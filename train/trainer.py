@@ -421,12 +421,12 @@ class BaseTrainer(ABC):
                         next_ckpt = next_multiple(self.step, cfg.checkpoint_every)
                         self.after_checkpoint()
                     bar.set_postfix_str(self.postfix(), refresh=False)
+                bar.close()
+                return self.finish()  # a stop during the final evaluation saves too
             except KeyboardInterrupt as e:
                 bar.close()
                 self.interrupted(e)
                 raise
-            bar.close()
-            return self.finish()
 
     def holding_signals(self) -> Any:
         """A context in which SIGINT and SIGTERM wait (see :class:`StopSignals`)."""
