@@ -1,7 +1,7 @@
 """Perception on the robosuite tabletop: collect labelled camera episodes, train, evaluate
 on held-out episodes and on new layouts of another seed.
 
-    python benchmarks/perception.py --episodes 600 --steps 6000
+    python benchmarks/perception.py --episodes 3000 --steps 10000 --work data/bench-perception-3k
 
 Writes ``benchmarks/results/perception-robosuite.{json,md,png}``; the headline is the mean
 position error of present objects in cm (target <= 1.0) and the presence accuracy
@@ -26,10 +26,10 @@ TARGETS = {"position_error_cm": 1.0, "presence_accuracy": 0.99}
 
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("--episodes", type=int, default=600)
+    parser.add_argument("--episodes", type=int, default=3000)
     parser.add_argument("--episode-steps", type=int, default=20)
     parser.add_argument("--layout-episodes", type=int, default=60, help="new-layout set")
-    parser.add_argument("--steps", type=int, default=6000, help="training steps")
+    parser.add_argument("--steps", type=int, default=10000, help="training steps")
     parser.add_argument("--image-size", type=int, default=84)
     parser.add_argument("--threads", type=int, default=1)
     parser.add_argument("--work", default="data/bench-perception")
