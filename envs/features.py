@@ -24,7 +24,11 @@ from gymnasium import spaces
 
 from lcrl.errors import LcrlError
 
-__all__ = ["RelativePositions", "SlotFeatures", "slot_layout"]
+__all__ = ["FEATURE_KEYS", "RelativePositions", "SlotFeatures", "slot_layout"]
+
+#: Observation entries laid out in object slots: the observation the policy reads and,
+#: where that is an estimate (perception from camera frames), the true state beside it.
+FEATURE_KEYS = ("observation", "privileged")
 
 
 def slot_layout(env: gym.Env) -> tuple[int, int, int, int]:
@@ -65,6 +69,10 @@ class SlotFeatures(gym.ObservationWrapper):
     Absent kinds (present flag, the slot's last value, is 0) get zeros. The agent values
     and anything after the slots are unchanged, so ``slot_layout`` becomes
     ``(start, count, width + d * parts)``.
+
+    An env whose ``"observation"`` is an estimate (perception from camera frames) also
+    gives the true state as ``"privileged"`` (same layout), for a critic that reads it in
+    training: that entry gets the same features, from its own values.
 
     Args:
         env: a tabletop (or a wrapper of one) whose class defines ``slot_layout`` and
@@ -112,14 +120,13 @@ class SlotFeatures(gym.ObservationWrapper):
             his.append(np.maximum(span, 0.0))
         new_low = np.concatenate([low[:start], np.concatenate(los, 1).ravel(), low[self._end :]])
         new_high = np.concatenate([high[:start], np.concatenate(his, 1).ravel(), high[self._end :]])
-        self.observation_space = spaces.Dict(
-            {
-                **space.spaces,
-                "observation": spaces.Box(
-                    new_low.astype(np.float32), new_high.astype(np.float32), dtype=np.float32
-                ),
-            }
-        )
+        box = spaces.Box(new_low.astype(np.float32), new_high.astype(np.float32), dtype=np.float32)
+        #: the entries that get features: the observation, and the true state beside an
+        #: estimated one
+        self.keys = tuple(k for k in FEATURE_KEYS if k in space.spaces)
+        self._origins: dict[str, np.ndarray] = {}  # slot positions at the last reset, by key
+        self._raws: dict[str, np.ndarray] = {}  # the last raw values of the other keys
+        self.observation_space = spaces.Dict({**space.spaces, **dict.fromkeys(self.keys, box)})
 
     def _slots(self, x: np.ndarray) -> np.ndarray:
         return x[..., self._start : self._end].reshape(*x.shape[:-1], self._count, self._width)
@@ -156,15 +163,28 @@ class SlotFeatures(gym.ObservationWrapper):
         self, *, seed: int | None = None, options: dict[str, Any] | None = None
     ) -> tuple[dict[str, Any], dict[str, Any]]:
         obs, info = self.env.reset(seed=seed, options=options)
-        raw = np.asarray(obs["observation"], np.float32)
-        self._origin = self._slots(raw)[..., : self._dims].copy()
+        for key in self.keys:
+            raw = np.asarray(obs[key], np.float32)
+            self._origins[key] = self._slots(raw)[..., : self._dims].copy()
+        self._origin = self._origins["observation"]
         return self.observation(obs), info
 
     def observation(self, observation: dict[str, Any]) -> dict[str, Any]:
         out = dict(observation)
         self._raw = np.asarray(observation["observation"], np.float32)
         out["observation"] = self.features(self._raw)
+        for key in self.keys[1:]:
+            raw = self._raws[key] = np.asarray(observation[key], np.float32)
+            origin = self._origins.get(key)
+            out[key] = self.features(raw, None if origin is None else self._with_slots(origin))
         return out
+
+    def _with_slots(self, positions: np.ndarray) -> np.ndarray:
+        """An observation vector whose slot positions are ``positions`` (for
+        :meth:`features`' ``origin``, which reads only those)."""
+        x = np.zeros(self._end, np.float32)
+        self._slots(x)[..., : self._dims] = positions
+        return x
 
     def restart_displacements(self) -> np.ndarray:
         """Measure displacements from the objects' current positions from now on.
@@ -181,6 +201,9 @@ class SlotFeatures(gym.ObservationWrapper):
         if self._raw is None:
             raise LcrlError("SlotFeatures: reset the env before restarting displacements")
         self._origin = self._slots(self._raw)[..., : self._dims].copy()
+        self._origins["observation"] = self._origin
+        for key, raw in self._raws.items():
+            self._origins[key] = self._slots(raw)[..., : self._dims].copy()
         return self.features(self._raw)
 
 

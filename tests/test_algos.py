@@ -1036,3 +1036,49 @@ def test_sac_target_temperature_and_polyak_steps_are_shared_by_both_updates() ->
         expected = target + agent.cfg.tau * (agent.critic_opt.flat - target)
         torch.testing.assert_close(agent._target_flat, expected)
         assert float(agent.log_alpha.detach()) != alpha
+
+
+# --- asymmetric actor-critic ------------------------------------------------------------------
+@pytest.mark.parametrize("algo", ["sac", "td3"])
+def test_the_privileged_critic_reads_state_the_actor_cannot(algo):
+    """With ``Problem.privileged`` the critics read exactly those keys and the actor every
+    other key: changing the privileged state moves the critics' values, never the actions;
+    changing what the actor reads moves the actions, never the values."""
+    prob = Problem(
+        {"seen": (3,), "privileged": (5,)}, "vector", (2,), 2, privileged=("privileged",)
+    )
+    assert prob.actor_shapes == {"seen": (3,)} and prob.critic_shapes == {"privileged": (5,)}
+    assert Problem.from_dict(prob.to_dict()) == prob  # recorded in checkpoints
+    agent = make_agent(algo, 0, prob)
+    for batch in batches(prob, 3):
+        agent.update(batch)
+    rng = np.random.default_rng(1)
+    obs = {"seen": rng.normal(size=(4, 3)), "privileged": rng.normal(size=(4, 5))}
+    goal = rng.normal(size=(4, 2)).astype(np.float32)
+    action = torch.zeros(4, 2)
+
+    def values(o):
+        with torch.no_grad():
+            return agent.critic(agent.obs_tensors(o), agent.goal_tensor(goal), action)
+
+    other_state = {**obs, "privileged": rng.normal(size=(4, 5))}
+    other_view = {**obs, "seen": rng.normal(size=(4, 3))}
+    acted = agent.act(obs, goal, deterministic=True)
+    np.testing.assert_array_equal(acted, agent.act(other_state, goal, deterministic=True))
+    assert not np.allclose(acted, agent.act(other_view, goal, deterministic=True))
+    assert not torch.allclose(values(obs), values(other_state))
+    torch.testing.assert_close(values(obs), values(other_view), rtol=0, atol=0)
+    # acting needs no privileged entry at all
+    np.testing.assert_array_equal(acted, agent.act({"seen": obs["seen"]}, goal, deterministic=True))
+
+
+def test_privileged_keys_are_checked_and_refused_without_a_critic():
+    with pytest.raises(LcrlError, match="not among the observation keys"):
+        Problem({"seen": (3,)}, "vector", (2,), 2, privileged=("state",))
+    with pytest.raises(LcrlError, match="the actor would read nothing"):
+        Problem({"state": (3,)}, "vector", (2,), 2, privileged=("state",))
+    prob = Problem(
+        {"seen": (3,), "privileged": (5,)}, "vector", (2,), 4, True, privileged=("privileged",)
+    )
+    with pytest.raises(LcrlError, match="asymmetric actor-critic needs one of"):
+        make_agent("dqn", 0, prob)

@@ -154,3 +154,110 @@ def test_perception_that_does_not_fit_the_env_is_refused(trained, tmp_path, caps
     assert "the perception model reads [2, 8, 3, 2]" in line and "object slots are" in line
     assert cli("train", "lang2d-quick", "--env.perception", str(tmp_path)) == 2
     assert "no perception model at" in error_line(capsys.readouterr().err)
+
+
+def test_cached_estimates_equal_recomputed_ones(trained, tmp_path):
+    """The replay buffer stores perception's estimate (with the slot features) computed
+    once per frame; recomputed from the same frames and proprioception it is the same."""
+    from helpers import tiny
+
+    from envs.features import SlotFeatures
+    from lcrl.buffer import HindsightReplayBuffer
+    from train.evaluate import build_task
+    from train.tasks import make_env
+
+    cfg = tiny("lang2d-quick", tmp_path / "run")
+    cfg.env.perception = str(trained)
+    cfg.agent.privileged_critic = True
+    env = make_env(cfg.env, "train")
+    task = build_task(cfg, env)
+    assert task.privileged == ("privileged", "privileged_initial")
+    shapes = task.problem().obs_shapes
+    buffer = HindsightReplayBuffer(
+        200, {k: (s, np.float32) for k, s in shapes.items()}, (2,), np.float32,
+        task.goal_space, k=0,
+    )  # fmt: skip
+    obs, _ = env.reset(seed=5)
+    first, frames, proprio, stored, records = obs, [], [], [], []
+    rng = np.random.default_rng(0)
+    for _ in range(6):
+        frames.append(obs["image"])
+        proprio.append(obs["privileged"][:2])
+        stored.append(task.training_obs(obs, first))
+        records.append(task.step_record(obs, env))
+        obs, *_ = env.step(task.scale_action(rng.uniform(-1, 1, 2).astype(np.float32)))
+    frames.append(obs["image"])
+    proprio.append(obs["privileged"][:2])
+    stored.append(task.training_obs(obs, first))
+    records.append(task.step_record(obs, env))
+    buffer.add_episode(
+        {
+            "obs": {k: np.stack([s[k] for s in stored]) for k in stored[0]},
+            "action": np.zeros((6, 2), np.float32),
+            "reward": np.zeros(6, np.float32),
+            "terminated": np.zeros(6, bool),
+            **task.episode_fields(records, task.goal(first, env), env),
+        }
+    )
+    model, _ = load_model(trained)
+    estimate = model.observation(np.stack(frames), np.stack(proprio))
+    features = next(w for w in _wrappers(env) if isinstance(w, SlotFeatures))
+    recomputed = features.features(estimate, estimate[:1])
+    cached = buffer.obs["observation"][: buffer.high]
+    np.testing.assert_allclose(cached, recomputed, atol=1e-6)
+    np.testing.assert_allclose(buffer.obs["initial"][: buffer.high], recomputed[[0] * 7], atol=1e-6)
+    # the critic's copy is the true state, with the same features
+    truth = buffer.obs["privileged"][: buffer.high]
+    assert not np.allclose(truth, cached)
+    np.testing.assert_array_equal(truth[:, :2], cached[:, :2])  # proprioception is shared
+
+
+def _wrappers(env):
+    import gymnasium as gym
+
+    while isinstance(env, gym.Wrapper):
+        yield env
+        env = env.env
+
+
+def test_a_perception_policy_acts_from_frames_alone(trained, tmp_path):
+    """A run whose critic read the true state (``--agent.privileged-critic``) gives a
+    checkpoint that carries its perception model and acts through ``lcrl.load`` from camera
+    frames and proprioception alone, exactly as from the env's own observations."""
+    import shutil
+
+    from helpers import tiny
+
+    import lcrl
+    from train.loop import Trainer
+
+    model_dir = tmp_path / "perception"
+    shutil.copytree(trained, model_dir)
+    cfg = tiny("lang2d-quick", tmp_path / "run", total_steps=150, learning_starts=60)
+    cfg.env.perception = str(model_dir)
+    cfg.agent.privileged_critic = True
+    Trainer(cfg).run()
+    meta = json.loads((tmp_path / "run" / "config.json").read_text())
+    assert meta["agent"]["privileged_critic"] is True
+    shutil.rmtree(model_dir)  # the checkpoint carries its own copy
+    policy, twin = lcrl.load(tmp_path / "run"), lcrl.load(tmp_path / "run")
+    assert policy.perceives
+    problem = policy.checkpoint.meta["problem"]
+    assert problem["privileged"] == ["privileged", "privileged_initial"]
+    env = policy.make_env()
+    obs, _ = env.reset(seed=1)
+    for _ in range(4):
+        a = policy.act(obs, "reach the red cube")
+        frames = {"image": obs["image"], "proprio": obs["privileged"][:2]}
+        np.testing.assert_array_equal(a, twin.act(frames, "reach the red cube"))
+        obs, *_ = env.step(a)
+    with pytest.raises(LcrlError, match="acts from camera frames"):
+        twin.act({"proprio": obs["privileged"][:2]}, "reach the red cube")
+    with pytest.raises(LcrlError, match=r"perception reads \(64, 64, 3\) frames"):
+        twin.act({"image": obs["image"][:32], "proprio": np.zeros(2)}, "reach the red cube")
+
+
+def test_a_privileged_critic_needs_an_actor_that_does_not_read_the_state(tmp_path, capsys):
+    args = ["train", "lang2d-quick", "--agent.privileged-critic", "--out", str(tmp_path / "r")]
+    assert cli(*args) == 2
+    assert "this actor reads the true state already" in error_line(capsys.readouterr().err)

@@ -57,16 +57,19 @@ def build_task(cfg: TrainConfig, env: gym.Env, ckpt: Checkpoint | None = None) -
     instruction table, when given)."""
     check_slots(cfg, env)
     if not is_language(cfg.env):
-        return make_task(cfg.env, env)
-    from lcrl.text_encoder import FrozenTextEncoder
+        task = make_task(cfg.env, env)
+    else:
+        from lcrl.text_encoder import FrozenTextEncoder
 
-    encoder = FrozenTextEncoder(cfg.text_encoder)
-    kwargs: dict[str, Any] = {}
-    if ckpt is not None:
-        table = ckpt.json("instructions")
-        kwargs = {"table": table["texts"], "num_train": table["num_train"]}
-    task = make_task(cfg.env, env, encoder.encode, **kwargs)
-    task.encoder = encoder  # type: ignore[attr-defined]
+        encoder = FrozenTextEncoder(cfg.text_encoder)
+        kwargs: dict[str, Any] = {}
+        if ckpt is not None:
+            table = ckpt.json("instructions")
+            kwargs = {"table": table["texts"], "num_train": table["num_train"]}
+        task = make_task(cfg.env, env, encoder.encode, **kwargs)
+        task.encoder = encoder  # type: ignore[attr-defined]
+    if cfg.agent.privileged_critic:
+        task.use_privileged_critic(env)
     return task
 
 
@@ -280,6 +283,8 @@ def load_policy(
             raise LcrlError(f"unknown env option {key!r}")
         setattr(cfg.env, key, value)
     cfg.env = dataclasses.replace(cfg.env)  # older kind names, as on the command line
+    if "perception" in ckpt.meta and "perception" not in (env_overrides or {}):
+        cfg.env.perception = str(ckpt.path)  # the copy of the model it acts through
     if device is not None:
         cfg.agent.device = device
     if render:

@@ -27,6 +27,7 @@ from lcrl.multitask import CONFLICT_KEYS, TaskSampler
 from train.config import TrainConfig, config_to_dict
 from train.environments import canonical_kind
 from train.evaluate import build_agent, build_task
+from train.perception import embedded_meta, find_perception
 from train.tasks import ScriptedActor, is_language, make_env, reset_feasible, task_texts
 from train.trainer import BaseTrainer, eval_row, open_run, prune_checkpoints
 
@@ -174,7 +175,7 @@ class Trainer(BaseTrainer):
         first = obs
         goal = task.goal(obs, env)
         goal_batch = np.asarray([goal])
-        stored = [task.storage_obs(obs, first)]
+        stored = [task.training_obs(obs, first)]
         records = [task.step_record(obs, env)]
         actions, rewards, terms = [], [], []
         succeeded = False  # at any step (episodes may go on after success)
@@ -194,7 +195,7 @@ class Trainer(BaseTrainer):
                 a = self.agent.act(batch_obs, goal_batch)[0]
             obs, reward, terminated, truncated, info = env.step(task.scale_action(a))
             self.step += 1
-            stored.append(task.storage_obs(obs, first))
+            stored.append(task.training_obs(obs, first))
             records.append(task.step_record(obs, env))
             actions.append(a)
             rewards.append(reward)
@@ -379,9 +380,14 @@ class Trainer(BaseTrainer):
             states["task_sampler"] = self.sampler.state_dict()
             states["task_rng"] = self.task_rng.bit_generator.state
         arrays = self.buffer.arrays() if cfg.save_buffer else None
+        modules = dict(self.agent.modules())
+        perceiving = find_perception(self.env)
+        if perceiving is not None:  # the policy carries the perception it acts through
+            modules["perception"] = perceiving.model
+            meta["perception"] = embedded_meta(perceiving.model, cfg.env.perception)
         path = save_checkpoint(
             directory,
-            modules=self.agent.modules(),
+            modules=modules,
             states=states,
             meta=meta,
             json_files=json_files,

@@ -220,46 +220,81 @@ def save_model(
     return path
 
 
-def model_meta(path: str | Path) -> dict[str, Any]:
-    """The meta of a perception checkpoint (the folder or its ``model`` checkpoint).
-
-    Raises:
-        LcrlError: no perception checkpoint there.
-    """
+def _checkpoint_dir(path: str | Path) -> Path:
+    """The checkpoint folder of a perception model: ``lcrl perception train --out`` (the
+    folder or its ``model`` checkpoint), or a policy checkpoint that carries one."""
     p = Path(path)
     if (p / "model" / "meta.json").is_file():
         p = p / "model"
     if not (p / "meta.json").is_file():
         raise LcrlError(f"no perception model at {path} (train one with lcrl perception train)")
+    return p
+
+
+def model_meta(path: str | Path) -> dict[str, Any]:
+    """The meta of a perception model: of ``lcrl perception train --out`` (the folder or
+    its ``model`` checkpoint), or the ``perception`` entry of a policy checkpoint that
+    acts through one (its copy of the model it was trained with).
+
+    Raises:
+        LcrlError: no perception model there.
+    """
+    p = _checkpoint_dir(path)
     meta = load_checkpoint(p).meta
-    if meta.get("format") != FORMAT:
-        raise CheckpointError(f"{p} is not a perception checkpoint (format {meta.get('format')!r})")
-    return meta
+    if meta.get("format") == FORMAT:
+        return meta
+    embedded = meta.get("perception")
+    if isinstance(embedded, dict) and embedded.get("format") == FORMAT:
+        return embedded
+    raise CheckpointError(
+        f"{p} is neither a perception checkpoint nor a policy that carries one "
+        f"(format {meta.get('format')!r})"
+    )
 
 
 def load_model(path: str | Path, device: str = "cpu") -> tuple[Perception, dict[str, Any]]:
     """A perception model and its meta from ``lcrl perception train --out`` (the folder or
-    its ``model`` checkpoint).
+    its ``model`` checkpoint), or from a policy checkpoint that carries one.
 
     Raises:
         CheckpointError: not a perception checkpoint, or a field missing.
     """
-    model_meta(path)  # a perception checkpoint, or a clear error
-    p = Path(path)
-    if (p / "model" / "meta.json").is_file():
-        p = p / "model"
+    meta = model_meta(path)  # a perception model, or a clear error
+    p = _checkpoint_dir(path)
     ckpt = load_checkpoint(p)
-    meta = ckpt.meta
     try:
         layout = SlotLayout.of(meta["slot_layout"])
         model = Perception(meta["frame_shape"], layout, PerceptionConfig(**meta["model"]))
-    except (KeyError, TypeError) as e:
+    except (KeyError, TypeError, ValueError) as e:
         raise CheckpointError(
             f"{p / 'meta.json'}: a perception field is missing or wrong: {e}"
         ) from None
     ckpt.load_module("perception", model)
     model.to(torch.device(device)).eval()
     return model, meta
+
+
+def embedded_meta(model: Perception, source: str) -> dict[str, Any]:
+    """What a policy checkpoint records of the perception model it acts through (its
+    weights go beside, as the module ``perception``): enough to rebuild it without the
+    folder it was trained into."""
+    return {
+        "format": FORMAT,
+        "frame_shape": list(model.frame_shape),
+        "slot_layout": model.layout.to_list(),
+        "model": asdict(model.cfg),
+        "source": str(source),
+    }
+
+
+def find_perception(env: gym.Env) -> PerceptionObservation | None:
+    """The :class:`PerceptionObservation` wrapper inside ``env``, if any."""
+    e: Any = env
+    while isinstance(e, gym.Wrapper):
+        if isinstance(e, PerceptionObservation):
+            return e
+        e = e.env
+    return None
 
 
 def evaluate(
@@ -355,7 +390,9 @@ class PerceptionObservation(gym.ObservationWrapper):
     the replay buffer) reads what the camera shows. The estimate is computed once per
     frame and stored, so an update costs what a privileged-state update costs. Rewards and
     relabelling still judge the privileged scene (``env.unwrapped.scene()``), as the rule
-    captioner does in training; acting never needs it.
+    captioner does in training; acting never needs it. The true state stays beside the
+    estimate as ``privileged``, for a critic that reads it in training
+    (``--agent.privileged-critic``); a policy never reads it.
 
     Args:
         env: a tabletop made with camera frames (``image=True``), not yet wrapped by
@@ -388,6 +425,13 @@ class PerceptionObservation(gym.ObservationWrapper):
                 f"the env's object slots are {layout}; the perception model reads "
                 f"{model.layout.to_list()} (trained on another object set or simulator)"
             )
+        box = space["observation"]
+        if box.shape != (model.layout.dim,):
+            raise LcrlError(
+                f"the env's observation has shape {box.shape}; the perception model "
+                f"assembles ({model.layout.dim},)"
+            )
+        self.observation_space = gym.spaces.Dict({**space.spaces, "privileged": box})
 
     def observation(self, observation: Mapping[str, Any]) -> dict[str, Any]:
         """The observation with perception's estimate of the object slots."""
@@ -396,4 +440,5 @@ class PerceptionObservation(gym.ObservationWrapper):
         state = np.asarray(observation["observation"], np.float32)
         estimate = self.model.observation(observation["image"][None], state[None, :start])[0]
         out["observation"] = estimate.astype(np.float32)
+        out["privileged"] = state
         return out

@@ -149,6 +149,7 @@ class Policy:
         self._spaces = dict(space.spaces) if isinstance(space, gym.spaces.Dict) else {}
         self._initial: dict[str, np.ndarray] | None = None
         self._initial_batch: int | None = None
+        self._origin: np.ndarray | None = None  # perceived slots of the episode's first frame
 
     # --- what the policy is -------------------------------------------------------------
     @property
@@ -283,6 +284,7 @@ class Policy:
     def reset(self) -> None:
         """Forget the remembered first observation: the next :meth:`act` starts an episode."""
         self._initial, self._initial_batch = None, None
+        self._origin = None
 
     def act(
         self,
@@ -322,6 +324,11 @@ class Policy:
                 another environment), an empty or overlong text, texts and observations of
                 different batch sizes; for task-id policies, text or an id out of range.
         """
+        if initial is not None:
+            initial = self._from_frames(initial, "initial", starts=True)
+        observation = self._from_frames(
+            observation, "observation", starts=initial is None and self._initial is None
+        )
         obs, batch = self._check_obs(observation, "observation")
         rows = 1 if batch is None else batch
         if self.task.query == "task_id":
@@ -354,6 +361,67 @@ class Policy:
             a = self.agent.act(net_obs, goals, deterministic=deterministic)
         actions = self.task.scale_action(a)
         return actions if batch is not None else actions[0]
+
+    # --- camera frames -----------------------------------------------------------------
+    @property
+    def perceives(self) -> bool:
+        """Whether the policy acts through a perception model (``--env.perception``): it
+        reads object slots estimated from camera frames, never the simulator's state."""
+        return self._frame_reader()[0] is not None
+
+    def _frame_reader(self) -> tuple[Any, Any]:
+        """The perception model and the slot-feature wrapper of the policy's env (None
+        where there is none)."""
+        from envs.features import SlotFeatures
+        from train.perception import find_perception
+
+        wrapper = find_perception(self.env)
+        features, e = None, self.env
+        while isinstance(e, gym.Wrapper):
+            if isinstance(e, SlotFeatures):
+                features = e
+                break
+            e = e.env
+        return (wrapper.model if wrapper is not None else None), features
+
+    def _from_frames(self, observation: Any, name: str, starts: bool) -> Any:
+        """An observation given as camera frames and proprioception (``image`` and
+        ``proprio``, no ``observation``) turned into the env's observation: perception's
+        estimate of the object slots, with the slot features the policy was trained on
+        (displacements from the episode's first frame). Anything else is returned as
+        given."""
+        model, features = self._frame_reader()
+        if model is None or not isinstance(observation, Mapping) or "observation" in observation:
+            return observation
+        if "image" not in observation or "proprio" not in observation:
+            raise LcrlError(
+                f"{name} has neither 'observation' nor both 'image' and 'proprio' (it has "
+                f"{sorted(map(str, observation))}): this policy acts from camera frames, "
+                f"{tuple(model.frame_shape)} uint8, and the robot's proprioception, "
+                f"({model.layout.start},)"
+            )
+        image = np.asarray(observation["image"])
+        proprio = np.asarray(observation["proprio"], np.float32)
+        frame, start = tuple(model.frame_shape), model.layout.start
+        if image.shape[-3:] != frame or image.ndim not in (3, 4):
+            raise LcrlError(
+                f"{name}['image'] has shape {image.shape}; this policy's perception reads "
+                f"{frame} frames (or (batch, *{frame}))"
+            )
+        if image.dtype != np.uint8:
+            raise LcrlError(f"{name}['image'] must be uint8 camera frames, got {image.dtype}")
+        batch = image.shape[0] if image.ndim == 4 else None
+        want = (start,) if batch is None else (batch, start)
+        if proprio.shape != want:
+            raise LcrlError(f"{name}['proprio'] has shape {proprio.shape}; expected {want}")
+        check_finite(proprio, f"{name}['proprio']")
+        estimate = model.observation(image.reshape(-1, *frame), proprio.reshape(-1, start))
+        if starts or getattr(self, "_origin", None) is None or len(self._origin) != len(estimate):
+            self._origin = estimate
+        x = estimate if features is None else features.features(estimate, self._origin)
+        out = {k: v for k, v in observation.items() if k != "proprio"}
+        out["observation"] = x.astype(np.float32) if batch is not None else x[0].astype(np.float32)
+        return out
 
     # --- checks ---------------------------------------------------------------------------
     def _required_keys(self) -> tuple[str, ...]:

@@ -283,6 +283,49 @@ class Task:
             return np.asarray(rng.integers(self.action_dim))
         return rng.uniform(-1.0, 1.0, self.action_dim).astype(np.float32)
 
+    #: Observation keys only the critics read (:meth:`use_privileged_critic`).
+    privileged: tuple[str, ...] = ()
+
+    def use_privileged_critic(self, env: gym.Env) -> None:
+        """Store the simulator's true state for critics that read it while the actor reads
+        what it acts from (an asymmetric actor-critic): ``privileged`` (and for
+        instruction-following tasks ``privileged_initial``, the episode's first one).
+
+        The true state is the env's ``privileged`` entry beside a perception estimate
+        (``--env.perception``), or its ``observation`` when the actor reads camera frames
+        and proprioception (``--env.image-obs``). Only :meth:`training_obs` writes it:
+        acting never needs it.
+
+        Raises:
+            LcrlError: the actor reads the true state itself (nothing to keep apart).
+        """
+        space = env.observation_space
+        source = "privileged" if "privileged" in space.spaces else "observation"
+        if source == "observation" and not getattr(self, "image_obs", False):
+            raise LcrlError(
+                "--agent.privileged-critic keeps the true state for the critic apart from what "
+                "the actor reads, but this actor reads the true state already: act from "
+                "camera frames (--env.perception MODEL, or --env.image-obs)"
+            )
+        shape = tuple(space[source].shape)
+        keys = ("privileged", "privileged_initial") if self.instructed else ("privileged",)
+        self._privileged_source = source
+        self.privileged = keys
+        self.obs_shapes = {**self.obs_shapes, **dict.fromkeys(keys, shape)}
+
+    def training_obs(
+        self, obs: Mapping[str, Any], first: Mapping[str, Any]
+    ) -> dict[str, np.ndarray]:
+        """What the replay buffer stores of an observation: :meth:`storage_obs` (what the
+        actor reads), and the true state for privileged critics."""
+        out = self.storage_obs(obs, first)
+        if self.privileged:
+            source = self._privileged_source
+            out["privileged"] = np.asarray(obs[source], np.float32)
+            if "privileged_initial" in self.privileged:
+                out["privileged_initial"] = np.asarray(first[source], np.float32)
+        return out
+
     def _setup_image_obs(self, env: gym.Env, image_obs: bool) -> None:
         self.image_obs = image_obs
         if image_obs:
@@ -305,6 +348,7 @@ class Task:
             action_dim=self.action_dim,
             discrete=self.discrete,
             num_tasks=self.num_tasks,
+            privileged=self.privileged,
         )
 
 

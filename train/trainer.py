@@ -183,6 +183,8 @@ def open_run(cfg: TrainConfig) -> tuple[TrainConfig, Any]:
                 f"do for --total-steps {cfg.total_steps}; pass a larger --total-steps to train on"
             )
         saved = meta.config
+        if "perception" in ckpt.meta:  # the copy of the model the policy acts through
+            saved.env.perception = str(latest)
         saved.total_steps = cfg.total_steps
         saved.resume = True
         saved.out = cfg.out

@@ -57,6 +57,10 @@ class Problem:
         discrete: whether actions are discrete.
         num_tasks: the size of a fixed task set whose goal ids are batch goals (one-hot
             task ids, or instruction ids of a table of exactly those tasks); 0 for none.
+        privileged: observation keys that only the critics read (an asymmetric
+            actor-critic: the simulator's true state, stored in training, which acting
+            never needs). When set, the critics read exactly these keys and the actor
+            every other key; empty: every network reads every key.
     """
 
     obs_shapes: dict[str, tuple[int, ...]]
@@ -65,6 +69,30 @@ class Problem:
     action_dim: int
     discrete: bool = False
     num_tasks: int = 0
+    privileged: tuple[str, ...] = ()
+
+    def __post_init__(self) -> None:
+        self.privileged = tuple(self.privileged)
+        unknown = [k for k in self.privileged if k not in self.obs_shapes]
+        if unknown:
+            raise LcrlError(
+                f"privileged observation keys {unknown} are not among the observation keys "
+                f"{sorted(self.obs_shapes)}"
+            )
+        if self.privileged and not self.actor_shapes:
+            raise LcrlError("every observation key is privileged: the actor would read nothing")
+
+    @property
+    def actor_shapes(self) -> dict[str, tuple[int, ...]]:
+        """The observation keys the actor (the acting network) reads."""
+        return {k: v for k, v in self.obs_shapes.items() if k not in self.privileged}
+
+    @property
+    def critic_shapes(self) -> dict[str, tuple[int, ...]]:
+        """The observation keys the critics read."""
+        if not self.privileged:
+            return dict(self.obs_shapes)
+        return {k: self.obs_shapes[k] for k in self.privileged}
 
     def to_dict(self) -> dict[str, Any]:
         """JSON-able form."""
@@ -75,6 +103,7 @@ class Problem:
             "action_dim": self.action_dim,
             "discrete": self.discrete,
             "num_tasks": self.num_tasks,
+            "privileged": list(self.privileged),
         }
 
     @classmethod
@@ -87,6 +116,7 @@ class Problem:
             action_dim=int(d["action_dim"]),
             discrete=bool(d["discrete"]),
             num_tasks=int(d.get("num_tasks", 0)),
+            privileged=tuple(d.get("privileged", ())),
         )
 
 
@@ -120,6 +150,12 @@ class AgentOptions:
     """Random-shift augmentation of image inputs in updates (DrQ): each image (observation,
     next observation, image goal) is padded by this many edge pixels and cropped back at a
     random offset. 0 turns it off; 4 is DrQ's value for 84x84 images."""
+    privileged_critic: bool = False
+    """An asymmetric actor-critic: the critics read the simulator's true state (stored in
+    training only) while the actor reads what it acts from: a perception model's estimate
+    from camera frames (``--env.perception``) or the frames themselves
+    (``--env.image-obs``). Acting and evaluation never need the true state. SAC and
+    TD3."""
     device: str = "cpu"
     """``cpu``, ``cuda`` or ``cuda:N``."""
     seed: int = 0
@@ -207,6 +243,12 @@ class Agent:
 
         if self.name in algos.ALGOS:
             algos.check_algo(self.name, problem.discrete)
+            if problem.privileged and not algos.ALGOS[self.name].privileged_critic:
+                able = [n for n, spec in algos.ALGOS.items() if spec.privileged_critic]
+                raise LcrlError(
+                    f"{self.name} has no critic that could read privileged state apart from "
+                    f"its actor: the asymmetric actor-critic needs one of {able}"
+                )
         algos.check_multitask(self.name, options.multitask)
 
     # --- inputs ----------------------------------------------------------------------
@@ -283,13 +325,13 @@ class Agent:
     def _critics(self, action_dim: int, n: int = 2) -> GoalConditionedEnsemble:
         p = self.problem
         return GoalConditionedEnsemble(
-            n, p.obs_shapes, p.goal_kind, p.goal_shape, 1, self.options.net, action_dim
+            n, p.critic_shapes, p.goal_kind, p.goal_shape, 1, self.options.net, action_dim
         ).to(self.device)
 
     def _net(self, out_dim: int, action_dim: int = 0) -> GoalConditionedNet:
         p = self.problem
         return GoalConditionedNet(
-            p.obs_shapes, p.goal_kind, p.goal_shape, out_dim, self.options.net, action_dim
+            p.actor_shapes, p.goal_kind, p.goal_shape, out_dim, self.options.net, action_dim
         ).to(self.device)
 
     # --- acting ----------------------------------------------------------------------
@@ -409,6 +451,8 @@ class AlgoSpec:
             gradient-conflict measurement).
         learns_from: ``env`` (online RL on a replay buffer) or ``demos`` (demonstrations).
         summary: one line for listings.
+        privileged_critic: whether its critics can read privileged observation keys that
+            its actor does not (:attr:`Problem.privileged`: an asymmetric actor-critic).
     """
 
     name: str
@@ -418,6 +462,7 @@ class AlgoSpec:
     multitask: bool = False
     learns_from: str = "env"
     summary: str = ""
+    privileged_critic: bool = False
 
     def __post_init__(self) -> None:
         if self.actions not in ACTION_KINDS:

@@ -348,6 +348,7 @@ SPEC = AlgoSpec(
     config=SACConfig,
     actions="continuous",
     multitask=True,
+    privileged_critic=True,
     learns_from="env",
     summary="soft actor-critic: twin critics, tuned entropy temperature; multi-task options",
 )

@@ -177,6 +177,7 @@ SPEC = AlgoSpec(
     config=TD3Config,
     actions="continuous",
     multitask=False,
+    privileged_critic=True,
     learns_from="env",
     summary="twin delayed DDPG: deterministic actor with Gaussian exploration noise",
 )
