@@ -17,6 +17,8 @@ Subcommands:
     demos relabel     add hindsight instructions: everything each episode achieved
     demos info        summarise a demonstration dataset (segments per family ...)
     demos import-robomimic   convert a robomimic / LIBERO file into a demonstration dataset
+    perception collect | train | eval   learn to read object slots from camera frames
+    distill  distil a privileged-state teacher into a student acting from camera frames
 
 User mistakes (bad options, unparseable instructions, missing files) print one line
 starting with ``lcrl: error:`` and exit with status 2; Ctrl-C exits with status 130.
@@ -530,6 +532,92 @@ def _perception(argv: Sequence[str]) -> None:
 
 
 @dataclass
+class DistillCommand:
+    """Distil a privileged-state teacher into a student that acts from camera frames,
+    with DAgger: the student acts (the teacher's share of the actions shrinks round by
+    round), the teacher labels every state visited, the student is fitted on everything
+    gathered. The student is a policy like any other: ``lcrl eval``, ``lcrl act`` and
+    ``lcrl.load`` take its run folder."""
+
+    teacher: tyro.conf.Positional[str]
+    """The teacher's run (or checkpoint) folder: a policy trained on the privileged state."""
+    perception: str = ""
+    """The student acts through this perception model (``lcrl perception train --out``):
+    object slots estimated from each camera frame."""
+    image_obs: bool = False
+    """The student reads the camera frames and proprioception through a CNN instead (end
+    to end; practical on a GPU)."""
+    out: str = "runs/distill"
+    """The student's run folder."""
+    rounds: int = 10
+    """DAgger rounds."""
+    episodes_per_round: int = 20
+    """Episodes collected per round."""
+    updates_per_round: int = 500
+    """Student updates after each round, on everything gathered so far."""
+    beta: float = 1.0
+    """The teacher's share of the executed actions in the first round."""
+    beta_decay: float = 0.5
+    """That share shrinks by this factor each round."""
+    batch_size: int = 256
+    """Rows per student update."""
+    lr: float = 1e-3
+    """The student's learning rate."""
+    eval_every: int = 2
+    """Evaluate the student every this many rounds (0: only at the end)."""
+    eval_episodes: int = 50
+    """Episodes per instruction set in evaluations."""
+    seed: int = 0
+    """Seed of the episodes, the mixing and the batches."""
+    resume: bool = False
+    """Continue the run in ``out`` from its latest checkpoint (``--rounds``: the new total)."""
+    overwrite: bool = False
+    """Replace a previous run in ``out``."""
+    progress: bool = True
+    """Show a progress bar."""
+    tensorboard: bool = True
+    """Write TensorBoard event files."""
+
+    def run(self) -> None:
+        from lcrl.checkpoint import load_checkpoint
+        from train.config import BCConfig, DistillConfig
+        from train.distill import DistillTrainer, student_config
+        from train.evaluate import resolve_checkpoint
+        from train.run_meta import run_meta
+
+        if self.rounds <= 0:
+            raise LcrlError("--rounds must be positive")
+        teacher = run_meta(load_checkpoint(resolve_checkpoint(self.teacher))).config
+        distill = DistillConfig(
+            teacher=self.teacher,
+            episodes_per_round=self.episodes_per_round,
+            updates_per_round=self.updates_per_round,
+            beta=self.beta,
+            beta_decay=self.beta_decay,
+        )
+        cfg = student_config(
+            teacher,
+            perception=self.perception,
+            image_obs=self.image_obs,
+            out=self.out,
+            distill=distill,
+            total_steps=self.rounds,
+            eval_every=self.eval_every,
+            eval_episodes=self.eval_episodes,
+            checkpoint_every=1,
+            log_every=1,
+            batch_size=self.batch_size,
+            seed=self.seed,
+            progress=self.progress,
+            tensorboard=self.tensorboard,
+        )
+        cfg.bc = BCConfig(lr=self.lr, loss="mse", hindsight=False)
+        cfg.resume, cfg.overwrite = self.resume, self.overwrite
+        DistillTrainer(cfg).run()
+        print(f"evaluate again with: lcrl eval {cfg.out}")
+
+
+@dataclass
 class DemosStub:
     """Demonstration datasets: ``lcrl demos record --help`` (also relabel, info,
     import-robomimic)."""
@@ -567,6 +655,7 @@ def main(argv: Sequence[str] | None = None) -> None:
         "caption": CaptionStub,
         "perception": PerceptionStub,
         "demos": DemosStub,
+        "distill": DistillCommand,
     }
     try:
         if args and args[0] == "train":

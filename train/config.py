@@ -83,6 +83,37 @@ class RelabelConfig:
 
 
 @dataclass
+class DistillConfig:
+    """Teacher -> student distillation with DAgger (``lcrl distill TEACHER_RUN``): a student
+    that acts from what cameras show learns the actions of a privileged-state teacher in
+    the states the student itself visits."""
+
+    teacher: str = ""
+    """The teacher: a run or checkpoint folder of a policy trained on the privileged state."""
+    episodes_per_round: int = 20
+    """Episodes collected per DAgger round (``total_steps`` counts rounds)."""
+    updates_per_round: int = 500
+    """Gradient updates of the student on everything gathered so far, after each round."""
+    beta: float = 1.0
+    """Probability that the teacher's action is the one executed, in the first round (the
+    rest are the student's own, deterministic, actions)."""
+    beta_decay: float = 0.5
+    """The teacher's share shrinks by this factor each round: ``beta * beta_decay ** r``
+    in round ``r`` (0: the student acts alone from the second round on)."""
+
+    def validate(self) -> None:
+        """Raise :class:`LcrlError` for settings that cannot train."""
+        if self.episodes_per_round <= 0 or self.updates_per_round < 0:
+            raise LcrlError(
+                "distill.episodes_per_round must be positive and distill.updates_per_round >= 0"
+            )
+        for name in ("beta", "beta_decay"):
+            value = getattr(self, name)
+            if not 0.0 <= value <= 1.0:
+                raise LcrlError(f"distill.{name} must be in [0, 1], got {value}")
+
+
+@dataclass
 class TrainConfig:
     """One training run: environment, learner, schedule, evaluation and outputs."""
 
@@ -101,6 +132,10 @@ class TrainConfig:
     """Double-DQN hyper-parameters."""
     bc: BCConfig = field(default_factory=BCConfig)
     """Behavioural-cloning hyper-parameters (``algo=bc``)."""
+    distill: DistillConfig = field(default_factory=DistillConfig)
+    """Teacher -> student distillation (``lcrl distill``; the student is a ``bc`` policy
+    and ``total_steps``, ``eval_every``, ``checkpoint_every`` and ``log_every`` count DAgger
+    rounds)."""
     demos: str = ""
     """Demonstration file (``lcrl demos record``) that ``algo=bc`` learns from. With
     ``bc``, ``total_steps``, ``eval_every``, ``checkpoint_every`` and ``log_every`` count
@@ -214,6 +249,7 @@ class TrainConfig:
             )
         if self.keep_checkpoints < 1:
             raise LcrlError("keep_checkpoints must be at least 1")
+        self.distill.validate()
         self._validate_tasks()
 
     def _validate_tasks(self) -> None:

@@ -52,9 +52,15 @@ __all__ = [
 EVAL_ENVS = 8
 
 
-def build_task(cfg: TrainConfig, env: gym.Env, ckpt: Checkpoint | None = None) -> Task:
-    """The task adapter; language tasks load the frozen text encoder (and the checkpoint's
-    instruction table, when given)."""
+def build_task(
+    cfg: TrainConfig,
+    env: gym.Env,
+    ckpt: Checkpoint | None = None,
+    table: tuple[list[str], int] | None = None,
+) -> Task:
+    """The task adapter; language tasks load the frozen text encoder and take the
+    checkpoint's instruction table when given (or ``table``: the texts and how many of
+    them are training instructions, e.g. a teacher's)."""
     check_slots(cfg, env)
     if not is_language(cfg.env):
         task = make_task(cfg.env, env)
@@ -64,8 +70,10 @@ def build_task(cfg: TrainConfig, env: gym.Env, ckpt: Checkpoint | None = None) -
         encoder = FrozenTextEncoder(cfg.text_encoder)
         kwargs: dict[str, Any] = {}
         if ckpt is not None:
-            table = ckpt.json("instructions")
-            kwargs = {"table": table["texts"], "num_train": table["num_train"]}
+            saved = ckpt.json("instructions")
+            kwargs = {"table": saved["texts"], "num_train": saved["num_train"]}
+        elif table is not None:
+            kwargs = {"table": list(table[0]), "num_train": int(table[1])}
         task = make_task(cfg.env, env, encoder.encode, **kwargs)
         task.encoder = encoder  # type: ignore[attr-defined]
     if cfg.agent.privileged_critic:

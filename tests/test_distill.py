@@ -1,0 +1,118 @@
+"""Teacher -> student distillation with DAgger (``lcrl distill``), at a tiny size: the
+student's loss on the teacher's labels falls, the teacher's share of the actions shrinks,
+the student acts through ``lcrl.load`` from camera frames, resuming is exact, and
+teachers or students that cannot work are refused in one line."""
+
+from __future__ import annotations
+
+import csv
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+from helpers import cli, error_line, tiny
+
+from lcrl.perception import Perception, SlotLayout
+from train.perception import PerceptionTrainConfig, save_model
+
+
+@pytest.fixture(scope="module", autouse=True)
+def _single_thread(one_thread):
+    """Every test of this module runs on one torch thread (``one_thread`` in conftest)."""
+
+
+@pytest.fixture(scope="module")
+def teacher(tmp_path_factory) -> Path:
+    """A privileged-state lang2d-quick policy (a few hundred steps: DAgger clones whatever
+    it does)."""
+    from train.loop import Trainer
+
+    out = tmp_path_factory.mktemp("distill") / "teacher"
+    Trainer(tiny("lang2d-quick", out, total_steps=400, learning_starts=100)).run()
+    return out
+
+
+@pytest.fixture(scope="module")
+def perception(tmp_path_factory) -> Path:
+    """A perception model for the 2D tabletop's 64 px frames (untrained weights: DAgger
+    only needs something that reads frames)."""
+    torch.manual_seed(0)
+    out = tmp_path_factory.mktemp("distill") / "perception"
+    layout = SlotLayout(2, 8, 3, 2)
+    stats = {
+        "pos_mean": np.zeros((8, 2), np.float32),
+        "pos_std": np.full((8, 2), 0.3, np.float32),
+        "proprio_mean": np.zeros(2, np.float32),
+        "proprio_std": np.full(2, 0.3, np.float32),
+    }
+    model = Perception((64, 64, 3), layout, stats=stats)
+    meta = {"env": "lang2d", "slot_layout": layout.to_list(), "image_size": 64}
+    save_model(out, model, PerceptionTrainConfig(), meta, 0, [], np.zeros(0, int))
+    return out
+
+
+def _rows(path: Path) -> list[dict[str, float]]:
+    with open(path) as f:
+        return [{k: float(v) for k, v in row.items()} for row in csv.DictReader(f)]
+
+
+def test_dagger_hands_over_control_and_its_loss_falls(teacher, perception, tmp_path):
+    out = tmp_path / "student"
+    args = ["distill", str(teacher), "--perception", str(perception), "--out", str(out)]
+    args += ["--rounds", "3", "--episodes-per-round", "4", "--updates-per-round", "150"]
+    args += ["--batch-size", "64", "--eval-every", "0", "--eval-episodes", "2"]
+    assert cli(*args, "--no-progress", "--no-tensorboard") == 0
+    rows = _rows(out / "progress.csv")
+    assert [r["step"] for r in rows] == [1, 2, 3]
+    assert [r["beta"] for r in rows] == [1.0, 0.5, 0.25]
+    assert rows[0]["teacher_share"] == 1.0 and rows[2]["teacher_share"] < 0.6
+    assert rows[0]["rows"] < rows[1]["rows"] < rows[2]["rows"]  # the dataset aggregates
+    # the student's loss on the teacher's labels falls within a round and over the run
+    assert all(r["loss"] < 0.5 * r["loss_first"] for r in rows)
+    assert rows[2]["loss"] < 0.5 * rows[0]["loss_first"]
+
+    import lcrl
+
+    policy = lcrl.load(out)
+    assert policy.perceives and policy.checkpoint.meta["algo"] == "bc"
+    assert policy.checkpoint.meta["distill"]["rows"] == rows[2]["rows"]
+    env = policy.make_env()
+    obs, _ = env.reset(seed=0)
+    frames = {"image": obs["image"], "proprio": obs["privileged"][:2]}
+    action = policy.act(frames, "reach the red cube")
+    policy.reset()
+    np.testing.assert_array_equal(action, policy.act(obs, "reach the red cube"))
+
+
+def test_a_resumed_distillation_continues_exactly(teacher, perception, tmp_path):
+    common = ["--perception", str(perception), "--episodes-per-round", "2"]
+    common += ["--updates-per-round", "20", "--batch-size", "16", "--eval-every", "0"]
+    common += ["--eval-episodes", "1", "--no-progress", "--no-tensorboard"]
+    whole, parts = tmp_path / "whole", tmp_path / "parts"
+    assert cli("distill", str(teacher), "--out", str(whole), "--rounds", "3", *common) == 0
+    assert cli("distill", str(teacher), "--out", str(parts), "--rounds", "2", *common) == 0
+    args = ["distill", str(teacher), "--out", str(parts), "--rounds", "3", "--resume", *common]
+    assert cli(*args) == 0
+    from lcrl.checkpoint import load_checkpoint
+    from train.evaluate import resolve_checkpoint
+
+    a, b = (load_checkpoint(resolve_checkpoint(p)).weights("actor") for p in (whole, parts))
+    assert a.keys() == b.keys()
+    for key in a:
+        torch.testing.assert_close(a[key], b[key], rtol=0, atol=0)
+
+
+def test_students_and_teachers_that_cannot_work_are_refused(teacher, perception, tmp_path, capsys):
+    out = ["--out", str(tmp_path / "s")]
+    assert cli("distill", str(teacher), *out) == 2
+    assert "give --perception MODEL" in error_line(capsys.readouterr().err)
+    assert cli("distill", str(tmp_path / "nothing"), "--perception", str(perception), *out) == 2
+    assert "no checkpoint or run folder" in error_line(capsys.readouterr().err)
+    # a student of another camera: a perception model for robosuite's slots
+    other = tmp_path / "other"
+    layout = SlotLayout(4, 8, 4, 3)
+    save_model(other, Perception((64, 64, 3), layout), PerceptionTrainConfig(), {}, 0, [], [])
+    assert cli("distill", str(teacher), "--perception", str(other), *out) == 2
+    line = error_line(capsys.readouterr().err)
+    assert "the perception model reads [4, 8, 4, 3]" in line and "[2, 8, 3, 2]" in line
