@@ -49,6 +49,7 @@ from captioner.grammar import FAMILIES, Instruction, all_instructions, try_parse
 from lcrl.checkpoint import CheckpointError, load_checkpoint, save_checkpoint
 from lcrl.errors import LcrlError
 from lcrl.nets import spatial_softmax
+from lcrl.perception import Perception, embedded_meta, load_model
 
 SPECIALS: tuple[str, ...] = ("<pad>", "<bos>", "<eos>", "<none>")
 PAD, BOS, EOS, NONE = 0, 1, 2, 3
@@ -128,7 +129,10 @@ class CaptionModelConfig:
     frame, their difference and two coordinate channels, pooled by a per-channel maximum
     and a spatial softmax, so that what moved is read the same wherever it is) or
     ``flatten`` (the feature map flattened into a linear layer: more parameters, tends to
-    memorise its training episodes)."""
+    memorise its training episodes) or ``perception`` (a frozen perception model,
+    ``lcrl perception train``, estimates the object slots of both frames; an MLP reads
+    them with each object's position relative to the gripper and its displacement between
+    the frames: what the policy reads, learned once)."""
     channels: tuple[int, ...] = (32, 32, 64, 64)
     """Channels of the 3x3 convolutions. ``spatial``: strides 2, 1, 2, 1, ...; the reward
     model conditions the second half of them on the instruction (FiLM). ``flatten``: the
@@ -165,7 +169,7 @@ class CaptionModelConfig:
             )
 
 
-ENCODERS: tuple[str, ...] = ("spatial", "flatten")
+ENCODERS: tuple[str, ...] = ("spatial", "flatten", "perception")
 
 
 class FramePairEncoder(nn.Module):
@@ -266,15 +270,134 @@ class FramePairEncoder(nn.Module):
         return self.head(z)
 
 
+class SlotPairEncoder(nn.Module):
+    """(first, current) object slots estimated by a frozen perception model -> features.
+
+    Inputs are perception's estimated observations ``(B, dim)`` of the first and the
+    current frame (:meth:`LearnedCaptioner.perceive` computes them from frames; training
+    computes them once per dataset frame). Every object slot is read by the same MLP:
+    whether the object is on the table, its position relative to the gripper and its
+    displacement since the first frame (what a
+    reach, a push, a lift is judged on), so what one object teaches serves every other.
+    Attention heads pick the slots that matter (a learned embedding of each slot, which
+    names its colour and shape, is added to what is picked); the difference between the
+    positions the first two heads pick carries the relation of put and stack. With the
+    max over slots and the proprioception at both frames, a linear layer gives the
+    features. Inputs are standardised with statistics of the training pairs (:meth:`fit`).
+
+    Args:
+        perception: the frozen perception model (kept outside this module's parameters:
+            the checkpoint saves it once, as ``perception``).
+        proprio_dim: proprioception values per frame.
+        cfg: sizes (``hidden``, ``features``, ``use_proprio``).
+    """
+
+    kind = "perception"
+    #: Attention heads over the object slots (put and stack name two objects).
+    HEADS = 2
+    #: The smallest spread an input is divided by (the units of positions: a feature that
+    #: is nearly always 0 in training, such as a displacement, must not blow up when it is
+    #: not).
+    MIN_STD = 0.02
+
+    def __init__(self, perception: Perception, proprio_dim: int, cfg: CaptionModelConfig):
+        super().__init__()
+        self._perception = [perception]
+        for param in perception.parameters():
+            param.requires_grad_(False)
+        self.layout = lay = perception.layout
+        self.proprio_dim = proprio_dim if cfg.use_proprio else 0
+        d, width = lay.position_dims, cfg.hidden
+        self.slot_dim = 1 + 2 * d
+        self.register_buffer("feat_mean", torch.zeros(self.slot_dim))
+        self.register_buffer("feat_std", torch.ones(self.slot_dim))
+        self.slot = nn.Sequential(
+            nn.Linear(self.slot_dim, width), nn.ReLU(), nn.Linear(width, width), nn.ReLU()
+        )
+        self.identity = nn.Parameter(torch.randn(lay.count, width) * 0.1)
+        self.score = nn.Linear(width, self.HEADS)
+        out_in = (self.HEADS + 1) * width + d + 2 * self.proprio_dim
+        self.head = nn.Sequential(
+            nn.Linear(out_in, cfg.features), nn.LayerNorm(cfg.features), nn.ReLU()
+        )
+        self.out_dim = cfg.features
+
+    @property
+    def perception(self) -> Perception:
+        """The frozen perception model."""
+        return self._perception[0]
+
+    def slot_features(
+        self, first: torch.Tensor, current: torch.Tensor
+    ) -> tuple[torch.Tensor, torch.Tensor]:
+        """Per-slot inputs ``(B, count, 1 + 2d)`` (unstandardised) of estimated observation
+        pairs, and which slots hold an object in either frame ``(B, count)``."""
+        lay, d = self.layout, self.layout.position_dims
+
+        def split(x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+            slots = x[:, lay.start : lay.dim].reshape(-1, lay.count, lay.width)
+            return x[:, :d], slots[..., :d], slots[..., d]
+
+        _, pos0, on0 = split(first.float())
+        g, pos, on = split(current.float())
+        rel = (pos - g[:, None]) * on[..., None]
+        disp = (pos - pos0) * (on * on0)[..., None]
+        x = torch.cat([on[..., None], rel, disp], -1)
+        return x, (on + on0) > 0
+
+    def fit(self, first: torch.Tensor, current: torch.Tensor) -> None:
+        """Standardise the per-slot inputs with their mean and spread over the slots that
+        hold an object in these pairs."""
+        x, present = self.slot_features(first, current)
+        x = x[present]
+        self.feat_mean.copy_(x.mean(0))
+        self.feat_std.copy_(x.std(0).clamp_min(self.MIN_STD))
+
+    def forward(
+        self, first: torch.Tensor, current: torch.Tensor, p0: torch.Tensor, p: torch.Tensor
+    ) -> torch.Tensor:
+        x, present = self.slot_features(first, current)
+        h = self.slot((x - self.feat_mean) / self.feat_std)  # (B, K, W)
+        z = h + self.identity
+        score = self.score(h).masked_fill(~present[..., None], -1e4)  # (B, K, heads)
+        attn = torch.softmax(score, 1)
+        picked = torch.einsum("bkh,bkw->bhw", attn, z).flatten(1)
+        d = self.layout.position_dims
+        where = torch.einsum("bkh,bkd->bhd", attn, x[..., 1 : 1 + d])  # relative positions
+        parts = [picked, h.masked_fill(~present[..., None], 0.0).amax(1), where[:, 0] - where[:, 1]]
+        if self.proprio_dim:
+            parts += [p0, p]
+        return self.head(torch.cat(parts, -1))
+
+
+def make_encoder(
+    frame_shape: Sequence[int],
+    proprio_dim: int,
+    cfg: CaptionModelConfig,
+    perception: Perception | None = None,
+) -> FramePairEncoder | SlotPairEncoder:
+    """The encoder ``cfg.encoder`` names (``perception`` needs the perception model)."""
+    if cfg.encoder == "perception":
+        if perception is None:
+            raise LcrlError("model.encoder=perception needs a perception model (--perception)")
+        return SlotPairEncoder(perception, proprio_dim, cfg)
+    return FramePairEncoder(frame_shape, proprio_dim, cfg)
+
+
 class Captioner(nn.Module):
     """Frame pair -> instruction, word by word (GRU decoder over the vocabulary)."""
 
     def __init__(
-        self, frame_shape: Sequence[int], proprio_dim: int, vocab_size: int, cfg: CaptionModelConfig
+        self,
+        frame_shape: Sequence[int],
+        proprio_dim: int,
+        vocab_size: int,
+        cfg: CaptionModelConfig,
+        perception: Perception | None = None,
     ) -> None:
         super().__init__()
         self.cfg = cfg
-        self.encoder = FramePairEncoder(frame_shape, proprio_dim, cfg)
+        self.encoder = make_encoder(frame_shape, proprio_dim, cfg, perception)
         self.embed = nn.Embedding(vocab_size, cfg.embed, padding_idx=PAD)
         self.init = nn.Linear(cfg.features, cfg.hidden)
         self.gru = nn.GRU(cfg.embed + cfg.features, cfg.hidden, batch_first=True)
@@ -367,9 +490,10 @@ class RewardModel(nn.Module):
         proprio_dim: int,
         text_dim: int,
         cfg: CaptionModelConfig,
+        perception: Perception | None = None,
     ) -> None:
         super().__init__()
-        self.encoder = FramePairEncoder(frame_shape, proprio_dim, cfg)
+        self.encoder = make_encoder(frame_shape, proprio_dim, cfg, perception)
         self.register_buffer("text_mean", torch.zeros(text_dim))
         self.register_buffer("text_std", torch.ones(text_dim))
         self.text = nn.Linear(text_dim, cfg.text_features)
@@ -513,10 +637,18 @@ def _observations(data: CaptionDataset, episodes: np.ndarray) -> np.ndarray:
 class _Pairs:
     """Frame pairs of a caption dataset, in memory, with the episode split."""
 
-    def __init__(self, data: CaptionDataset, val_fraction: float, seed: int) -> None:
+    def __init__(
+        self,
+        data: CaptionDataset,
+        val_fraction: float,
+        seed: int,
+        perceive: Any = None,
+    ) -> None:
         self.data = data
-        self.frames = data.frames[:]  # uint8, (N, H, W, 3)
         self.proprio = data.proprio.astype(np.float32)
+        # uint8 frames (N, H, W, 3), or perception's estimates of them, computed once
+        frames = data.frames[:]
+        self.frames = frames if perceive is None else perceive(frames, self.proprio)
         n_ep = data.num_episodes
         perm = np.random.default_rng(seed).permutation(n_ep)
         n_val = max(1, round(val_fraction * n_ep)) if n_ep > 1 else 0
@@ -578,6 +710,10 @@ class CaptionTrainConfig:
     """Network sizes."""
     text_model: str = ""
     """Frozen text encoder for the reward model (empty: the packaged all-MiniLM-L6-v2)."""
+    perception: str = ""
+    """With ``--model.encoder perception``: the perception model (``lcrl perception
+    train --out``) whose estimated object slots both models read (frozen; saved with
+    them)."""
     device: str = "cpu"
     """``cpu`` or ``cuda``."""
     seed: int = 0
@@ -732,6 +868,8 @@ class LearnedCaptioner:
         self.captioner: Captioner | None = None
         self.reward: RewardModel | None = None
         self._encoder: Any = None
+        #: The frozen perception model both models read through (``encoder=perception``).
+        self.perception: Perception | None = None
 
     # -- inputs
     def _inputs(
@@ -749,6 +887,9 @@ class LearnedCaptioner:
             if self.cfg.use_proprio:
                 raise LcrlError("this model reads proprioception: pass p0 and p")
             p0 = p = np.zeros((b, self.proprio_dim), np.float32)
+        if self.perception is not None:  # what the models read: the estimated slots
+            first = self.perceive(first, np.asarray(p0, np.float32))
+            current = self.perceive(current, np.asarray(p, np.float32))
         p0 = (np.asarray(p0, np.float32) - self.p_mean) / self.p_std
         p = (np.asarray(p, np.float32) - self.p_mean) / self.p_std
         dev = self.device
@@ -758,6 +899,18 @@ class LearnedCaptioner:
             torch.as_tensor(p0, device=dev),
             torch.as_tensor(p, device=dev),
         )
+
+    def perceive(self, frames: np.ndarray, proprio: np.ndarray, batch: int = 256) -> np.ndarray:
+        """Perception's estimated observations ``(N, dim)`` of frames and their robot
+        state (``encoder=perception``)."""
+        if self.perception is None:
+            raise LcrlError("these models read camera frames, not a perception model's slots")
+        start = self.perception.layout.start
+        out = [
+            self.perception.observation(frames[i : i + batch], proprio[i : i + batch, :start])
+            for i in range(0, len(frames), batch)
+        ]
+        return np.concatenate(out).astype(np.float32) if out else np.zeros((0, 0), np.float32)
 
     def encode_texts(self, texts: Sequence[str]) -> torch.Tensor:
         """Frozen text embeddings of instructions (any free text)."""
@@ -856,6 +1009,8 @@ class LearnedCaptioner:
             modules["captioner"] = self.captioner
         if self.reward is not None:
             modules["reward"] = self.reward
+        if self.perception is not None:
+            modules["perception"] = self.perception
         meta = {
             "kind": CHECKPOINT_KIND,
             "models": sorted(modules),
@@ -867,6 +1022,10 @@ class LearnedCaptioner:
             "proprio_std": self.p_std.tolist(),
             **self.meta,
         }
+        if self.perception is not None:  # rebuilt from here when loading
+            meta["perception"] = embedded_meta(
+                self.perception, str(self.meta.get("train", {}).get("perception", ""))
+            )
         json_files = {
             "vocabulary": {"words": self.vocab.words},
             "instructions": {"texts": self.instructions, "sets": self.instruction_set},
@@ -900,7 +1059,7 @@ class LearnedCaptioner:
             }
         )
         known = {"kind", "models", "frame_shape", "proprio_dim", "model", "text_model",
-                 "proprio_mean", "proprio_std", "format_version"}  # fmt: skip
+                 "proprio_mean", "proprio_std", "format_version", "perception"}  # fmt: skip
         lc = cls(
             vocab,
             list(table["texts"]),
@@ -915,13 +1074,17 @@ class LearnedCaptioner:
             device,
         )
         try:
+            if mcfg.encoder == "perception":
+                lc.perception = load_model(path, device)[0]
             if "captioner" in meta["models"]:
-                lc.captioner = Captioner(lc.frame_shape, lc.proprio_dim, len(vocab), mcfg)
+                lc.captioner = Captioner(
+                    lc.frame_shape, lc.proprio_dim, len(vocab), mcfg, lc.perception
+                )
                 ckpt.load_module("captioner", lc.captioner)
                 lc.captioner.to(lc.device)
             if "reward" in meta["models"]:
                 dim = int(meta["text_dim"])
-                lc.reward = RewardModel(lc.frame_shape, lc.proprio_dim, dim, mcfg)
+                lc.reward = RewardModel(lc.frame_shape, lc.proprio_dim, dim, mcfg, lc.perception)
                 ckpt.load_module("reward", lc.reward)
                 lc.reward.to(lc.device)
         except CheckpointError as e:
@@ -952,31 +1115,33 @@ def train_models(cfg: CaptionTrainConfig) -> Path:
     rng = np.random.default_rng(cfg.seed)
     gen = torch.Generator(device=cfg.device).manual_seed(cfg.seed)
     device = torch.device(cfg.device)
+    mcfg = cfg.model
+    perception = _perception(cfg)
     data = CaptionDataset(cfg.data)
     try:
-        pairs = _Pairs(data, cfg.val_fraction, cfg.seed)
-        table = [_parse(t) for t in data.instructions]
-        sampler = _Sampler(pairs, table, rng)
-        vocab = Vocabulary.from_grammar()
-        mcfg = cfg.model
+        if perception is not None:
+            _check_perception(perception, data)
         lc = LearnedCaptioner(
-            vocab,
+            Vocabulary.from_grammar(),
             data.instructions,
             data.instruction_set,
             data.frame_shape,
             data.proprio.shape[1],
             mcfg,
-            pairs.p_mean,
-            pairs.p_std,
+            np.zeros(data.proprio.shape[1], np.float32),  # set from the training pairs below
+            np.ones(data.proprio.shape[1], np.float32),
             cfg.text_model,
-            {
-                "dataset": str(cfg.data),
-                "dataset_meta": data.meta,
-                "val_episodes": pairs.val_episodes.tolist(),
-                "train": asdict(cfg),
-            },
+            {"dataset": str(cfg.data), "dataset_meta": data.meta, "train": asdict(cfg)},
             cfg.device,
         )
+        lc.perception = perception
+        vocab = lc.vocab
+        pairs = _Pairs(data, cfg.val_fraction, cfg.seed, lc.perceive if perception else None)
+        lc.meta["val_episodes"] = pairs.val_episodes.tolist()
+        lc.p_mean, lc.p_std = pairs.p_mean, pairs.p_std
+        table = [_parse(t) for t in data.instructions]
+        sampler = _Sampler(pairs, table, rng)
+        pad = 0 if perception is not None else cfg.augment_pad  # slots are not shifted
         history: dict[str, list[float]] = {}
         if "captioner" in cfg.models:
             tokens = torch.as_tensor(
@@ -985,8 +1150,10 @@ def train_models(cfg: CaptionTrainConfig) -> Path:
                 device=device,
             )
             none_row = len(data.instructions)
-            model = Captioner(data.frame_shape, lc.proprio_dim, len(vocab), mcfg).to(device)
-            opt = torch.optim.Adam(model.parameters(), cfg.lr)
+            model = Captioner(data.frame_shape, lc.proprio_dim, len(vocab), mcfg, perception)
+            _fit_encoder(model.encoder, pairs, sampler, device)
+            model.to(device)
+            opt = torch.optim.Adam([q for q in model.parameters() if q.requires_grad], cfg.lr)
             losses = []
             bar = tqdm(range(cfg.steps), disable=not cfg.progress, desc="captioner")
             for _ in bar:
@@ -995,7 +1162,7 @@ def train_models(cfg: CaptionTrainConfig) -> Path:
                     [none_row if t is None else t for t in targets], device=device
                 )
                 seq = tokens[rows]
-                ctx = model.encoder(*_augment(pairs.tensors(idx, device), cfg.augment_pad, gen))
+                ctx = model.encoder(*_augment(pairs.tensors(idx, device), pad, gen))
                 logits = model(ctx, seq[:, :-1])
                 loss = F.cross_entropy(
                     logits.reshape(-1, logits.shape[-1]), seq[:, 1:].reshape(-1), ignore_index=PAD
@@ -1014,16 +1181,17 @@ def train_models(cfg: CaptionTrainConfig) -> Path:
                 if s == "train"
             ]
             emb = lc.encode_texts(data.instructions)
-            model_r = RewardModel(data.frame_shape, lc.proprio_dim, emb.shape[1], mcfg).to(device)
+            model_r = RewardModel(data.frame_shape, lc.proprio_dim, emb.shape[1], mcfg, perception)
             model_r.set_text_stats(lc.encode_texts(seen_texts).cpu().numpy())
+            _fit_encoder(model_r.encoder, pairs, sampler, device)
             model_r.to(device)
             lc.meta["text_dim"] = int(emb.shape[1])
-            opt = torch.optim.Adam(model_r.parameters(), cfg.lr)
+            opt = torch.optim.Adam([q for q in model_r.parameters() if q.requires_grad], cfg.lr)
             losses = []
             bar = tqdm(range(cfg.steps), disable=not cfg.progress, desc="reward model")
             for _ in bar:
                 idx, ids, y = sampler.reward_batch(cfg.batch_size, cfg.hard_negative_fraction)
-                ctx = model_r.context(*_augment(pairs.tensors(idx, device), cfg.augment_pad, gen))
+                ctx = model_r.context(*_augment(pairs.tensors(idx, device), pad, gen))
                 logit = model_r(ctx, emb[torch.as_tensor(ids, device=device)])
                 loss = F.binary_cross_entropy_with_logits(logit, torch.as_tensor(y, device=device))
                 opt.zero_grad()
@@ -1040,6 +1208,49 @@ def train_models(cfg: CaptionTrainConfig) -> Path:
         return lc.save(out)
     finally:
         data.close()
+
+
+def _perception(cfg: CaptionTrainConfig) -> Perception | None:
+    """The frozen perception model of ``model.encoder=perception`` (None otherwise)."""
+    if cfg.model.encoder != "perception":
+        if cfg.perception:
+            raise LcrlError("--perception is read by --model.encoder perception only")
+        return None
+    if not cfg.perception:
+        raise LcrlError(
+            "--model.encoder perception reads a perception model: pass --perception MODEL "
+            "(lcrl perception train --out)"
+        )
+    model = load_model(cfg.perception, cfg.device)[0]
+    model.eval()
+    return model
+
+
+def _check_perception(model: Perception, data: CaptionDataset) -> None:
+    """Refuse a perception model of another camera or object set than the dataset's."""
+    layout = data.meta.get("slot_layout")
+    if tuple(data.frame_shape) != tuple(model.frame_shape):
+        raise LcrlError(
+            f"the perception model reads {model.frame_shape} frames; {data.path} has "
+            f"{tuple(data.frame_shape)} frames (collect at --image-size {model.frame_shape[0]})"
+        )
+    if layout is not None and list(map(int, layout)) != model.layout.to_list():
+        raise LcrlError(
+            f"the perception model reads the object slots {model.layout.to_list()}; "
+            f"{data.path} was collected with {list(layout)} (another simulator or object set)"
+        )
+
+
+def _fit_encoder(encoder: nn.Module, pairs: _Pairs, sampler: _Sampler, device: Any) -> None:
+    """Fit a slot-pair encoder's input standardisation on training pairs (frame
+    encoders need nothing)."""
+    if not isinstance(encoder, SlotPairEncoder):
+        return
+    idx = np.concatenate([sampler.labelled_arr, sampler.empty_arr])
+    if len(idx) > 20_000:
+        idx = np.sort(sampler.rng.choice(idx, 20_000, replace=False))
+    with torch.no_grad():
+        encoder.fit(*pairs.tensors(idx, torch.device("cpu"))[:2])
 
 
 def _augment(

@@ -401,6 +401,28 @@ def _robosuite(**overrides: Any) -> TrainConfig:
 
 _IMAGE_AGENT = AgentOptions(net=NetConfig(share_cnn=True), augment_pad=4)
 
+#: Object slots of the robosuite tabletop's observation with relative positions and
+#: displacements: after the gripper's x, y, z and opening, 8 kinds of [x, y, z, present,
+#: 3 positions relative to the gripper, 3 displacements since the reset].
+SLOTS_ROBOSUITE = (4, 8, 10)
+#: Where ``lcrl perception train`` writes the robosuite model in docs/perception.md.
+PERCEPTION_ROBOSUITE = "runs/perception-robosuite"
+
+
+def _robosuite_slots(families: tuple[str, ...] = ("reach",), **env: Any) -> TrainConfig:
+    """The robosuite tabletop with the 2D tabletop's lessons: positions relative to the
+    gripper and displacements since the reset in each object slot, slots picked by the
+    goal, 20% scripted exploration episodes; 30k steps."""
+    return _robosuite(
+        out="runs/robosuite-reach",
+        env={"families": families, "relative_positions": True, "displacements": True, **env},
+        agent=AgentOptions(net=NetConfig(slots=SLOTS_ROBOSUITE, slot_mode="select")),
+        scripted_fraction=0.2,
+        total_steps=30_000,
+        eval_every=5_000,
+    )
+
+
 PRESETS: dict[str, tuple[str, TrainConfig]] = {
     "lang2d": (
         "2D tabletop, language goals (reach, push), SAC + language HER, 20% scripted "
@@ -453,6 +475,23 @@ PRESETS: dict[str, tuple[str, TrainConfig]] = {
         "robosuite Panda tabletop, language goals (reach, push), privileged state, SAC + "
         "language HER, 100k steps",
         _robosuite(),
+    ),
+    "robosuite-reach": (
+        "robosuite Panda tabletop, reach instructions, privileged state, positions relative "
+        "to the gripper and displacements, slot selection, 20% scripted episodes, 30k steps",
+        _robosuite_slots(),
+    ),
+    "robosuite-image-reach": (
+        "robosuite-reach acting from the agentview camera and proprioception through a "
+        f"frozen perception model (--env.perception, default {PERCEPTION_ROBOSUITE}); the "
+        "critic reads the true state in training",
+        dataclasses.replace(
+            _robosuite_slots(perception=PERCEPTION_ROBOSUITE),
+            out="runs/robosuite-image-reach",
+            agent=AgentOptions(
+                net=NetConfig(slots=SLOTS_ROBOSUITE, slot_mode="select"), privileged_critic=True
+            ),
+        ),
     ),
     "robosuite-state": (
         "robosuite Panda tabletop, state goals (one object moved), SAC + HER",

@@ -25,17 +25,34 @@ import numpy as np
 import torch
 import tyro
 
-from lcrl.checkpoint import CheckpointError, load_checkpoint, save_checkpoint
+from lcrl.checkpoint import save_checkpoint
 from lcrl.errors import LcrlError
 from lcrl.perception import (
+    FORMAT,
     Perception,
     PerceptionConfig,
     SlotLayout,
+    embedded_meta,
     fit_stats,
+    load_model,
+    model_meta,
     perception_loss,
 )
 
-FORMAT = "lcrl-perception"
+__all__ = [
+    "PerceptionEvalCommand",
+    "PerceptionObservation",
+    "PerceptionTrainConfig",
+    "embedded_meta",
+    "evaluate",
+    "find_perception",
+    "load_model",
+    "model_meta",
+    "read_dataset",
+    "save_model",
+    "train",
+]
+
 #: The rule captioner's reach margin and push distance, in metres (captioner.rule).
 REACH_MARGIN, PUSH_DISTANCE = 0.02, 0.05
 
@@ -218,73 +235,6 @@ def save_model(
         out / "model", modules={"perception": model}, meta=doc, json_files={"history": history}
     )
     return path
-
-
-def _checkpoint_dir(path: str | Path) -> Path:
-    """The checkpoint folder of a perception model: ``lcrl perception train --out`` (the
-    folder or its ``model`` checkpoint), or a policy checkpoint that carries one."""
-    p = Path(path)
-    if (p / "model" / "meta.json").is_file():
-        p = p / "model"
-    if not (p / "meta.json").is_file():
-        raise LcrlError(f"no perception model at {path} (train one with lcrl perception train)")
-    return p
-
-
-def model_meta(path: str | Path) -> dict[str, Any]:
-    """The meta of a perception model: of ``lcrl perception train --out`` (the folder or
-    its ``model`` checkpoint), or the ``perception`` entry of a policy checkpoint that
-    acts through one (its copy of the model it was trained with).
-
-    Raises:
-        LcrlError: no perception model there.
-    """
-    p = _checkpoint_dir(path)
-    meta = load_checkpoint(p).meta
-    if meta.get("format") == FORMAT:
-        return meta
-    embedded = meta.get("perception")
-    if isinstance(embedded, dict) and embedded.get("format") == FORMAT:
-        return embedded
-    raise CheckpointError(
-        f"{p} is neither a perception checkpoint nor a policy that carries one "
-        f"(format {meta.get('format')!r})"
-    )
-
-
-def load_model(path: str | Path, device: str = "cpu") -> tuple[Perception, dict[str, Any]]:
-    """A perception model and its meta from ``lcrl perception train --out`` (the folder or
-    its ``model`` checkpoint), or from a policy checkpoint that carries one.
-
-    Raises:
-        CheckpointError: not a perception checkpoint, or a field missing.
-    """
-    meta = model_meta(path)  # a perception model, or a clear error
-    p = _checkpoint_dir(path)
-    ckpt = load_checkpoint(p)
-    try:
-        layout = SlotLayout.of(meta["slot_layout"])
-        model = Perception(meta["frame_shape"], layout, PerceptionConfig(**meta["model"]))
-    except (KeyError, TypeError, ValueError) as e:
-        raise CheckpointError(
-            f"{p / 'meta.json'}: a perception field is missing or wrong: {e}"
-        ) from None
-    ckpt.load_module("perception", model)
-    model.to(torch.device(device)).eval()
-    return model, meta
-
-
-def embedded_meta(model: Perception, source: str) -> dict[str, Any]:
-    """What a policy checkpoint records of the perception model it acts through (its
-    weights go beside, as the module ``perception``): enough to rebuild it without the
-    folder it was trained into."""
-    return {
-        "format": FORMAT,
-        "frame_shape": list(model.frame_shape),
-        "slot_layout": model.layout.to_list(),
-        "model": asdict(model.cfg),
-        "source": str(source),
-    }
 
 
 def find_perception(env: gym.Env) -> PerceptionObservation | None:
