@@ -275,7 +275,7 @@ class BCTrainer(BaseTrainer):
         cfg = self.cfg
         directory = self.out / "checkpoints" / f"step_{self.step:09d}"
         meta, json_files = checkpoint_meta(
-            cfg, self.algo, self.problem, self.env, self.task, self.step, 0
+            cfg, self.algo, self.problem, self.env, self.task, self.step, 0, self.eval_pending
         )
         meta["demos"] = {
             "path": str(cfg.demos),
@@ -298,6 +298,7 @@ class BCTrainer(BaseTrainer):
 
     def restore(self, ckpt: Any) -> None:
         """Weights, optimiser and RNG states and the batch stream's place."""
+        self.resume_schedule(ckpt)
         for name, module in self.agent.modules().items():
             ckpt.load_module(name, module)
         self.agent.load_states({name: ckpt.state(name) for name in self.agent.states()})

@@ -34,16 +34,25 @@ __all__ = ["Trainer", "checkpoint_meta", "eval_row", "open_run"]
 
 
 def checkpoint_meta(
-    cfg: TrainConfig, algo: str, problem: Any, env: Any, task: Any, step: int, episodes: int
+    cfg: TrainConfig,
+    algo: str,
+    problem: Any,
+    env: Any,
+    task: Any,
+    step: int,
+    episodes: int,
+    eval_pending: bool = False,
 ) -> tuple[dict[str, Any], dict[str, Any]]:
     """``meta`` and JSON files of a run's checkpoint: config, algo, problem, env spaces,
-    and for language tasks the instruction table, the split and the text encoder."""
+    whether a periodic evaluation at this step is still to run, and for language tasks
+    the instruction table, the split and the text encoder."""
     meta: dict[str, Any] = {
         "config": config_to_dict(cfg),
         "algo": algo,
         "problem": problem.to_dict(),
         "step": step,
         "episodes": episodes,
+        "eval_pending": bool(eval_pending),
         "env": {
             "kind": cfg.env.kind,
             "observation_space": str(env.observation_space),
@@ -359,7 +368,14 @@ class Trainer(BaseTrainer):
         cfg = self.cfg
         directory = self.out / "checkpoints" / f"step_{self.step:09d}"
         meta, json_files = checkpoint_meta(
-            cfg, self.algo, self.problem, self.env, self.task, self.step, self.episodes
+            cfg,
+            self.algo,
+            self.problem,
+            self.env,
+            self.task,
+            self.step,
+            self.episodes,
+            self.eval_pending,
         )
         states = {
             **self.agent.states(),
@@ -394,6 +410,7 @@ class Trainer(BaseTrainer):
     def restore(self, ckpt: Any) -> None:
         """Weights, optimiser and RNG states, counters and the replay buffer of a
         checkpoint."""
+        self.resume_schedule(ckpt)
         for name, module in self.agent.modules().items():
             ckpt.load_module(name, module)
         states = {name: ckpt.state(name) for name in self.agent.states()}

@@ -23,7 +23,9 @@ Stopping
     writes a checkpoint and exits with status 130 (SIGINT) or 143 (SIGTERM); ``--resume``
     then continues exactly as if nothing had happened. While a checkpoint is being
     written, further SIGINT and SIGTERM are held back and reported, so the checkpoint is
-    always completed: stopping again only repeats the note. SIGKILL cannot be caught:
+    always completed: stopping again only repeats the note. A stop during a periodic
+    evaluation saves it as pending (:attr:`BaseTrainer.eval_pending`): the resumed run
+    evaluates at that step first, so eval.csv has every row. SIGKILL cannot be caught:
     ``--resume`` continues from the last checkpoint, cuts ``progress.csv`` and
     ``eval.csv`` back to its step and removes half-written checkpoint folders.
 """
@@ -376,6 +378,12 @@ class BaseTrainer(ABC):
     last_eval: dict[str, Any] | None = None
     #: The step of the last progress.csv row (-1: none yet).
     last_logged: int = -1
+    #: A periodic evaluation was due at :attr:`step` and did not finish (the run was
+    #: stopped during it): saved with the checkpoint, and run first when the run resumes,
+    #: so that eval.csv has the row an uninterrupted run has.
+    eval_pending: bool = False
+    #: A periodic evaluation is running (what :meth:`interrupted` saves as pending).
+    _periodic_eval: bool = False
     tb: Any = None
 
     # --- what a trainer implements -----------------------------------------------------
@@ -449,6 +457,9 @@ class BaseTrainer(ABC):
         next_log = next_multiple(self.step, cfg.log_every)
         with StopSignals() as self.signals:
             try:
+                if self.eval_pending and self.step < cfg.total_steps:
+                    self.periodic_evaluation()  # the one a stop cut short at this step
+                self.eval_pending = False
                 while self.step < cfg.total_steps:
                     before = self.step
                     self.advance()
@@ -457,7 +468,7 @@ class BaseTrainer(ABC):
                         self.log()
                         next_log = next_multiple(self.step, cfg.log_every)
                     if cfg.eval_every and self.step >= next_eval and self.step < cfg.total_steps:
-                        self.evaluate()
+                        self.periodic_evaluation()
                         next_eval = next_multiple(self.step, cfg.eval_every)
                     if (
                         cfg.checkpoint_every
@@ -474,6 +485,18 @@ class BaseTrainer(ABC):
                 bar.close()
                 self.interrupted(e)
                 raise
+
+    def periodic_evaluation(self) -> None:
+        """:meth:`evaluate`, remembered as pending while it runs: a run stopped during it
+        saves that, and its resumption runs the evaluation again at the same step."""
+        self._periodic_eval = True
+        self.evaluate()
+        self._periodic_eval = False
+
+    def resume_schedule(self, ckpt: Any) -> None:
+        """Read what the loop itself keeps in a checkpoint (an evaluation left pending);
+        called by :meth:`restore`."""
+        self.eval_pending = ckpt.meta.get("eval_pending", False) is True
 
     def holding_signals(self) -> Any:
         """A context in which SIGINT and SIGTERM wait (see :class:`StopSignals`)."""
@@ -555,6 +578,7 @@ class BaseTrainer(ABC):
         name = why.args[0] if isinstance(why, RunInterrupted) else "SIGINT"
         with self.holding_signals():
             self.rollback()
+            self.eval_pending = self._periodic_eval
             saved = getattr(self, "_saved", None)
             if saved is not None and saved[0] == self.step:
                 path = saved[1]
