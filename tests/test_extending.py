@@ -177,3 +177,42 @@ def test_unregistered_names_are_clear_errors(registered):
         TrainConfig(env=EnvConfig(kind="point", goal_type="language")).validate()
     with pytest.raises(LcrlError, match="unknown goal_type 'telepathy'"):
         TrainConfig(env=EnvConfig(kind="point", goal_type="telepathy")).validate()
+
+
+def test_a_new_goal_kind_is_one_registry_line(monkeypatch):
+    """A goal kind of the test's own: its encoder and normaliser come from the two
+    registries of the learning core, and the agent saves them under the usual names."""
+    import torch
+    from torch import nn
+
+    from lcrl.algos import GOAL_NORMALISERS, AgentOptions, Problem, SACConfig, build_agent
+    from lcrl.algos.base import vector_goal_normaliser
+    from lcrl.errors import LcrlError
+    from lcrl.nets import GOAL_ENCODERS, GoalEncoderSpec
+
+    def scaled_goal_encoder(shape, cfg, shared=None):
+        return nn.Linear(shape[0], 5), 5
+
+    monkeypatch.setitem(GOAL_ENCODERS, "scaled", GoalEncoderSpec(scaled_goal_encoder))
+    monkeypatch.setitem(GOAL_NORMALISERS, "scaled", vector_goal_normaliser)
+    problem = Problem({"observation": (4,)}, "scaled", (3,), 2)
+
+    def embed(goals, device):
+        return torch.as_tensor(np.asarray(goals), dtype=torch.float32, device=device)
+
+    options = AgentOptions(net=NetConfig(hidden=(8, 8)))
+    agent = build_agent("sac", problem, options, embed, SACConfig())
+    assert agent.act({"observation": np.zeros((2, 4), np.float32)}, np.ones((2, 3))).shape == (2, 2)
+    assert {"goal_encoder.net.weight", "goal_encoder.net.bias"} <= set(
+        agent.modules()["actor"].state_dict()
+    )
+    assert "goal.mean" in agent.modules()["norms"].state_dict()
+    monkeypatch.delitem(GOAL_NORMALISERS, "scaled")  # no entry: goals are not normalised
+    agent = build_agent("sac", problem, options, embed, SACConfig())
+    assert not any(k.startswith("goal.") for k in agent.modules()["norms"].state_dict())
+    # per-task heads pick by one-hot task ids only
+    heads = AgentOptions(net=NetConfig(hidden=(8, 8), task_heads=3))
+    with pytest.raises(LcrlError, match="picks a head by one-hot task id"):
+        build_agent("sac", problem, heads, embed, SACConfig())
+    with pytest.raises(LcrlError, match="unknown goal kind 'nowhere'"):
+        build_agent("sac", Problem({"observation": (4,)}, "nowhere", (3,), 2), options, embed)

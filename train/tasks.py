@@ -221,8 +221,9 @@ class Task:
     :meth:`embed_goals`; :meth:`from_config` builds it for a run.
     """
 
-    #: The network's goal encoder (:class:`lcrl.nets.GoalEncoder` kinds: ``vector``,
-    #: ``text``, ``onehot``, ``image``); it also picks the goal normaliser of the learner.
+    #: How the networks read the goals: a key of :data:`lcrl.nets.GOAL_ENCODERS`
+    #: (``vector``, ``text``, ``onehot``, ``image``), which names the goal encoder; it
+    #: also picks the learner's goal normaliser (:data:`lcrl.algos.GOAL_NORMALISERS`).
     goal_kind = "vector"
     #: Evaluation sets (seen instructions first).
     sets: tuple[str, ...] = ("train",)
