@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import errno
 import json
+import re
 import shutil
 import subprocess
 import uuid
@@ -64,9 +65,39 @@ def edit_meta(run: Path, change) -> Path:
         (lambda m: m.update(algo="ppo"), "'algo' is 'ppo'"),
         (lambda m: m.update(step="many"), "'step'"),
         (lambda m: m.update(config=[1, 2]), "'config'"),
-        (lambda m: m["config"].update(env=7), "'config'"),
-        (lambda m: m["problem"].pop("goal_kind"), "'goal_kind'"),
+        (lambda m: m["config"].update(env=7), "'config.env' should be an object, not int 7"),
+        (
+            lambda m: m["config"]["agent"]["net"].update(hidden="big"),
+            "'config.agent.net.hidden' should be a list of integers, not str 'big'",
+        ),
+        (
+            lambda m: m["config"]["buffer"].update(k=2.5),
+            "'config.buffer.k' should be an integer, not float 2.5",
+        ),
+        (
+            lambda m: m["config"]["env"].update(discrete="no"),
+            "'config.env.discrete' should be true or false, not str 'no'",
+        ),
+        (
+            lambda m: m["config"]["sac"].update(max_grad_norm=[1]),
+            "'config.sac.max_grad_norm' should be a number or null, not list [1]",
+        ),
+        (lambda m: m["problem"].pop("goal_kind"), "'problem.goal_kind' is missing"),
+        (
+            lambda m: m["problem"].update(action_dim="3"),
+            "'problem.action_dim' should be a positive integer, not str '3'",
+        ),
+        (
+            lambda m: m["problem"].update(goal_shape=["3"]),
+            "'problem.goal_shape' should be a list of integers, not list ['3']",
+        ),
+        (
+            lambda m: m["problem"].update(discrete=0),
+            "'problem.discrete' should be true or false, not int 0",
+        ),
+        (lambda m: m["problem"].update(goal_kind="smell"), "'problem.goal_kind' should be one"),
         (lambda m: m.pop("problem"), "'problem'"),
+        (lambda m: m.update(eval_pending="yes"), "'eval_pending' should be true or false"),
     ],
 )
 def test_bad_meta_fields_name_the_file_and_the_field(copy_run, capsys, change, field):
@@ -74,7 +105,7 @@ def test_bad_meta_fields_name_the_file_and_the_field(copy_run, capsys, change, f
     assert cli("eval", str(copy_run), "--episodes", "1", "--no-progress") == 2
     line = error_line(capsys.readouterr().err)
     assert line.startswith("lcrl: error:") and str(meta) in line and field in line
-    with pytest.raises(CheckpointError, match=field):
+    with pytest.raises(CheckpointError, match=re.escape(field)):
         lcrl.load(copy_run)
     assert resume(copy_run) == 2
     line = error_line(capsys.readouterr().err)
@@ -83,6 +114,42 @@ def test_bad_meta_fields_name_the_file_and_the_field(copy_run, capsys, change, f
 
 def resume(run: Path) -> int:
     return cli("train", "state2d", "--out", str(run), "--resume", "--total-steps", "200")
+
+
+def edit_state(run: Path, name: str, change) -> Path:
+    """Edit the JSON skeleton of one state in state.json (a dict node: ``items`` of
+    ``[key, value]`` pairs)."""
+    path = find_latest(run) / "state.json"
+    doc = json.loads(path.read_text())
+    change(doc["states"][name])
+    path.write_text(json.dumps(doc))
+    return path
+
+
+def drop(key):
+    return lambda node: node.update(items=[kv for kv in node["items"] if kv[0] != key])
+
+
+def set_item(key, value):
+    return lambda node: node.update(items=[[k, value if k == key else v] for k, v in node["items"]])
+
+
+@pytest.mark.parametrize(
+    ("name", "change", "message"),
+    [
+        ("trainer", drop("credit"), "the field 'trainer.credit' is missing"),
+        ("trainer", set_item("episodes", "7"), "'trainer.episodes' should be an integer >= 0"),
+        ("trainer", set_item("recent", "none"), "'trainer.recent' should be a list of numbers"),
+        ("counters", drop("updates"), "the field 'updates' of the learner's states is missing"),
+        ("trainer_rng", drop("state"), "the field 'state' of the state 'trainer_rng' is missing"),
+        ("trainer_rng", set_item("bit_generator", "MT19937"), "'trainer_rng' cannot be restored"),
+    ],
+)
+def test_bad_state_fields_name_the_file_and_the_field(copy_run, capsys, name, change, message):
+    path = edit_state(copy_run, name, change)
+    assert resume(copy_run) == 2
+    line = error_line(capsys.readouterr().err)
+    assert line.startswith(f"lcrl: error: {path}: ") and message in line
 
 
 def test_latest_json_naming_a_missing_checkpoint(copy_run, capsys):

@@ -48,6 +48,7 @@ from lcrl.errors import LcrlError
 from train.config import PRESETS, TrainConfig
 from train.evaluate import build_agent, build_task
 from train.loop import checkpoint_meta
+from train.run_meta import restoring, state_fields
 from train.tasks import make_env, make_task
 from train.trainer import BaseTrainer, open_run, prune_checkpoints
 
@@ -299,10 +300,12 @@ class BCTrainer(BaseTrainer):
     def restore(self, ckpt: Any) -> None:
         """Weights, optimiser and RNG states and the batch stream's place."""
         self.resume_schedule(ckpt)
+        trainer = state_fields(ckpt, "trainer", {"step": int})
         for name, module in self.agent.modules().items():
             ckpt.load_module(name, module)
-        self.agent.load_states({name: ckpt.state(name) for name in self.agent.states()})
-        self.step = int(ckpt.state("trainer")["step"])
+        with restoring(ckpt, "the learner's states"):
+            self.agent.load_states({name: ckpt.state(name) for name in self.agent.states()})
+        self.step = int(trainer["step"])
         print(f"resumed {self.out} at update {self.step}")
 
 

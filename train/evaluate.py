@@ -63,8 +63,10 @@ def build_task(cfg: TrainConfig, env: gym.Env, ckpt: Checkpoint | None = None) -
     encoder = FrozenTextEncoder(cfg.text_encoder)
     kwargs: dict[str, Any] = {}
     if ckpt is not None:
-        table = ckpt.json("instructions")
-        kwargs = {"table": table["texts"], "num_train": table["num_train"]}
+        from train.run_meta import instruction_table
+
+        texts, num_train = instruction_table(ckpt)
+        kwargs = {"table": texts, "num_train": num_train}
     task = make_task(cfg.env, env, encoder.encode, **kwargs)
     task.encoder = encoder  # type: ignore[attr-defined]
     return task

@@ -27,6 +27,7 @@ from lcrl.multitask import CONFLICT_KEYS, TaskSampler
 from train.config import TrainConfig, config_to_dict
 from train.environments import canonical_kind
 from train.evaluate import build_agent, build_task
+from train.run_meta import restoring, state_fields
 from train.tasks import ScriptedActor, is_language, make_env, reset_feasible, task_texts
 from train.trainer import BaseTrainer, eval_row, open_run, prune_checkpoints
 
@@ -411,23 +412,32 @@ class Trainer(BaseTrainer):
         """Weights, optimiser and RNG states, counters and the replay buffer of a
         checkpoint."""
         self.resume_schedule(ckpt)
+        trainer = state_fields(
+            ckpt,
+            "trainer",
+            {"step": int, "episodes": int, "recent": list, "credit": float},
+            optional={"sim_errors": int, "scripted_episodes": int},
+        )
         for name, module in self.agent.modules().items():
             ckpt.load_module(name, module)
-        states = {name: ckpt.state(name) for name in self.agent.states()}
-        self.agent.load_states(states)
-        self.buffer.rng.bit_generator.state = ckpt.state("buffer_rng")
-        self.rng.bit_generator.state = ckpt.state("trainer_rng")
+        with restoring(ckpt, "the learner's states"):
+            states = {name: ckpt.state(name) for name in self.agent.states()}
+            self.agent.load_states(states)
+        for name, rng in (("buffer_rng", self.buffer.rng), ("trainer_rng", self.rng)):
+            with restoring(ckpt, f"the state {name!r}"):
+                rng.bit_generator.state = ckpt.state(name)
         if ckpt.has_state("scripted_rng"):
-            self.scripted_rng.bit_generator.state = ckpt.state("scripted_rng")
-        trainer = ckpt.state("trainer")
+            with restoring(ckpt, "the state 'scripted_rng'"):
+                self.scripted_rng.bit_generator.state = ckpt.state("scripted_rng")
         self.step, self.episodes = int(trainer["step"]), int(trainer["episodes"])
         self.sim_errors = int(trainer.get("sim_errors", 0))
         self.scripted_episodes = int(trainer.get("scripted_episodes", 0))
-        self.recent.extend(trainer["recent"])
+        self.recent.extend(float(x) for x in trainer["recent"])
         self._credit = float(trainer["credit"])
         if self.sampler is not None and ckpt.has_state("task_sampler"):
-            self.sampler.load_state_dict(ckpt.state("task_sampler"))
-            self.task_rng.bit_generator.state = ckpt.state("task_rng")
+            with restoring(ckpt, "the states 'task_sampler' and 'task_rng'"):
+                self.sampler.load_state_dict(ckpt.state("task_sampler"))
+                self.task_rng.bit_generator.state = ckpt.state("task_rng")
         if ckpt.has_arrays():
             self.buffer.load_arrays(ckpt.arrays())
         print(f"resumed {self.out} at step {self.step} ({self.episodes} episodes)")
