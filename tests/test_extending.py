@@ -216,3 +216,31 @@ def test_a_new_goal_kind_is_one_registry_line(monkeypatch):
         build_agent("sac", problem, heads, embed, SACConfig())
     with pytest.raises(LcrlError, match="unknown goal kind 'nowhere'"):
         build_agent("sac", Problem({"observation": (4,)}, "nowhere", (3,), 2), options, embed)
+
+
+def test_reports_and_messages_read_the_goal_modality_not_its_name(monkeypatch):
+    """A second task-id goal type, under a name of its own: reports, the policy's
+    description and the presets' checks treat it as task ids from its registry entry."""
+    from train.config import TASKS_2D
+    from train.policy import describe_env
+    from train.report import learning_summary, task_name
+    from train.tasks import TaskIdTask
+
+    numbered = GoalModality(
+        TaskIdTask, "numbered tasks", instructed=True, needs_tasks=True, relabel=False,
+        label="numbered tasks",
+    )  # fmt: skip
+    monkeypatch.setitem(GOALS, "numbered", numbered)
+    env = {"kind": "tabletop2d", "goal_type": "numbered", "tasks": list(TASKS_2D[:2])}
+    assert task_name(env) == "2D tabletop, 2 tasks as numbered tasks"
+    assert learning_summary({"algo": "sac", "env": env}) == "numbered tasks, no relabelling"
+    assert numbered.task_ids and not numbered.text
+    cfg = TrainConfig(env=EnvConfig(kind="tabletop2d", goal_type="numbered", tasks=TASKS_2D[:2]))
+    assert describe_env(cfg).endswith("(numbered goals), 2 task ids")
+    # a language-goal type under another name reads its families, as language goals do
+    monkeypatch.setitem(GOALS, "words", GOALS["language"])
+    words = {"kind": "tabletop2d", "goal_type": "words", "families": ["reach"]}
+    assert task_name(words) == "2D tabletop reach"
+    assert task_name({"kind": "tabletop2d", "goal_type": "mystery"}) == (
+        "2D tabletop (mystery goals)"
+    )

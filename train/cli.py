@@ -157,6 +157,7 @@ class EvalCommand:
         )
         from train.evaluate import load_policy, resolve_checkpoint
         from train.run_meta import run_meta
+        from train.tasks import goal_modality
 
         if self.episodes <= 0:
             raise LcrlError("--episodes must be positive")
@@ -174,7 +175,7 @@ class EvalCommand:
         # a fixed task set: options that cannot apply fail before the policy is built
         saved = run_meta(load_checkpoint(resolve_checkpoint(self.checkpoint))).config.env
         tasks = tuple(" ".join(str(t).split()) for t in saved.tasks)
-        if saved.goal_type == "task":
+        if goal_modality(saved.goal_type).task_ids:
             check_task_id_options(len(tasks), self.sets, bool(self.instructions), self.chain)
         if tasks and self.families:
             raise LcrlError(

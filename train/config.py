@@ -432,7 +432,7 @@ def _lang2d_tasks(goal_type: str, **overrides: Any) -> TrainConfig:
     """The 8 tasks of :data:`TASKS_2D` on the 2D tabletop, 30k steps: one-hot task ids
     without relabelling (``task``) or the same instructions as language goals with
     language HER (``language``); gradient conflict measured every 10 updates."""
-    relabel = goal_type == "language"
+    relabel = goal_modality(goal_type).relabel
     agent = _net2d()
     agent.multitask = MultiTaskOptions(conflict_every=10)
     cfg = _lang2d(

@@ -427,6 +427,8 @@ class AlgoSpec:
             gradient-conflict measurement).
         learns_from: ``env`` (online RL on a replay buffer) or ``demos`` (demonstrations).
         summary: one line for listings.
+        title: how it learns, in a few words for reports (``behavioural cloning``);
+            empty: its name.
     """
 
     name: str
@@ -436,6 +438,7 @@ class AlgoSpec:
     multitask: bool = False
     learns_from: str = "env"
     summary: str = ""
+    title: str = ""
 
     def __post_init__(self) -> None:
         if self.actions not in ACTION_KINDS:
@@ -447,6 +450,13 @@ class AlgoSpec:
                 f"AlgoSpec {self.name!r} names agent class {self.agent.__name__} whose name is "
                 f"{self.agent.name!r}"
             )
+
+    @property
+    def unit(self) -> str:
+        """What ``total_steps`` and the ``*_every`` settings of its runs count: ``step``
+        (environment steps, online RL) or ``update`` (gradient updates on
+        demonstrations)."""
+        return "update" if self.learns_from == "demos" else "step"
 
     def takes(self, discrete: bool) -> bool:
         """Whether the algorithm takes discrete (or continuous) actions."""
