@@ -68,10 +68,10 @@ class PointEnv(gym.Env):
 class OffsetTask(Task):
     """Goals are displacements from the episode's start position."""
 
-    goal_kind = "vector"  # the network reads the goal as a vector
+    goal_kind = "vector"  # the network's goal encoder (and goal normaliser)
 
     def __init__(self, env: gym.Env, image_obs: bool = False) -> None:
-        super().__init__(env)
+        super().__init__(env)  # action space: scaling, random actions
         unwrapped = env.unwrapped
         self.obs_shapes = {"observation": (2,), "initial": (2,)}
 
@@ -85,36 +85,57 @@ class OffsetTask(Task):
         return cls(env)
 
     def storage_obs(self, obs: Mapping[str, Any], first: Mapping[str, Any]) -> dict:
+        # arrays the buffer stores per step
         return {
             "observation": np.asarray(obs["observation"], np.float32),
             "initial": np.asarray(first["observation"], np.float32),
         }
 
     def goal(self, obs: Mapping[str, Any], env: gym.Env) -> np.ndarray:
-        # the first observation of an episode: where to go, from here
+        # the goal of the episode, from its first observation: where to go, from here
         return np.asarray(obs["desired_goal"] - obs["achieved_goal"], np.float32)
 
     def step_record(self, obs: Mapping[str, Any], env: gym.Env) -> Any:
-        return np.asarray(obs["achieved_goal"], np.float32)
+        return np.asarray(obs["achieved_goal"], np.float32)  # what to remember of a step
 
     def episode_fields(self, records: list[Any], goal: Any, env: gym.Env) -> dict[str, Any]:
+        # the goal-space fields of the episode
         achieved = np.stack(records)
         return {"achieved_goal": achieved - achieved[0], "desired_goal": goal}
 
     def embed_goals(self, goals: np.ndarray) -> np.ndarray:
-        return goals
+        return goals  # goals as the learner's input
 
     def eval_goal(self, obs: Mapping[str, Any], start: Any) -> Any:
+        # the goal in evaluation's vector envs, from the first observation alone
         return self.goal(obs, None)  # type: ignore[arg-type]
 
 
 @pytest.fixture
-def registered(monkeypatch):
-    """``point`` and ``offset`` in the registries for one test."""
-    monkeypatch.setitem(
-        ENVS, "point", EnvSpec(make=lambda cfg: PointEnv(), goal_types=("offset", "state"))
-    )
-    monkeypatch.setitem(GOALS, "offset", GoalModality(OffsetTask, "offsets from the start"))
+def registries():
+    """The registries as they were before the test, whatever it registered."""
+    saved = dict(ENVS), dict(GOALS)
+    yield
+    for registry, before in zip((ENVS, GOALS), saved, strict=True):
+        registry.clear()
+        registry.update(before)
+
+
+@pytest.fixture
+def registered(registries):
+    """``point`` and ``offset`` in the registries for one test, as docs/extending.md
+    registers them."""
+    GOALS["offset"] = GoalModality(OffsetTask, "offsets from the start")
+    ENVS["point"] = EnvSpec(make=lambda cfg: PointEnv(), goal_types=("offset", "state"))
+
+
+def test_a_simulator_takes_the_goal_types_it_lists(registries):
+    ENVS["point"] = EnvSpec(make=lambda cfg: PointEnv(), goal_types=("state",))
+    TrainConfig(env=EnvConfig(kind="point", goal_type="state")).validate()
+    from lcrl.errors import LcrlError
+
+    with pytest.raises(LcrlError, match=r"supports the goal types \('state',\), not 'image'"):
+        TrainConfig(env=EnvConfig(kind="point", goal_type="image")).validate()
 
 
 def config(out, k: int, steps: int) -> TrainConfig:
