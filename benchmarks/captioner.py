@@ -40,7 +40,7 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
 from benchmarks.common import RESULTS_DIR, machine, save_figure, save_json, save_markdown
-from captioner.dataset import CaptionDataset, CollectConfig, collect
+from captioner.dataset import CaptionDataset, CollectConfig
 from captioner.learned import (
     CaptionModelConfig,
     CaptionTrainConfig,
@@ -49,6 +49,7 @@ from captioner.learned import (
     format_results,
     train_models,
 )
+from train.captions import collect
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -3,14 +3,17 @@
 A learned captioner reads (first frame, current frame) and writes the instruction that the
 change between them achieved; a learned reward model scores (instruction, first frame,
 current frame). Both learn from episodes labelled by the rule captioner, which
-:func:`collect` gathers on either tabletop: random episodes (held random actions),
-scripted episodes (the scripted controller following an instruction feasible in the
-layout, train or held-out, with action noise) and, given a checkpoint, policy episodes.
+:func:`collect` gathers on a simulator the caller gives (a :class:`CaptionSimulator`;
+``lcrl caption collect`` passes an entry of :data:`train.environments.ENVS`): random
+episodes (held random actions), scripted episodes (the scripted controller following an
+instruction feasible in the layout, train or held-out, with action noise) and, given a
+checkpoint, policy episodes.
 
 File layout (``format = "lcrl-caption-dataset"``, ``version = 1``)::
 
-    attrs      format, version, meta (JSON: env, families, split seed, image size,
-               sources, collect settings)
+    attrs      format, version, meta (JSON: env (the simulator's name, ``lang2d`` for
+               the 2D tabletop), families, split seed, image size, sources, collect
+               settings)
     instructions         (I,) str   canonical instructions: the split's train set first,
                                     then its held-out combinations
     instruction_set      (I,) str   "train" or "heldout" for each instruction
@@ -41,14 +44,14 @@ from __future__ import annotations
 
 import json
 import os
-from collections.abc import Iterator, Sequence
+from collections.abc import Callable, Iterator, Sequence
 from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Any, Protocol
 
 import numpy as np
 
-from captioner.grammar import FAMILIES, FAMILIES_2D, Instruction
+from captioner.grammar import Instruction
 from captioner.rule import RuleCaptioner
 from captioner.splits import Split, make_split
 from envs.scene import SceneState
@@ -57,15 +60,14 @@ from lcrl.errors import LcrlError
 FORMAT = "lcrl-caption-dataset"
 VERSION = 1
 SOURCES: tuple[str, ...] = ("random", "scripted", "policy")
-ENVS: tuple[str, ...] = ("lang2d", "robosuite")
 
 __all__ = [
-    "ENVS",
     "FORMAT",
     "SOURCES",
     "VERSION",
     "CaptionDataset",
     "CaptionDatasetWriter",
+    "CaptionSimulator",
     "CollectConfig",
     "collect",
     "instruction_table",
@@ -377,8 +379,9 @@ class CollectConfig:
     out: str = "data/captions-lang2d.h5"
     """The HDF5 file to write."""
     env: str = "lang2d"
-    """``lang2d`` (the 2D tabletop, top-down frames) or ``robosuite`` (the Panda
-    tabletop's agentview camera)."""
+    """The simulator: a kind of :data:`train.environments.ENVS` with instructions,
+    ``lang2d`` or ``tabletop2d`` (the 2D tabletop, top-down frames) or ``robosuite`` (the
+    Panda tabletop's agentview camera)."""
     episodes: int = 200
     """Episodes to collect, shared out over ``sources`` in turn."""
     sources: tuple[str, ...] = ("random", "scripted")
@@ -388,8 +391,9 @@ class CollectConfig:
     policy: str = ""
     """Checkpoint or run folder acting the ``policy`` episodes (its env must be ``env``)."""
     families: tuple[str, ...] = ()
-    """Instruction families labelled (and followed by scripted episodes); empty: reach,
-    push and put on the 2D tabletop, every family on robosuite."""
+    """Instruction families labelled (and followed by scripted episodes); empty: every
+    family of the simulator (reach, push and put on the 2D tabletop, all five on
+    robosuite)."""
     split_seed: int = 0
     """Seed of the compositional split whose held-out combinations are marked."""
     image_size: int = 64
@@ -414,19 +418,24 @@ class CollectConfig:
     progress: bool = True
     """Show a progress bar."""
 
-    def validate(self) -> None:
-        """Raise :class:`LcrlError` for bad settings."""
-        if self.env not in ENVS:
-            raise LcrlError(f"unknown env {self.env!r}; choose one of {ENVS}")
+    def validate(self, simulator: CaptionSimulator | None = None) -> None:
+        """Raise :class:`LcrlError` for bad settings (with ``simulator``: also families
+        outside its own, and scripted episodes on a simulator without a controller)."""
         bad = [s for s in self.sources if s not in SOURCES]
         if bad or not self.sources:
             raise LcrlError(f"sources must be among {SOURCES}, got {self.sources}")
         if "policy" in self.sources and not self.policy:
             raise LcrlError("policy episodes need --policy CHECKPOINT")
-        allowed = FAMILIES_2D if self.env == "lang2d" else FAMILIES
-        bad = [f for f in self.families if f not in allowed]
-        if bad:
-            raise LcrlError(f"the {self.env} env supports the families {allowed}, not {bad}")
+        if simulator is not None:
+            allowed = simulator.families
+            bad = [f for f in self.families if f not in allowed]
+            if bad:
+                raise LcrlError(f"the {self.env} env supports the families {allowed}, not {bad}")
+            if "scripted" in self.sources and simulator.scripted is None:
+                raise LcrlError(
+                    f"the {self.env} env has no scripted controller: collect with --sources "
+                    "random (or policy)"
+                )
         for name in ("episodes", "max_episode_steps", "random_action_repeat"):
             if getattr(self, name) <= 0:
                 raise LcrlError(f"{name} must be positive, got {getattr(self, name)}")
@@ -437,35 +446,64 @@ class CollectConfig:
         if self.min_objects > self.max_objects:
             raise LcrlError("min_objects is larger than max_objects")
 
-    def resolved_families(self) -> tuple[str, ...]:
+    def resolved_families(self, simulator: CaptionSimulator) -> tuple[str, ...]:
+        """The families to label: :attr:`families`, or all of the simulator's."""
         if self.families:
             return tuple(self.families)
-        return FAMILIES_2D if self.env == "lang2d" else FAMILIES
+        return tuple(simulator.families)
+
+
+def _scene(env: Any) -> SceneState:
+    return env.unwrapped.scene()
+
+
+@dataclass(frozen=True)
+class CaptionSimulator:
+    """The simulator a caption dataset is collected on, given by the caller of
+    :func:`collect` (``lcrl caption collect`` builds it from an entry of
+    :data:`train.environments.ENVS`, so any simulator registered there with instruction
+    families and a scene reader can collect).
+
+    Attributes:
+        name: recorded as the dataset's ``meta["env"]`` (``lang2d`` for the 2D tabletop,
+            as files have always said).
+        make: ``cfg -> env``: the simulator with camera frames of ``cfg.image_size``
+            (``image`` in its observation) and ``cfg.min_objects`` to
+            ``cfg.max_objects`` objects, without a time limit. Its unwrapped env has
+            ``slot_layout = (start, count, width)`` (the first ``start`` values of
+            ``observation`` are the robot's own state) and ``position_dims``.
+        families: the instruction families of its rule captioner (the split's).
+        scripted: ``() -> controller`` with ``act(meaning, s0, scene)`` (and optionally
+            ``reset()``), for scripted episodes; None: it has none.
+        scene: ``env -> SceneState``: the privileged scene the rule captioner reads
+            (default: ``env.unwrapped.scene()``).
+    """
+
+    name: str
+    make: Callable[[CollectConfig], Any]
+    families: tuple[str, ...]
+    scripted: Callable[[], Any] | None = None
+    scene: Callable[[Any], SceneState] = _scene
 
 
 class _Source:
-    """One tabletop with camera frames, its scripted controller and the rule captioner."""
+    """One simulator with camera frames, its scripted controller and the rule captioner."""
 
-    def __init__(self, cfg: CollectConfig, families: tuple[str, ...]) -> None:
-        kwargs = {
-            "num_objects": (cfg.min_objects, cfg.max_objects),
-            "image": True,
-            "image_size": cfg.image_size,
-        }
-        if cfg.env == "lang2d":
-            from captioner.scripted import ScriptedController2D
-            from envs.tabletop2d import Tabletop2DEnv
-
-            self.env: Any = Tabletop2DEnv(**kwargs)
-            self.controller: Any = ScriptedController2D()
-        else:
-            from captioner.scripted3d import ScriptedController3D
-            from envs.robosuite_tabletop import RobosuiteTabletopEnv
-
-            self.env = RobosuiteTabletopEnv(**kwargs)
-            self.controller = ScriptedController3D()
-        self.proprio_dim = int(self.env.slot_layout[0])
+    def __init__(
+        self, cfg: CollectConfig, simulator: CaptionSimulator, families: tuple[str, ...]
+    ) -> None:
+        self.env: Any = simulator.make(cfg)
+        self.controller: Any = simulator.scripted() if simulator.scripted else None
+        self._scene = simulator.scene
+        base = self.env.unwrapped
+        self.slot_layout = tuple(int(v) for v in base.slot_layout)
+        self.position_dims = int(base.position_dims)
+        self.proprio_dim = self.slot_layout[0]
         self.captioner = RuleCaptioner(families)
+
+    def scene(self) -> SceneState:
+        """The privileged scene now."""
+        return self._scene(self.env)
 
     def close(self) -> None:
         self.env.close()
@@ -503,18 +541,23 @@ class EpisodeSource(Protocol):
         ...
 
 
-def collect(cfg: CollectConfig, policy: EpisodeSource | None = None) -> Path:
+def collect(
+    cfg: CollectConfig, simulator: CaptionSimulator, policy: EpisodeSource | None = None
+) -> Path:
     """Collect ``cfg.episodes`` labelled episodes into ``cfg.out``; returns the path.
 
     Args:
         cfg: what to collect.
+        simulator: where (``lcrl caption collect`` passes the entry of
+            :data:`train.environments.ENVS` that ``cfg.env`` names:
+            :func:`train.captions.collect`).
         policy: acts the ``policy`` episodes (``lcrl caption collect`` loads
             ``cfg.policy`` with :func:`train.captions.collect`).
 
     Ctrl-C stops collecting and keeps the episodes finished so far (the file is
     completed before the interrupt is raised again).
     """
-    cfg.validate()
+    cfg.validate(simulator)
     if "policy" in cfg.sources and policy is None:
         raise LcrlError(
             "policy episodes need a trained policy to act them: collect them with "
@@ -524,17 +567,17 @@ def collect(cfg: CollectConfig, policy: EpisodeSource | None = None) -> Path:
 
     from captioner.grammar import parse
 
-    families = cfg.resolved_families()
-    split = make_split(cfg.split_seed, FAMILIES_2D if cfg.env == "lang2d" else FAMILIES)
+    families = cfg.resolved_families(simulator)
+    split = make_split(cfg.split_seed, simulator.families)
     texts, sets = instruction_table(split)
     keep = [i for i, t in enumerate(texts) if t.split()[0] in families]
     texts = [texts[i] for i in keep]
     sets = [sets[i] for i in keep]
     table = [parse(t) for t in texts]
-    src = _Source(cfg, families)
+    src = _Source(cfg, simulator, families)
     rng = np.random.default_rng(cfg.seed)
     meta = {
-        "env": cfg.env,
+        "env": simulator.name,
         "families": list(families),
         "split_seed": cfg.split_seed,
         "split_fingerprint": split.fingerprint(),
@@ -542,7 +585,7 @@ def collect(cfg: CollectConfig, policy: EpisodeSource | None = None) -> Path:
         "sources": list(SOURCES),
         "collect": asdict(cfg),
         # where the object slots are in each stored state (what perception predicts)
-        "slot_layout": [*map(int, src.env.slot_layout), int(src.env.position_dims)],
+        "slot_layout": [*src.slot_layout, src.position_dims],
     }
     first = src.env.reset(seed=cfg.seed)[0]
     writer = CaptionDatasetWriter(
@@ -593,7 +636,7 @@ def _episode(
     """One random or scripted episode and the scenes it went through."""
     env = src.env
     obs, _ = env.reset(seed=seed)
-    s0 = env.scene()
+    s0 = src.scene()
     target = -1
     if kind == "scripted":
         want = "heldout" if rng.random() < cfg.heldout_fraction else "train"
@@ -602,7 +645,7 @@ def _episode(
             if choice is not None:
                 break
             obs, _ = env.reset(seed=int(rng.integers(2**31)))
-            s0 = env.scene()
+            s0 = src.scene()
         if choice is None:
             raise LcrlError(f"no {want} instruction is feasible in 20 layouts")
         target = choice
@@ -627,7 +670,7 @@ def _episode(
         frames.append(obs["image"])
         proprio.append(_proprio(obs, src.proprio_dim))
         states.append(np.asarray(obs["observation"], np.float32))
-        scenes.append(env.scene())
+        scenes.append(src.scene())
         if kind == "scripted" and src.captioner.satisfied(table[target], s0, scenes[-1]):
             break
         if terminated or truncated or info.get("sim_error"):

@@ -51,6 +51,7 @@ __all__ = [
     "FORMAT_VERSION",
     "Checkpoint",
     "CheckpointError",
+    "CheckpointWriteError",
     "find_latest",
     "flatten_state",
     "load_checkpoint",
@@ -96,6 +97,36 @@ _NATIVE_NUMPY_DTYPES = frozenset(
 
 class CheckpointError(LcrlError, ValueError):
     """A checkpoint cannot be written or read (missing or corrupt file, wrong format, mismatch)."""
+
+
+class CheckpointWriteError(CheckpointError):
+    """Writing a checkpoint failed (a full disk, a folder that became read-only): nothing
+    was changed at the checkpoint's path.
+
+    Attributes:
+        path: the file (or folder) whose write failed, named by its final place.
+        problem: what went wrong, in a few words (``No space left on device``).
+    """
+
+    def __init__(self, path: Path, problem: str) -> None:
+        super().__init__(f"cannot write {path}: {problem}")
+        self.path = path
+        self.problem = problem
+
+
+def write_problem(exc: BaseException) -> str:
+    """What a failed write says, in a few words: the ``strerror`` of an ``OSError``, the
+    operating system's message inside a safetensors error (``No space left on device``),
+    else the first line of the exception."""
+    if isinstance(exc, OSError) and exc.strerror:
+        return exc.strerror
+    text = str(exc).strip()
+    found = re.search(r"I/O error: (.+?)(?: \(os error \d+\))?$", text, re.MULTILINE)
+    if found is None:
+        found = re.search(r'message: "([^"]+)"', text)
+    if found is not None:
+        return found.group(1)
+    return text.splitlines()[0] if text else type(exc).__name__
 
 
 # ----------------------------------------------------------------------------------------------
@@ -378,6 +409,9 @@ def save_checkpoint(
     Raises:
         CheckpointError: If an input cannot be stored (bad name, non-JSON value, object
             array, unsupported state value) or ``directory`` exists and is not a checkpoint.
+        CheckpointWriteError: If a file cannot be written (a full disk, a read-only
+            folder: safetensors, JSON and npz writes alike); the message names the file
+            by its final path, and whatever was at ``directory`` is left there.
     """
     final = Path(directory)
     target = Path(os.path.abspath(final))
@@ -403,29 +437,45 @@ def save_checkpoint(
                 f"without {META_FILE}"
             )
 
-    parent.mkdir(parents=True, exist_ok=True)
-    # (Not tempfile.mkdtemp: its 0o700 mode would stick to the checkpoint; os.mkdir uses umask.)
-    tmp = parent / f".{target.name}.tmp-{uuid.uuid4().hex[:12]}"
-    os.mkdir(tmp)
+    writing = final  # what is being written, named by its final place
     try:
+        parent.mkdir(parents=True, exist_ok=True)
+        # (Not tempfile.mkdtemp: its 0o700 mode would stick to the checkpoint; os.mkdir
+        # uses umask.)
+        tmp = parent / f".{target.name}.tmp-{uuid.uuid4().hex[:12]}"
+        os.mkdir(tmp)
+    except OSError as exc:
+        raise CheckpointWriteError(final, write_problem(exc)) from exc
+    try:
+        writing = final / WEIGHTS_FILE
         safetensors.torch.save_file(
             weights,
             tmp / WEIGHTS_FILE,
             metadata={_MODULES_METADATA_KEY: json.dumps(module_keys)},
         )
         _fsync_file(tmp / WEIGHTS_FILE)
+        writing = final / STATE_TENSORS_FILE
         safetensors.torch.save_file(state_tensors, tmp / STATE_TENSORS_FILE)
         _fsync_file(tmp / STATE_TENSORS_FILE)
+        writing = final / STATE_JSON_FILE
         state_doc = {"format_version": FORMAT_VERSION, "states": skeletons}
         _write_text(tmp / STATE_JSON_FILE, json.dumps(state_doc))
         for name, text in json_texts.items():
+            writing = final / f"{name}.json"
             _write_text(tmp / f"{name}.json", text)
         if array_dict is not None:
+            writing = final / ARRAYS_FILE
             write_npz(tmp / ARRAYS_FILE, array_dict)
         # meta.json last: a directory with meta.json is a complete checkpoint.
+        writing = final / META_FILE
         _write_text(tmp / META_FILE, meta_text)
+        writing = final
         _fsync_dir(tmp)
         _move_into_place(tmp, target)
+    except (OSError, safetensors.SafetensorError) as exc:
+        # a full disk, a folder that became read-only: one error naming the file
+        shutil.rmtree(tmp, ignore_errors=True)
+        raise CheckpointWriteError(writing, write_problem(exc)) from exc
     except BaseException:
         shutil.rmtree(tmp, ignore_errors=True)
         raise

@@ -6,7 +6,7 @@ A network sees an observation and a goal through *separate* encoders, then fuses
   identity) for vector keys, a CNN for uint8 image keys (``(H, W, C)``);
 * the goal encoder is an MLP (or the identity) for vector goals, a learned projection of
   the frozen text embedding for language goals, a linear layer for one-hot task ids, or a
-  CNN for image goals;
+  CNN for image goals: :data:`GOAL_ENCODERS` names the encoder of each goal kind;
 * fusion is concatenation followed by an MLP (default), or FiLM: the goal produces a
   per-unit scale and shift for every hidden layer of the MLP that reads the observation.
 
@@ -18,7 +18,7 @@ from __future__ import annotations
 
 import itertools
 import math
-from collections.abc import Iterable, Mapping, Sequence
+from collections.abc import Callable, Iterable, Mapping, Sequence
 from dataclasses import dataclass
 
 import torch
@@ -28,7 +28,6 @@ from torch import nn
 from lcrl.errors import LcrlError
 
 FUSIONS = ("concat", "film")
-GOAL_KINDS = ("vector", "text", "onehot", "image")
 SLOT_MODES = ("attention", "select")
 
 
@@ -307,41 +306,100 @@ class ObsEncoder(nn.Module):
         return feats[0] if len(feats) == 1 else torch.cat(feats, -1)
 
 
+#: ``(goal shape, network config, shared CNN or None) -> (module, output width)``.
+GoalEncoderFactory = Callable[[tuple[int, ...], NetConfig, nn.Module | None], tuple[nn.Module, int]]
+
+
+@dataclass(frozen=True)
+class GoalEncoderSpec:
+    """One goal kind of :data:`GOAL_ENCODERS`.
+
+    Attributes:
+        make: builds the encoder's module and gives its output width. It is stored as
+            the :class:`GoalEncoder`'s ``net`` (so its parameters are saved as
+            ``net.*``). With ``share_cnn`` and an image-shaped goal ``(H, W, C)`` it gets
+            the observation encoder's CNN, which reads the goal instead (the module it
+            returns then holds no parameters of its own).
+        task_ids: goals are one-hot task ids: per-task output heads
+            (:attr:`NetConfig.task_heads`) may pick a head by them.
+    """
+
+    make: GoalEncoderFactory
+    task_ids: bool = False
+
+
+def vector_goal_encoder(
+    shape: tuple[int, ...], cfg: NetConfig, shared: nn.Module | None = None
+) -> tuple[nn.Module, int]:
+    """Goal vectors (positions): an MLP of ``cfg.goal_layers``, or the identity."""
+    if cfg.goal_layers:
+        return mlp([shape[0], *cfg.goal_layers], out_act=True), cfg.goal_layers[-1]
+    return nn.Identity(), shape[0]
+
+
+def projected_goal_encoder(
+    shape: tuple[int, ...], cfg: NetConfig, shared: nn.Module | None = None
+) -> tuple[nn.Module, int]:
+    """Frozen text embeddings and one-hot task ids: a learned linear projection to
+    ``cfg.text_dim`` with layer norm."""
+    net = nn.Sequential(nn.Linear(shape[0], cfg.text_dim), nn.LayerNorm(cfg.text_dim))
+    return net, cfg.text_dim
+
+
+def image_goal_encoder(
+    shape: tuple[int, ...], cfg: NetConfig, shared: nn.Module | None = None
+) -> tuple[nn.Module, int]:
+    """Goal camera frames: a CNN of their own, or the identity when the observation's CNN
+    (``shared``) reads them."""
+    if shared is not None:
+        return nn.Identity(), cfg.cnn_features
+    return ConvEncoder(shape, cfg.cnn_channels, cfg.cnn_features), cfg.cnn_features
+
+
+#: Every goal kind (:attr:`lcrl.algos.Problem.goal_kind`, set by a task's ``goal_kind``):
+#: how the networks encode its goals. A new kind is one entry here (and, for a goal
+#: normaliser, one in :data:`lcrl.algos.base.GOAL_NORMALISERS`).
+GOAL_ENCODERS: dict[str, GoalEncoderSpec] = {
+    "vector": GoalEncoderSpec(vector_goal_encoder),
+    "text": GoalEncoderSpec(projected_goal_encoder),
+    "onehot": GoalEncoderSpec(projected_goal_encoder, task_ids=True),
+    "image": GoalEncoderSpec(image_goal_encoder),
+}
+
+
+def goal_encoder_spec(kind: str) -> GoalEncoderSpec:
+    """The registry entry of a goal kind.
+
+    Raises:
+        LcrlError: no goal kind of that name.
+    """
+    spec = GOAL_ENCODERS.get(kind)
+    if spec is None:
+        raise LcrlError(f"unknown goal kind {kind!r}; choose one of {tuple(GOAL_ENCODERS)}")
+    return spec
+
+
 class GoalEncoder(nn.Module):
-    """Encodes embedded goals: identity/MLP, text projection, one-hot projection or CNN.
+    """Encodes embedded goals with the module of their kind (:data:`GOAL_ENCODERS`):
+    identity/MLP, text projection, one-hot projection or CNN.
 
     Args:
-        kind: ``vector``, ``text``, ``onehot`` or ``image``.
+        kind: a key of :data:`GOAL_ENCODERS` (``vector``, ``text``, ``onehot``, ``image``).
         shape: shape of one embedded goal.
         cfg: network config.
+        shared: the observation encoder's CNN, which reads image goals too.
     """
 
     def __init__(
         self, kind: str, shape: Sequence[int], cfg: NetConfig, shared: nn.Module | None = None
     ) -> None:
         super().__init__()
-        if kind not in GOAL_KINDS:
-            raise LcrlError(f"unknown goal kind {kind!r}; choose one of {GOAL_KINDS}")
+        spec = goal_encoder_spec(kind)
         self.kind = kind
-        shape = tuple(shape)
         # A shared CNN belongs to the observation encoder: kept out of this module's
         # parameters so that it is saved and optimised once.
         self._shared = [shared] if shared is not None else []
-        if kind == "image" and shared is not None:
-            self.net = nn.Identity()
-            self.out_dim = cfg.cnn_features
-        elif kind == "image":
-            self.net = ConvEncoder(shape, cfg.cnn_channels, cfg.cnn_features)
-            self.out_dim = cfg.cnn_features
-        elif kind in ("text", "onehot"):
-            self.net = nn.Sequential(nn.Linear(shape[0], cfg.text_dim), nn.LayerNorm(cfg.text_dim))
-            self.out_dim = cfg.text_dim
-        elif cfg.goal_layers:
-            self.net = mlp([shape[0], *cfg.goal_layers], out_act=True)
-            self.out_dim = cfg.goal_layers[-1]
-        else:
-            self.net = nn.Identity()
-            self.out_dim = shape[0]
+        self.net, self.out_dim = spec.make(tuple(shape), cfg, shared)
 
     def forward(self, goal: torch.Tensor) -> torch.Tensor:
         if self._shared:
@@ -355,8 +413,9 @@ def build_encoders(
     goal_shape: Sequence[int],
     cfg: NetConfig,
 ) -> tuple[ObsEncoder, GoalEncoder]:
-    """The observation and goal encoders of one network (sharing a CNN if configured)."""
-    if cfg.share_cnn and goal_kind == "image":
+    """The observation and goal encoders of one network (sharing a CNN if configured and
+    the goals are images, ``(H, W, C)``)."""
+    if cfg.share_cnn and len(goal_shape) == 3:
         matches = sorted(k for k, v in obs_shapes.items() if tuple(v) == tuple(goal_shape))
         if not matches:
             raise LcrlError(
@@ -423,7 +482,7 @@ def check_task_heads(cfg: NetConfig, goal_kind: str, goal_shape: Sequence[int]) 
         raise LcrlError(f"net.task_heads must be >= 0, got {heads}")
     if not heads:
         return 0
-    if goal_kind != "onehot":
+    if not goal_encoder_spec(goal_kind).task_ids:
         raise LcrlError(
             f"net.task_heads picks a head by one-hot task id, but this network's goals are "
             f"{goal_kind!r}: use --env.goal-type task, or set net.task_heads=0"

@@ -5,6 +5,7 @@ validation and fields, and rebuilding nested configs from saved dicts."""
 from __future__ import annotations
 
 import dataclasses
+import re
 import typing
 from dataclasses import dataclass, field
 
@@ -369,3 +370,33 @@ def test_config_from_dict_rebuilds_nested_configs():
     unknown = r"unknown SACConfig fields in a saved config: \['momentum'\]"
     with pytest.raises(LcrlError, match=unknown):
         config_from_dict(old)
+
+
+def test_config_from_dict_checks_every_value_against_its_field():
+    from train.config import ConfigFieldError
+
+    saved = config_to_dict(PRESETS["lang2d"][1])
+    saved["sac"]["gamma"] = 1  # an integer where a number goes
+    saved["sac"]["max_grad_norm"] = None  # optional
+    saved["env"]["extra"] = {"image_size": 32}
+    back = config_from_dict(saved)
+    assert back.sac.gamma == 1 and back.sac.max_grad_norm is None
+    assert back.env.extra == {"image_size": 32} and isinstance(back.agent.net.slots, tuple)
+    cases = [
+        (("agent", "net", "hidden"), "big", "'x.agent.net.hidden' should be a list of integers"),
+        (("agent", "net", "hidden"), [1, True], "should be a list of integers, not list"),
+        (("env", "families"), [1], "'x.env.families' should be a list of strings"),
+        (("env", "extra"), [], "'x.env.extra' should be an object, not list []"),
+        (("total_steps",), "9", "'x.total_steps' should be an integer, not str '9'"),
+        (("progress",), 1, "'x.progress' should be true or false, not int 1"),
+        (("sac", "actor_lr"), "fast", "'x.sac.actor_lr' should be a number, not str 'fast'"),
+        (("buffer",), 3, "'x.buffer' should be an object, not int 3"),
+    ]
+    for path, value, message in cases:
+        doc = config_to_dict(PRESETS["lang2d"][1])
+        node = doc
+        for key in path[:-1]:
+            node = node[key]
+        node[path[-1]] = value
+        with pytest.raises(ConfigFieldError, match=re.escape(message)):
+            config_from_dict(doc, prefix="x.")

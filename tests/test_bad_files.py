@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import errno
 import json
+import re
 import shutil
 import subprocess
 import uuid
@@ -64,9 +65,39 @@ def edit_meta(run: Path, change) -> Path:
         (lambda m: m.update(algo="ppo"), "'algo' is 'ppo'"),
         (lambda m: m.update(step="many"), "'step'"),
         (lambda m: m.update(config=[1, 2]), "'config'"),
-        (lambda m: m["config"].update(env=7), "'config'"),
-        (lambda m: m["problem"].pop("goal_kind"), "'goal_kind'"),
+        (lambda m: m["config"].update(env=7), "'config.env' should be an object, not int 7"),
+        (
+            lambda m: m["config"]["agent"]["net"].update(hidden="big"),
+            "'config.agent.net.hidden' should be a list of integers, not str 'big'",
+        ),
+        (
+            lambda m: m["config"]["buffer"].update(k=2.5),
+            "'config.buffer.k' should be an integer, not float 2.5",
+        ),
+        (
+            lambda m: m["config"]["env"].update(discrete="no"),
+            "'config.env.discrete' should be true or false, not str 'no'",
+        ),
+        (
+            lambda m: m["config"]["sac"].update(max_grad_norm=[1]),
+            "'config.sac.max_grad_norm' should be a number or null, not list [1]",
+        ),
+        (lambda m: m["problem"].pop("goal_kind"), "'problem.goal_kind' is missing"),
+        (
+            lambda m: m["problem"].update(action_dim="3"),
+            "'problem.action_dim' should be a positive integer, not str '3'",
+        ),
+        (
+            lambda m: m["problem"].update(goal_shape=["3"]),
+            "'problem.goal_shape' should be a list of integers, not list ['3']",
+        ),
+        (
+            lambda m: m["problem"].update(discrete=0),
+            "'problem.discrete' should be true or false, not int 0",
+        ),
+        (lambda m: m["problem"].update(goal_kind="smell"), "'problem.goal_kind' should be one"),
         (lambda m: m.pop("problem"), "'problem'"),
+        (lambda m: m.update(eval_pending="yes"), "'eval_pending' should be true or false"),
     ],
 )
 def test_bad_meta_fields_name_the_file_and_the_field(copy_run, capsys, change, field):
@@ -74,7 +105,7 @@ def test_bad_meta_fields_name_the_file_and_the_field(copy_run, capsys, change, f
     assert cli("eval", str(copy_run), "--episodes", "1", "--no-progress") == 2
     line = error_line(capsys.readouterr().err)
     assert line.startswith("lcrl: error:") and str(meta) in line and field in line
-    with pytest.raises(CheckpointError, match=field):
+    with pytest.raises(CheckpointError, match=re.escape(field)):
         lcrl.load(copy_run)
     assert resume(copy_run) == 2
     line = error_line(capsys.readouterr().err)
@@ -83,6 +114,42 @@ def test_bad_meta_fields_name_the_file_and_the_field(copy_run, capsys, change, f
 
 def resume(run: Path) -> int:
     return cli("train", "state2d", "--out", str(run), "--resume", "--total-steps", "200")
+
+
+def edit_state(run: Path, name: str, change) -> Path:
+    """Edit the JSON skeleton of one state in state.json (a dict node: ``items`` of
+    ``[key, value]`` pairs)."""
+    path = find_latest(run) / "state.json"
+    doc = json.loads(path.read_text())
+    change(doc["states"][name])
+    path.write_text(json.dumps(doc))
+    return path
+
+
+def drop(key):
+    return lambda node: node.update(items=[kv for kv in node["items"] if kv[0] != key])
+
+
+def set_item(key, value):
+    return lambda node: node.update(items=[[k, value if k == key else v] for k, v in node["items"]])
+
+
+@pytest.mark.parametrize(
+    ("name", "change", "message"),
+    [
+        ("trainer", drop("credit"), "the field 'trainer.credit' is missing"),
+        ("trainer", set_item("episodes", "7"), "'trainer.episodes' should be an integer >= 0"),
+        ("trainer", set_item("recent", "none"), "'trainer.recent' should be a list of numbers"),
+        ("counters", drop("updates"), "the field 'updates' of the learner's states is missing"),
+        ("trainer_rng", drop("state"), "the field 'state' of the state 'trainer_rng' is missing"),
+        ("trainer_rng", set_item("bit_generator", "MT19937"), "'trainer_rng' cannot be restored"),
+    ],
+)
+def test_bad_state_fields_name_the_file_and_the_field(copy_run, capsys, name, change, message):
+    path = edit_state(copy_run, name, change)
+    assert resume(copy_run) == 2
+    line = error_line(capsys.readouterr().err)
+    assert line.startswith(f"lcrl: error: {path}: ") and message in line
 
 
 def test_latest_json_naming_a_missing_checkpoint(copy_run, capsys):
@@ -173,3 +240,120 @@ def test_a_failing_writer_keeps_the_previous_checkpoint(copy_run, capsys, monkey
     monkeypatch.undo()
     assert resume(copy_run) == 0  # space again: the run goes on from the kept checkpoint
     assert load_checkpoint(find_latest(copy_run)).meta["step"] == 200
+
+
+def fill(where: Path) -> None:
+    """Fill the file system at ``where`` to the last byte."""
+    with (where / "filler").open("wb") as f:
+        try:
+            f.write(b"\0" * (shutil.disk_usage(where).free + 65536))
+            f.flush()
+        except OSError:
+            pass  # full
+    assert shutil.disk_usage(where).free == 0
+
+
+def test_a_full_disk_during_the_weights_write(small_fs, capsys):
+    """A real file system filled to the last byte: the logs still append into their last
+    block, and the first write that needs space is the weights' (safetensors)."""
+    where, _ = small_fs
+    out = where / "run"
+    args = ["train", "state2d", "--out", str(out), "--total-steps", "100", *TINY]
+    assert cli(*args) == 0
+    first = find_latest(out)
+    fill(where)
+    capsys.readouterr()
+    assert resume(out) == 2
+    line = error_line(capsys.readouterr().err)
+    step = out / "checkpoints" / "step_000000200"
+    assert line == (
+        f"lcrl: error: cannot write a checkpoint at step 200 in {step}/weights.safetensors: "
+        f"No space left on device; the previous checkpoint {first} is kept (latest.json "
+        "points at it)"
+    )
+    assert find_latest(out) == first and load_checkpoint(first).meta["step"] == 100
+    assert not list((out / "checkpoints").glob(".*"))
+
+
+@pytest.mark.parametrize(("call", "name"), [(0, "weights.safetensors"), (1, "state.safetensors")])
+def test_a_failing_safetensors_write_keeps_the_previous_checkpoint(
+    copy_run, capsys, monkeypatch, call, name
+):
+    """safetensors reports a full disk as its own error, not an OSError: the weights'
+    write (or the state's) fails as it does on a full disk."""
+    import safetensors
+    import safetensors.torch
+
+    first = find_latest(copy_run)
+    write = safetensors.torch.save_file
+    calls = []
+
+    def full(*args, **kwargs):
+        calls.append(args[1])
+        if len(calls) == call + 1:
+            raise safetensors.SafetensorError(
+                "Error while serializing: I/O error: No space left on device (os error 28)"
+            )
+        return write(*args, **kwargs)
+
+    monkeypatch.setattr(safetensors.torch, "save_file", full)
+    assert resume(copy_run) == 2
+    line = error_line(capsys.readouterr().err)
+    where = copy_run / "checkpoints" / "step_000000200" / name
+    assert line == (
+        f"lcrl: error: cannot write a checkpoint at step 200 in {where}: No space left on "
+        f"device; the previous checkpoint {first} is kept (latest.json points at it)"
+    )
+    assert find_latest(copy_run) == first
+    assert json.loads((copy_run / "latest.json").read_text())["checkpoint"] == (
+        "checkpoints/step_000000100"
+    )
+    assert not list((copy_run / "checkpoints").glob(".*"))
+    monkeypatch.undo()
+    assert resume(copy_run) == 0
+    assert load_checkpoint(find_latest(copy_run)).meta["step"] == 200
+
+
+def test_a_full_disk_under_the_progress_log_names_it(tmp_path, capsys):
+    """progress.csv on a real file system with no space left (a 4 kB tmpfs, linked into
+    the run folder): the error names the file."""
+    where = tmp_path / f"fs-{uuid.uuid4().hex[:6]}"
+    where.mkdir()
+    done = subprocess.run(
+        ["mount", "-t", "tmpfs", "-o", "size=4k", "tmpfs", str(where)], capture_output=True
+    )
+    if done.returncode != 0:
+        pytest.skip(f"cannot mount a tmpfs here: {done.stderr.decode().strip()}")
+    try:
+        (where / "progress.csv").touch()
+        fill(where)
+        out = tmp_path / "run"
+        out.mkdir()
+        (out / "progress.csv").symlink_to(where / "progress.csv")
+        assert cli("train", "state2d", "--out", str(out), "--total-steps", "100", *TINY) == 2
+        line = error_line(capsys.readouterr().err)
+        assert line == f"lcrl: error: cannot write {out / 'progress.csv'}: No space left on device"
+    finally:
+        subprocess.run(["umount", "-l", str(where)], check=False)
+
+
+def test_json_below_a_file_fails_before_the_evaluation(state_run, tmp_path, capsys, monkeypatch):
+    import train.eval_suite
+
+    def never(*args, **kwargs):
+        raise AssertionError("the evaluation ran")
+
+    monkeypatch.setattr(train.eval_suite, "run_evaluation", never)
+    file = tmp_path / "a-file"
+    file.write_text("x")
+    target = file / "x.json"
+    assert cli("eval", str(state_run), "--episodes", "1", "--json", str(target)) == 2
+    captured = capsys.readouterr()
+    assert error_line(captured.err) == (
+        f"lcrl: error: --json {target} cannot be written: {file} is a file, not a folder"
+    )
+    assert "checkpoint" not in captured.out  # nothing was loaded or run
+    out = file / "evaluation"
+    assert cli("eval", str(state_run), "--episodes", "1", "--out", str(out)) == 2
+    line = error_line(capsys.readouterr().err)
+    assert line.startswith(f"lcrl: error: cannot write the evaluation folder {out}: ")

@@ -1,4 +1,5 @@
-"""Caption datasets: collection on the tabletops, the HDF5 format, reading, errors."""
+"""Caption datasets: collection on the registered simulators, the HDF5 format, reading,
+errors."""
 
 from __future__ import annotations
 
@@ -7,10 +8,11 @@ import numpy as np
 import pytest
 
 from captioner import dataset as ds
-from captioner.dataset import CaptionDataset, CaptionDatasetWriter, CollectConfig, collect
-from captioner.grammar import parse
+from captioner.dataset import CaptionDataset, CaptionDatasetWriter, CollectConfig
+from captioner.grammar import FAMILIES_2D, parse
 from captioner.rule import RuleCaptioner
 from lcrl.errors import LcrlError
+from train.captions import caption_simulator, collect
 from train.cli import main
 
 
@@ -69,8 +71,9 @@ def test_collected_file_layout_and_labels(small):
 def test_labels_name_what_the_rule_captioner_says(tmp_path):
     """An episode's label ids, written and read back, name the captioner's instructions."""
     cfg = CollectConfig(out=str(tmp_path / "x.h5"), sources=("scripted",), progress=False)
-    src = ds._Source(cfg, cfg.resolved_families())
-    texts, sets = ds.instruction_table(ds.make_split(0, ds.FAMILIES_2D))
+    simulator = caption_simulator(cfg.env)
+    src = ds._Source(cfg, simulator, cfg.resolved_families(simulator))
+    texts, sets = ds.instruction_table(ds.make_split(0, FAMILIES_2D))
     table = [parse(t) for t in texts]
     writer = CaptionDatasetWriter(cfg.out, texts, sets, (64, 64, 3), 2, {"test": True})
     ep, scenes = ds._episode(src, "scripted", cfg, 5, np.random.default_rng(1), table, sets, writer)
@@ -108,8 +111,10 @@ def test_interrupt_keeps_finished_episodes(tmp_path, monkeypatch):
 
 
 def test_bad_settings_and_files(tmp_path, small):
-    with pytest.raises(LcrlError, match="unknown env"):
+    with pytest.raises(LcrlError, match="unknown env 'mars' for caption datasets"):
         collect(CollectConfig(out=str(tmp_path / "a.h5"), env="mars"))
+    with pytest.raises(LcrlError, match="unknown env 'gym' for caption datasets"):
+        collect(CollectConfig(out=str(tmp_path / "a.h5"), env="gym"))  # no instructions
     with pytest.raises(LcrlError, match="--policy"):
         collect(CollectConfig(out=str(tmp_path / "a.h5"), sources=("policy",)))
     with pytest.raises(LcrlError, match="supports the families"):
@@ -156,3 +161,47 @@ def test_robosuite_collection(tmp_path):
         assert data.num_episodes == 2 and data.proprio.shape[1] == 4
         assert data.frame_shape == (64, 64, 3)
         assert data.frames[0].std() > 0  # a rendered picture, not a blank frame
+
+
+def test_a_registered_simulator_collects_through_its_registry_entry(tmp_path, monkeypatch):
+    """A simulator added to train.environments.ENVS collects caption datasets: the
+    collector takes it from the caller, and the file records the entry's name."""
+    import dataclasses
+
+    from train.environments import ENVS
+
+    calls = []
+
+    def make(cfg):
+        calls.append(cfg)
+        return ENVS["tabletop2d"].make(cfg)
+
+    spec = dataclasses.replace(ENVS["tabletop2d"], make=make, caption_name="")
+    monkeypatch.setitem(ENVS, "flat", spec)
+    path = tmp_path / "flat.h5"
+    main(["caption", "collect", "--env", "flat", "--out", str(path), "--episodes", "2",
+          "--image-size", "32", "--no-progress"])  # fmt: skip
+    assert calls and calls[0].kind == "flat" and calls[0].image_obs
+    with CaptionDataset(path) as data:
+        assert data.meta["env"] == "flat" and data.frame_shape == (32, 32, 3)
+        assert data.meta["slot_layout"] == [2, 8, 3, 2]
+    # the 2D tabletop under its kind records the name its datasets always had
+    path = tmp_path / "tabletop2d.h5"
+    collect(CollectConfig(out=str(path), env="tabletop2d", episodes=1, progress=False))
+    with CaptionDataset(path) as data:
+        assert data.meta["env"] == "lang2d"
+    # without a scripted controller: random episodes only
+    monkeypatch.setitem(ENVS, "flat", dataclasses.replace(spec, scripted=None))
+    with pytest.raises(LcrlError, match="no scripted controller"):
+        collect(CollectConfig(out=str(tmp_path / "x.h5"), env="flat", progress=False))
+
+
+def test_old_dataset_files_still_load(small):
+    """Files name their simulator as they always did (lang2d, robosuite): such a file is
+    read, and its name maps to the registered simulator."""
+    from train.environments import canonical_kind
+
+    with CaptionDataset(small) as data:
+        assert data.meta["env"] == "lang2d"
+    assert canonical_kind("lang2d") == "tabletop2d"
+    assert canonical_kind("robosuite") == "robosuite"

@@ -1,5 +1,6 @@
 """Tests for lcrl.checkpoint: pickle-free, atomic checkpoints."""
 
+import errno
 import json
 import pickle
 import random
@@ -9,6 +10,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+import safetensors
 import safetensors.torch
 import torch
 from torch import nn
@@ -17,12 +19,14 @@ from lcrl import checkpoint as ckpt_mod
 from lcrl.checkpoint import (
     FORMAT_VERSION,
     CheckpointError,
+    CheckpointWriteError,
     find_latest,
     flatten_state,
     load_checkpoint,
     save_checkpoint,
     unflatten_state,
     write_latest,
+    write_problem,
 )
 from lcrl.errors import LcrlError
 
@@ -486,11 +490,49 @@ def test_failure_while_swapping_restores_previous(tmp_path, monkeypatch):
         real_rename(src, dst)
 
     monkeypatch.setattr(ckpt_mod.os, "rename", flaky_rename)
-    with pytest.raises(OSError, match="rename failed"):
+    with pytest.raises(CheckpointWriteError, match=f"cannot write {path}: rename failed") as e:
         _save_basic(path, meta={"v": 2})
+    assert isinstance(e.value.__cause__, OSError)
     monkeypatch.undo()
     assert _siblings(tmp_path) == ["ckpt"]
     assert load_checkpoint(path).meta["v"] == 1
+
+
+@pytest.mark.parametrize("target", ["weights.safetensors", "state.safetensors", "arrays.npz"])
+def test_write_errors_name_the_file_and_the_problem(tmp_path, monkeypatch, target):
+    """A full disk as safetensors reports it (its own error type) and as numpy does (an
+    OSError): one CheckpointWriteError naming the file, the previous checkpoint kept."""
+    from numpy.lib import format as npy_format
+
+    path = tmp_path / "ckpt"
+    _save_basic(path, meta={"v": 1})
+    write = safetensors.torch.save_file
+
+    def full_safetensors(tensors, filename, *args, **kwargs):
+        if Path(filename).name == target:
+            raise safetensors.SafetensorError(
+                "Error while serializing: I/O error: No space left on device (os error 28)"
+            )
+        return write(tensors, filename, *args, **kwargs)
+
+    def full_npz(*args, **kwargs):
+        raise OSError(errno.ENOSPC, "No space left on device")
+
+    monkeypatch.setattr(safetensors.torch, "save_file", full_safetensors)
+    monkeypatch.setattr(npy_format, "write_array", full_npz)
+    with pytest.raises(CheckpointWriteError) as e:
+        _save_basic(path, meta={"v": 2}, arrays={"x": np.zeros(3)})
+    assert str(e.value) == f"cannot write {path / target}: No space left on device"
+    assert (e.value.path, e.value.problem) == (path / target, "No space left on device")
+    assert _siblings(tmp_path) == ["ckpt"]
+    assert load_checkpoint(path).meta["v"] == 1
+
+
+def test_write_problem_reads_the_operating_system_message():
+    assert write_problem(OSError(errno.EROFS, "Read-only file system")) == "Read-only file system"
+    old = 'IoError(Os { code: 28, kind: StorageFull, message: "No space left on device" })'
+    assert write_problem(safetensors.SafetensorError(old)) == "No space left on device"
+    assert write_problem(RuntimeError("odd\nmore")) == "odd"
 
 
 def test_interrupted_swap_hint(tmp_path):

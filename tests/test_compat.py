@@ -95,3 +95,14 @@ def test_old_kind_names_work_on_the_command_line(tmp_path):
     assert cli(*args, *tiny, "--out", str(out)) == 0
     env = json.loads((out / "config.json").read_text())["env"]
     assert (env["kind"], env["goal_type"]) == ("tabletop2d", "state")
+
+
+def test_removed_registry_names_give_the_new_spelling():
+    import train.tasks
+    from lcrl.errors import LcrlError
+
+    with pytest.raises(ImportError, match=r"ENV_KINDS was replaced by train\.environments\.ENVS"):
+        from train.tasks import ENV_KINDS  # noqa: F401
+    with pytest.raises(LcrlError, match=r"GOAL_TYPES was replaced by train\.tasks\.GOALS"):
+        _ = train.tasks.GOAL_TYPES
+    assert not hasattr(train.tasks, "NO_SUCH_NAME")  # other names: a plain AttributeError

@@ -63,9 +63,13 @@ MAX_README_LINES = 250
 
 #: Commands that are not run (a prefix of the command line -> why). Keep it short.
 SKIP: dict[str, str] = {}
-#: Pages whose python blocks are not run (page -> why); their shell commands still run.
-PYTHON_EXCERPTS: dict[str, str] = {
-    "docs/extending.md": "its snippets are excerpts of tests/test_extending.py, which runs them",
+#: Pages whose python blocks are not run, because they are excerpts of files that run them
+#: (page -> those files); their shell commands still run, and
+#: :func:`test_python_excerpts_match_their_files` checks each block against the files.
+PYTHON_EXCERPTS: dict[str, tuple[str, ...]] = {
+    # tests/test_extending.py runs the simulator, the goal modality and the registrations;
+    # the algorithm's spec is the one lcrl/algos/sac.py ends with
+    "docs/extending.md": ("tests/test_extending.py", "lcrl/algos/sac.py"),
 }
 
 #: Appended to every ``lcrl train`` command (a later option wins).
@@ -628,6 +632,54 @@ def test_docs_index_and_readme_link_every_page():
             assert f"]({page.name}" in index, f"docs/README.md does not link {page.name}"
             assert f"](docs/{page.name}" in readme, f"README.md does not link {page.name}"
     assert "](benchmarks/results/README.md" in readme
+
+
+def code_lines(text: str) -> list[str]:
+    """The code of a Python text line by line: comments dropped (``#`` after a space or
+    at the start), whitespace runs made one space, blank lines skipped."""
+    lines = []
+    for line in text.splitlines():
+        code = " ".join(re.sub(r"(^|\s)#.*$", "", line).split())
+        if code:
+            lines.append(code)
+    return lines
+
+
+def excerpt_of(block: str, source: str) -> str | None:
+    """None when every code line of ``block`` appears in ``source``, in order (an excerpt
+    may leave lines out); else the first line that does not."""
+    have = code_lines(source)
+    at = 0
+    for line in code_lines(block):
+        try:
+            at = have.index(line, at) + 1
+        except ValueError:
+            return line
+    return None
+
+
+@pytest.mark.parametrize("page", sorted(PYTHON_EXCERPTS))
+def test_python_excerpts_match_their_files(page):
+    """Every python block of an excerpt page is an excerpt of one of its files: its code
+    lines appear there in the same order (comments and spacing aside), so the snippets
+    cannot drift from the code that the tests run."""
+    sources = {name: (ROOT / name).read_text() for name in PYTHON_EXCERPTS[page]}
+    text = (ROOT / page).read_text()
+    blocks = [(n, "\n".join(b)) for lang, n, b in fenced_blocks(text) if lang == "python"]
+    assert blocks, f"{page} has no python block"
+    for number, code in blocks:
+        missing = {name: excerpt_of(code, text) for name, text in sources.items()}
+        if None not in missing.values():
+            lines = "; ".join(f"{name}: {line!r}" for name, line in missing.items())
+            pytest.fail(f"{page}:{number}: the block is in none of its files ({lines})")
+
+
+def test_excerpt_check_sees_a_changed_line():
+    source = "def f(x):\n    return x + 1  # one more\n"
+    assert excerpt_of("def f(x):\n    return x + 1", source) is None
+    assert excerpt_of("def   f(x):  # a comment\n\n  return x + 1\n", source) is None
+    assert excerpt_of("def f(x):\n    return x + 2", source) == "return x + 2"
+    assert excerpt_of("return x + 1\ndef f(x):", source) == "def f(x):"  # order counts
 
 
 def test_querying_example_is_the_tested_script():

@@ -68,10 +68,10 @@ class PointEnv(gym.Env):
 class OffsetTask(Task):
     """Goals are displacements from the episode's start position."""
 
-    goal_kind = "vector"  # the network reads the goal as a vector
+    goal_kind = "vector"  # the network's goal encoder (and goal normaliser)
 
     def __init__(self, env: gym.Env, image_obs: bool = False) -> None:
-        super().__init__(env)
+        super().__init__(env)  # action space: scaling, random actions
         unwrapped = env.unwrapped
         self.obs_shapes = {"observation": (2,), "initial": (2,)}
 
@@ -85,36 +85,57 @@ class OffsetTask(Task):
         return cls(env)
 
     def storage_obs(self, obs: Mapping[str, Any], first: Mapping[str, Any]) -> dict:
+        # arrays the buffer stores per step
         return {
             "observation": np.asarray(obs["observation"], np.float32),
             "initial": np.asarray(first["observation"], np.float32),
         }
 
     def goal(self, obs: Mapping[str, Any], env: gym.Env) -> np.ndarray:
-        # the first observation of an episode: where to go, from here
+        # the goal of the episode, from its first observation: where to go, from here
         return np.asarray(obs["desired_goal"] - obs["achieved_goal"], np.float32)
 
     def step_record(self, obs: Mapping[str, Any], env: gym.Env) -> Any:
-        return np.asarray(obs["achieved_goal"], np.float32)
+        return np.asarray(obs["achieved_goal"], np.float32)  # what to remember of a step
 
     def episode_fields(self, records: list[Any], goal: Any, env: gym.Env) -> dict[str, Any]:
+        # the goal-space fields of the episode
         achieved = np.stack(records)
         return {"achieved_goal": achieved - achieved[0], "desired_goal": goal}
 
     def embed_goals(self, goals: np.ndarray) -> np.ndarray:
-        return goals
+        return goals  # goals as the learner's input
 
     def eval_goal(self, obs: Mapping[str, Any], start: Any) -> Any:
+        # the goal in evaluation's vector envs, from the first observation alone
         return self.goal(obs, None)  # type: ignore[arg-type]
 
 
 @pytest.fixture
-def registered(monkeypatch):
-    """``point`` and ``offset`` in the registries for one test."""
-    monkeypatch.setitem(
-        ENVS, "point", EnvSpec(make=lambda cfg: PointEnv(), goal_types=("offset", "state"))
-    )
-    monkeypatch.setitem(GOALS, "offset", GoalModality(OffsetTask, "offsets from the start"))
+def registries():
+    """The registries as they were before the test, whatever it registered."""
+    saved = dict(ENVS), dict(GOALS)
+    yield
+    for registry, before in zip((ENVS, GOALS), saved, strict=True):
+        registry.clear()
+        registry.update(before)
+
+
+@pytest.fixture
+def registered(registries):
+    """``point`` and ``offset`` in the registries for one test, as docs/extending.md
+    registers them."""
+    GOALS["offset"] = GoalModality(OffsetTask, "offsets from the start")
+    ENVS["point"] = EnvSpec(make=lambda cfg: PointEnv(), goal_types=("offset", "state"))
+
+
+def test_a_simulator_takes_the_goal_types_it_lists(registries):
+    ENVS["point"] = EnvSpec(make=lambda cfg: PointEnv(), goal_types=("state",))
+    TrainConfig(env=EnvConfig(kind="point", goal_type="state")).validate()
+    from lcrl.errors import LcrlError
+
+    with pytest.raises(LcrlError, match=r"supports the goal types \('state',\), not 'image'"):
+        TrainConfig(env=EnvConfig(kind="point", goal_type="image")).validate()
 
 
 def config(out, k: int, steps: int) -> TrainConfig:
@@ -177,3 +198,70 @@ def test_unregistered_names_are_clear_errors(registered):
         TrainConfig(env=EnvConfig(kind="point", goal_type="language")).validate()
     with pytest.raises(LcrlError, match="unknown goal_type 'telepathy'"):
         TrainConfig(env=EnvConfig(kind="point", goal_type="telepathy")).validate()
+
+
+def test_a_new_goal_kind_is_one_registry_line(monkeypatch):
+    """A goal kind of the test's own: its encoder and normaliser come from the two
+    registries of the learning core, and the agent saves them under the usual names."""
+    import torch
+    from torch import nn
+
+    from lcrl.algos import GOAL_NORMALISERS, AgentOptions, Problem, SACConfig, build_agent
+    from lcrl.algos.base import vector_goal_normaliser
+    from lcrl.errors import LcrlError
+    from lcrl.nets import GOAL_ENCODERS, GoalEncoderSpec
+
+    def scaled_goal_encoder(shape, cfg, shared=None):
+        return nn.Linear(shape[0], 5), 5
+
+    monkeypatch.setitem(GOAL_ENCODERS, "scaled", GoalEncoderSpec(scaled_goal_encoder))
+    monkeypatch.setitem(GOAL_NORMALISERS, "scaled", vector_goal_normaliser)
+    problem = Problem({"observation": (4,)}, "scaled", (3,), 2)
+
+    def embed(goals, device):
+        return torch.as_tensor(np.asarray(goals), dtype=torch.float32, device=device)
+
+    options = AgentOptions(net=NetConfig(hidden=(8, 8)))
+    agent = build_agent("sac", problem, options, embed, SACConfig())
+    assert agent.act({"observation": np.zeros((2, 4), np.float32)}, np.ones((2, 3))).shape == (2, 2)
+    assert {"goal_encoder.net.weight", "goal_encoder.net.bias"} <= set(
+        agent.modules()["actor"].state_dict()
+    )
+    assert "goal.mean" in agent.modules()["norms"].state_dict()
+    monkeypatch.delitem(GOAL_NORMALISERS, "scaled")  # no entry: goals are not normalised
+    agent = build_agent("sac", problem, options, embed, SACConfig())
+    assert not any(k.startswith("goal.") for k in agent.modules()["norms"].state_dict())
+    # per-task heads pick by one-hot task ids only
+    heads = AgentOptions(net=NetConfig(hidden=(8, 8), task_heads=3))
+    with pytest.raises(LcrlError, match="picks a head by one-hot task id"):
+        build_agent("sac", problem, heads, embed, SACConfig())
+    with pytest.raises(LcrlError, match="unknown goal kind 'nowhere'"):
+        build_agent("sac", Problem({"observation": (4,)}, "nowhere", (3,), 2), options, embed)
+
+
+def test_reports_and_messages_read_the_goal_modality_not_its_name(monkeypatch):
+    """A second task-id goal type, under a name of its own: reports, the policy's
+    description and the presets' checks treat it as task ids from its registry entry."""
+    from train.config import TASKS_2D
+    from train.policy import describe_env
+    from train.report import learning_summary, task_name
+    from train.tasks import TaskIdTask
+
+    numbered = GoalModality(
+        TaskIdTask, "numbered tasks", instructed=True, needs_tasks=True, relabel=False,
+        label="numbered tasks",
+    )  # fmt: skip
+    monkeypatch.setitem(GOALS, "numbered", numbered)
+    env = {"kind": "tabletop2d", "goal_type": "numbered", "tasks": list(TASKS_2D[:2])}
+    assert task_name(env) == "2D tabletop, 2 tasks as numbered tasks"
+    assert learning_summary({"algo": "sac", "env": env}) == "numbered tasks, no relabelling"
+    assert numbered.task_ids and not numbered.text
+    cfg = TrainConfig(env=EnvConfig(kind="tabletop2d", goal_type="numbered", tasks=TASKS_2D[:2]))
+    assert describe_env(cfg).endswith("(numbered goals), 2 task ids")
+    # a language-goal type under another name reads its families, as language goals do
+    monkeypatch.setitem(GOALS, "words", GOALS["language"])
+    words = {"kind": "tabletop2d", "goal_type": "words", "families": ["reach"]}
+    assert task_name(words) == "2D tabletop reach"
+    assert task_name({"kind": "tabletop2d", "goal_type": "mystery"}) == (
+        "2D tabletop (mystery goals)"
+    )

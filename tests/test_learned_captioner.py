@@ -11,7 +11,7 @@ import pytest
 import torch
 from helpers import tiny
 
-from captioner.dataset import CaptionDataset, CollectConfig, collect
+from captioner.dataset import CaptionDataset, CollectConfig
 from captioner.grammar import Instruction
 from captioner.learned import (
     NONE_TEXT,
@@ -26,6 +26,7 @@ from captioner.learned import (
     train_models,
 )
 from lcrl.errors import LcrlError
+from train.captions import collect
 from train.cli import main
 
 TINY = CaptionModelConfig(channels=(16, 16, 16, 16), features=64, hidden=64, embed=32)

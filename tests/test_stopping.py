@@ -24,11 +24,12 @@ from lcrl.checkpoint import find_latest, load_checkpoint
 
 ROOT = Path(__file__).resolve().parent.parent
 #: Runs ``lcrl ARGS`` after making each weights write wait SLOW seconds (printing
-#: "writing" first): ``python -c RUNNER SLOW ARGS...``.
+#: "writing" first) and each evaluation of the training loop wait SLOW_EVAL seconds
+#: (printing "evaluating" first): ``python -c RUNNER SLOW SLOW_EVAL ARGS...``.
 RUNNER = """
 import sys, time
 import safetensors.torch
-slow = float(sys.argv[1])
+slow, slow_eval = float(sys.argv[1]), float(sys.argv[2])
 if slow:
     write = safetensors.torch.save_file
     def slow_write(*args, **kwargs):
@@ -36,8 +37,16 @@ if slow:
         time.sleep(slow)
         return write(*args, **kwargs)
     safetensors.torch.save_file = slow_write
+if slow_eval:
+    import train.trainer
+    evaluate = train.trainer.evaluate
+    def slow_evaluate(*args, **kwargs):
+        print("evaluating", flush=True)
+        time.sleep(slow_eval)
+        return evaluate(*args, **kwargs)
+    train.trainer.evaluate = slow_evaluate
 from train.cli import main
-main(sys.argv[2:])
+main(sys.argv[3:])
 """
 TINY = [
     "--learning-starts", "100",
@@ -57,7 +66,14 @@ class Run:
     """A real ``lcrl train state2d`` process writing to ``out``; its stdout and stderr go
     to files in ``out``'s parent."""
 
-    def __init__(self, out: Path, *extra: str, slow: float = 0.0, steps: int = 100_000) -> None:
+    def __init__(
+        self,
+        out: Path,
+        *extra: str,
+        slow: float = 0.0,
+        slow_eval: float = 0.0,
+        steps: int = 100_000,
+    ) -> None:
         self.out = out
         self.stdout = out.parent / f"{out.name}.out"
         self.stderr = out.parent / f"{out.name}.err"
@@ -65,7 +81,7 @@ class Run:
         env = {**os.environ, "OMP_NUM_THREADS": "1", "PYTHONUNBUFFERED": "1"}
         with self.stdout.open("w") as o, self.stderr.open("w") as e:
             self.proc = subprocess.Popen(
-                [sys.executable, "-c", RUNNER, str(slow), *args, *extra],
+                [sys.executable, "-c", RUNNER, str(slow), str(slow_eval), *args, *extra],
                 cwd=ROOT,
                 stdout=o,
                 stderr=e,
@@ -142,9 +158,14 @@ def test_a_second_signal_during_the_save_keeps_the_checkpoint(tmp_path, second):
     assert "by SIGINT: saved" in run.out_text()
 
 
+def rows(path: Path) -> list[str]:
+    return path.read_text().splitlines()
+
+
 def test_resume_after_sigkill_cleans_up_and_cuts_the_logs(tmp_path, one_thread):
     out = tmp_path / "run"
-    run = Run(out, "--checkpoint-every", "200", "--log-every", "20", slow=3.0)
+    extra = ("--checkpoint-every", "200", "--log-every", "20", "--eval-every", "100")
+    run = Run(out, *extra, slow=3.0)
     # killed in the middle of the second checkpoint's write, after rows past the first
     run.wait_for(lambda: (out / "latest.json").is_file())
     # two safetensors files per checkpoint: the third write is the second checkpoint's
@@ -154,12 +175,39 @@ def test_resume_after_sigkill_cleans_up_and_cuts_the_logs(tmp_path, one_thread):
     stale = list((out / "checkpoints").glob(".*.tmp-*"))
     assert stale, "the kill left no half-written folder"
     kept = latest_step(out)
-    assert max(log_steps(out / "progress.csv")) > kept  # rows of the lost segment
+    assert kept == 200
+    # rows of the lost segment: progress past the checkpoint, evaluations at 300 and 400
+    assert max(log_steps(out / "progress.csv")) > kept
+    assert log_steps(out / "eval.csv") == [100, 200, 300, 400]
+    before = {name: rows(out / name) for name in ("progress.csv", "eval.csv")}
 
-    assert resume(out, kept + 100) == 0
+    assert resume(out, kept + 200) == 0
     assert not list((out / "checkpoints").glob(".*"))
     steps = log_steps(out / "progress.csv")
-    assert steps == sorted(set(steps)) and steps[-1] == kept + 100  # no step twice
+    assert steps == sorted(set(steps)) and steps[-1] == kept + 200  # no step twice
+    # each evaluation once: the killed segment's rows at 300 and 400 were cut, and the
+    # resumed run wrote its own
+    assert log_steps(out / "eval.csv") == [100, 200, 300, 400]
+    for name, old in before.items():  # the header and rows up to the checkpoint, as written
+        n = 1 + sum(1 for step in log_steps(out / name) if step <= kept)
+        assert rows(out / name)[:n] == old[:n]
+
+
+def test_a_stop_during_an_evaluation_runs_it_on_resume(tmp_path, one_thread):
+    """Stopped during the periodic evaluation at step 200: the checkpoint is at 200 and
+    the resumed run evaluates at 200 before it trains on, so eval.csv has every row."""
+    out = tmp_path / "run"
+    run = Run(out, "--eval-every", "100", slow_eval=3.0)
+    run.wait_for(lambda: run.out_text().count("evaluating") >= 2)  # the one at step 200
+    run.proc.send_signal(signal.SIGINT)
+    assert run.finish() == 130
+    assert "Traceback" not in run.err()
+    assert latest_step(out) == 200
+    assert load_checkpoint(find_latest(out)).meta["eval_pending"] is True
+    assert log_steps(out / "eval.csv") == [100]
+    assert resume(out, 300) == 0
+    assert log_steps(out / "eval.csv") == [100, 200, 300]
+    assert load_checkpoint(find_latest(out)).meta["eval_pending"] is False
 
 
 def test_resume_below_the_checkpoint_changes_nothing(tmp_path, capsys, one_thread):

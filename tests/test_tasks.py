@@ -98,3 +98,22 @@ def test_report_has_curves_and_final_table(tmp_path) -> None:
     assert (run / "curves.png").stat().st_size > 1000
     with pytest.raises(LcrlError, match="not a run folder"):
         write_report(tmp_path / "nothing")
+
+
+@pytest.mark.parametrize("kind", ["tabletop2d", "robosuite", "gym"])
+def test_registered_slot_layouts_match_the_simulators(kind) -> None:
+    """The slot layout an ENVS entry documents is the one its simulator reports."""
+    from envs.features import slot_layout
+    from train.environments import ENVS, EnvConfig
+
+    spec = ENVS[kind]
+    if spec.slot_layout is None:
+        assert kind == "gym"  # goal envs of gymnasium-robotics have no object slots
+        return
+    if kind == "robosuite":
+        pytest.importorskip("robosuite")
+    env = spec.make(EnvConfig(kind=kind))
+    try:
+        assert slot_layout(env) == spec.slot_layout
+    finally:
+        env.close()

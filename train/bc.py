@@ -42,12 +42,14 @@ from typing import Any
 
 import numpy as np
 
+from lcrl.algos import ALGOS
 from lcrl.bc import BC
 from lcrl.checkpoint import save_checkpoint, write_latest
 from lcrl.errors import LcrlError
 from train.config import PRESETS, TrainConfig
 from train.evaluate import build_agent, build_task
 from train.loop import checkpoint_meta
+from train.run_meta import restoring, state_fields
 from train.tasks import make_env, make_task
 from train.trainer import BaseTrainer, open_run, prune_checkpoints
 
@@ -90,14 +92,19 @@ class BCTrainer(BaseTrainer):
 
     def __init__(self, cfg: TrainConfig) -> None:
         cfg.validate()
-        if cfg.algo != "bc":
-            raise LcrlError(f"BCTrainer trains algo bc, not {cfg.algo!r}: pass --algo bc")
+        spec = ALGOS.get(cfg.algo)
+        if spec is None or spec.learns_from != "demos":
+            learners = [name for name, s in ALGOS.items() if s.learns_from == "demos"]
+            raise LcrlError(
+                f"BCTrainer trains algorithms that learn from demonstrations "
+                f"({', '.join(learners)}), not {cfg.algo!r}: pass --algo {learners[0]}"
+            )
         if not cfg.resume:  # check before a previous run in --out is cleared
             open_demos(cfg.demos).close()
         self.out = Path(cfg.out)
         cfg, ckpt = open_run(cfg)
         self.cfg = cfg
-        self.algo = "bc"
+        self.algo = cfg.algo
         self.data = open_demos(cfg.demos)
         try:
             self._build(ckpt)
@@ -148,7 +155,7 @@ class BCTrainer(BaseTrainer):
             self.goal_map[i] = task.ids[text]
         self.rows = int((self.segments[:, 2] - self.segments[:, 1]).sum())
         self.keys = list(self.problem.obs_shapes)
-        self.agent: BC = build_agent("bc", self.problem, cfg, task.goal_space.embed)
+        self.agent: BC = build_agent(self.algo, self.problem, cfg, task.goal_space.embed)
         self.step = 0
         self._metrics: dict[str, float] = {}
         self._metric_count = 0
@@ -275,7 +282,7 @@ class BCTrainer(BaseTrainer):
         cfg = self.cfg
         directory = self.out / "checkpoints" / f"step_{self.step:09d}"
         meta, json_files = checkpoint_meta(
-            cfg, self.algo, self.problem, self.env, self.task, self.step, 0
+            cfg, self.algo, self.problem, self.env, self.task, self.step, 0, self.eval_pending
         )
         meta["demos"] = {
             "path": str(cfg.demos),
@@ -298,10 +305,13 @@ class BCTrainer(BaseTrainer):
 
     def restore(self, ckpt: Any) -> None:
         """Weights, optimiser and RNG states and the batch stream's place."""
+        self.resume_schedule(ckpt)
+        trainer = state_fields(ckpt, "trainer", {"step": int})
         for name, module in self.agent.modules().items():
             ckpt.load_module(name, module)
-        self.agent.load_states({name: ckpt.state(name) for name in self.agent.states()})
-        self.step = int(ckpt.state("trainer")["step"])
+        with restoring(ckpt, "the learner's states"):
+            self.agent.load_states({name: ckpt.state(name) for name in self.agent.states()})
+        self.step = int(trainer["step"])
         print(f"resumed {self.out} at update {self.step}")
 
 
@@ -402,7 +412,7 @@ def match_instructions(
             f"and the grammar cannot parse them, e.g. {_few(unknown)}: train on instructions "
             "the grammar knows (lcrl parse TEXT shows how it reads one)"
         )
-    if extras and (not allow_new or getattr(task, "goal_kind", "text") != "text"):
+    if extras and (not allow_new or not getattr(task, "text_goals", True)):
         raise LcrlError(
             f"{path} holds {len(extras)} instructions outside this run's task set, e.g. "
             f"{_few(extras)}: add them to --env.tasks or train on a dataset of those tasks"

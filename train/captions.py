@@ -1,8 +1,12 @@
-"""Caption datasets with episodes acted by a trained policy (``lcrl caption collect``).
+"""Caption datasets on the registered simulators, with episodes acted by a trained policy
+(``lcrl caption collect``, ``lcrl perception collect``).
 
-:func:`captioner.dataset.collect` writes random and scripted episodes by itself; episodes
-of the ``policy`` source need a trained policy, which lives in this layer: this module
-loads the checkpoint, acts its episodes and hands them to the collector.
+:func:`captioner.dataset.collect` writes random and scripted episodes on the simulator it
+is given; this layer gives it one from :data:`train.environments.ENVS`
+(:func:`caption_simulator`: any simulator registered with instruction families and a
+scene reader collects). Episodes of the ``policy`` source need a trained policy, which
+lives here too: this module loads the checkpoint, acts its episodes and hands them to the
+collector.
 """
 
 from __future__ import annotations
@@ -12,10 +16,10 @@ from typing import Any
 
 import numpy as np
 
-from captioner.dataset import CaptionDatasetWriter, CollectConfig
+from captioner.dataset import CaptionDatasetWriter, CaptionSimulator, CollectConfig
 from captioner.dataset import collect as collect_dataset
 from lcrl.errors import LcrlError
-from train.environments import canonical_kind
+from train.environments import ENVS, EnvConfig, canonical_kind
 from train.evaluate import LoadedPolicy, load_policy
 from train.tasks import find_language_wrapper
 
@@ -96,9 +100,49 @@ def _proprio(obs: dict[str, Any], dim: int) -> np.ndarray:
     return np.asarray(obs["observation"][:dim], np.float32)
 
 
+def caption_simulator(name: str) -> CaptionSimulator:
+    """The simulator of ``--env NAME`` as :func:`captioner.dataset.collect` takes it: a
+    kind of :data:`train.environments.ENVS` (an older kind, or the name its caption
+    datasets record, such as ``lang2d``) built with camera frames. Its datasets record
+    the entry's ``caption_name`` (else the kind).
+
+    Raises:
+        LcrlError: no registered simulator of that name with instruction families and a
+            scene reader (what the rule captioner needs).
+    """
+    kind = canonical_kind(name)
+    spec = ENVS.get(kind)
+    if spec is None or not spec.families or spec.scene is None:
+        usable = tuple(k for k, s in ENVS.items() if s.families and s.scene is not None)
+        raise LcrlError(
+            f"unknown env {name!r} for caption datasets; choose one of {usable} (lang2d "
+            "names tabletop2d)"
+        )
+
+    def make(cfg: CollectConfig) -> Any:
+        env_cfg = EnvConfig(
+            kind=kind,
+            image_obs=True,
+            image_size=cfg.image_size,
+            min_objects=cfg.min_objects,
+            max_objects=cfg.max_objects,
+        )
+        return spec.make(env_cfg)
+
+    return CaptionSimulator(
+        name=spec.caption_name or kind,
+        make=make,
+        families=tuple(spec.families),
+        scripted=spec.scripted,
+        scene=spec.scene,
+    )
+
+
 def collect(cfg: CollectConfig) -> Path:
-    """:func:`captioner.dataset.collect`, with the ``policy`` source's episodes acted by
+    """:func:`captioner.dataset.collect` on the simulator ``cfg.env`` names
+    (:func:`caption_simulator`), with the ``policy`` source's episodes acted by
     ``cfg.policy`` when the sources ask for them."""
-    cfg.validate()
+    simulator = caption_simulator(cfg.env)
+    cfg.validate(simulator)
     policy = PolicyEpisodes(cfg) if "policy" in cfg.sources else None
-    return collect_dataset(cfg, policy)
+    return collect_dataset(cfg, simulator, policy)

@@ -36,7 +36,12 @@ from typing import Any
 import tyro
 
 from lcrl.errors import LcrlError
-from train.trainer import RunAlreadyDone, RunInterrupted
+from train.trainer import (
+    RunAlreadyDone,
+    RunInterrupted,
+    check_out_dir,
+    check_output_file,
+)
 
 
 @dataclass
@@ -143,8 +148,6 @@ class EvalCommand:
     """Show a progress bar over episodes."""
 
     def run(self) -> None:
-        from pathlib import Path
-
         from lcrl.checkpoint import load_checkpoint
         from train.eval_suite import (
             check_task_id_options,
@@ -156,6 +159,7 @@ class EvalCommand:
         )
         from train.evaluate import load_policy, resolve_checkpoint
         from train.run_meta import run_meta
+        from train.tasks import goal_modality
 
         if self.episodes <= 0:
             raise LcrlError("--episodes must be positive")
@@ -165,15 +169,15 @@ class EvalCommand:
             raise LcrlError("--chain must be 0 (off) or a number of instructions")
         if self.vector not in ("auto", "sync", "async"):
             raise LcrlError(f"--vector must be auto, sync or async, got {self.vector!r}")
-        if self.out and Path(self.out).exists() and not Path(self.out).is_dir():
-            raise LcrlError(f"--out {self.out} is a file, not a folder")
+        if self.out:  # outputs that cannot be written fail before the evaluation runs
+            check_out_dir(Path(self.out), "the evaluation folder")
         check_json_path(self.json)
         if self.instructions:
             read_instruction_file(self.instructions)  # bad lines fail before loading
         # a fixed task set: options that cannot apply fail before the policy is built
         saved = run_meta(load_checkpoint(resolve_checkpoint(self.checkpoint))).config.env
         tasks = tuple(" ".join(str(t).split()) for t in saved.tasks)
-        if saved.goal_type == "task":
+        if goal_modality(saved.goal_type).task_ids:
             check_task_id_options(len(tasks), self.sets, bool(self.instructions), self.chain)
         if tasks and self.families:
             raise LcrlError(
@@ -467,9 +471,10 @@ class CaptionEvalCommand:
 
 
 def check_json_path(path: str | None) -> None:
-    """Refuse a ``--json`` path that names a folder, before any work is done."""
-    if path and Path(path).is_dir():
-        raise LcrlError(f"--json {path} is a folder: name a file, e.g. {Path(path) / 'eval.json'}")
+    """Refuse a ``--json`` path that cannot be written (a folder, a path below a file, a
+    read-only folder), before any work is done."""
+    if path:
+        check_output_file(path, "--json")
 
 
 def _collect(cfg: Any) -> None:

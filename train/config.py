@@ -7,6 +7,7 @@
 from __future__ import annotations
 
 import dataclasses
+import types
 import typing
 from dataclasses import dataclass, field
 from typing import Any
@@ -271,26 +272,50 @@ def config_to_dict(cfg: Any) -> dict[str, Any]:
     return dataclasses.asdict(cfg)
 
 
-def config_from_dict(d: dict[str, Any]) -> TrainConfig:
-    """Rebuild a :class:`TrainConfig` from :func:`config_to_dict` output (unknown keys are
-    an error, missing keys take their defaults)."""
+class ConfigFieldError(LcrlError):
+    """A saved config's field holds a value of the wrong type.
 
-    def build(cls: type, values: dict[str, Any]) -> Any:
+    Attributes:
+        field: the field's dotted name (``agent.net.hidden``, with the prefix given to
+            :func:`config_from_dict`).
+    """
+
+    def __init__(self, field: str, expected: str, value: Any) -> None:
+        text = repr(value)
+        found = f"{type(value).__name__} {text[:60]}{'...' if len(text) > 60 else ''}"
+        super().__init__(f"the field {field!r} should be {expected}, not {found}")
+        self.field = field
+
+
+def config_from_dict(d: dict[str, Any], prefix: str = "") -> TrainConfig:
+    """Rebuild a :class:`TrainConfig` from :func:`config_to_dict` output (unknown keys are
+    an error, missing keys take their defaults).
+
+    Every value is checked against its field's annotation: booleans, integers, numbers
+    (integers too), strings, ``None`` where the field allows it, lists for tuples (of
+    those), objects for dicts and nested configs. Lists become tuples.
+
+    Args:
+        d: the saved config (``config.json``, or ``meta.json``'s ``config``).
+        prefix: prepended to field names in errors (``config.`` for a checkpoint's).
+
+    Raises:
+        ConfigFieldError: a value of the wrong type, naming the field.
+        LcrlError: unknown fields.
+    """
+
+    def build(cls: type, values: Any, where: str) -> Any:
+        if not isinstance(values, dict):
+            raise ConfigFieldError(where.rstrip(".") or "config", "an object", values)
         fields = {f.name: f for f in dataclasses.fields(cls)}
         unknown = sorted(set(values) - set(fields))
         if unknown:
             raise LcrlError(f"unknown {cls.__name__} fields in a saved config: {unknown}")
-        nested = nested_configs(cls)
-        kwargs = {}
-        for name, value in values.items():
-            ftype = fields[name].type
-            sub = nested.get(name)
-            if sub is not None and isinstance(value, dict):
-                kwargs[name] = build(sub, value)
-            elif isinstance(value, list) and "tuple" in str(ftype):
-                kwargs[name] = tuple(value)
-            else:
-                kwargs[name] = value
+        hints = typing.get_type_hints(cls)
+        kwargs = {
+            name: checked(value, hints[name], f"{where}{name}", build)
+            for name, value in values.items()
+        }
         return cls(**kwargs)
 
     env = d.get("env")
@@ -301,7 +326,81 @@ def config_from_dict(d: dict[str, Any]) -> TrainConfig:
     if isinstance(agent, dict) and "text_goal_norm" not in agent:
         # Saved before the option existed: those weights read standardised text goals.
         d = {**d, "agent": {**agent, "text_goal_norm": "standardize"}}
-    return build(TrainConfig, d)
+    return build(TrainConfig, d, prefix)
+
+
+#: What a JSON value of each plain annotation is called in errors.
+_EXPECTED = {
+    bool: "true or false",
+    int: "an integer",
+    float: "a number",
+    str: "a string",
+    dict: "an object",
+}
+
+
+def expected_type(hint: Any) -> str:
+    """How an annotation's JSON values are named in errors (``a list of integers``)."""
+    origin, args = typing.get_origin(hint), typing.get_args(hint)
+    if origin in (typing.Union, types.UnionType):
+        names = [expected_type(a) for a in args if a is not type(None)]
+        return " or ".join(names + (["null"] if type(None) in args else []))
+    if origin is tuple or origin is list:
+        inner = args[0] if args else Any
+        word = {bool: "booleans", int: "integers", float: "numbers", str: "strings"}
+        return f"a list of {word.get(inner, 'values')}"
+    if origin is dict or (isinstance(hint, type) and dataclasses.is_dataclass(hint)):
+        return "an object"
+    return _EXPECTED.get(hint, str(hint))
+
+
+def checked(value: Any, hint: Any, field: str, build: Any) -> Any:
+    """``value`` if it fits the annotation ``hint`` (lists become tuples for tuple fields,
+    objects become configs through ``build(cls, values, prefix)``); else
+    :class:`ConfigFieldError` naming ``field``. Annotations other than those of the
+    configs (bool, int, float, str, None, tuples, dicts, unions, dataclasses) pass."""
+    origin, args = typing.get_origin(hint), typing.get_args(hint)
+    if hint is Any:
+        return value
+    if origin in (typing.Union, types.UnionType):
+        if value is None and type(None) in args:
+            return None
+        for option in (a for a in args if a is not type(None)):
+            try:
+                return checked(value, option, field, build)
+            except ConfigFieldError:
+                continue
+        raise ConfigFieldError(field, expected_type(hint), value)
+    if isinstance(hint, type) and dataclasses.is_dataclass(hint):
+        if not isinstance(value, dict):
+            raise ConfigFieldError(field, "an object", value)
+        return build(hint, value, f"{field}.")
+    if origin is tuple or origin is list:
+        if not isinstance(value, (list, tuple)):
+            raise ConfigFieldError(field, expected_type(hint), value)
+        kinds = args[:1] * len(value) if args and args[-1] is Ellipsis else args
+        if not args:
+            kinds = (Any,) * len(value)
+        elif len(kinds) != len(value):
+            raise ConfigFieldError(field, f"a list of {len(args)} values", value)
+        try:
+            items = [checked(v, a, field, build) for v, a in zip(value, kinds, strict=True)]
+        except ConfigFieldError:
+            raise ConfigFieldError(field, expected_type(hint), value) from None
+        return tuple(items) if origin is tuple else items
+    if origin is dict or hint is dict:
+        if not isinstance(value, dict) or not all(isinstance(k, str) for k in value):
+            raise ConfigFieldError(field, "an object", value)
+        return value
+    ok = {
+        bool: lambda v: isinstance(v, bool),
+        int: lambda v: isinstance(v, int) and not isinstance(v, bool),
+        float: lambda v: isinstance(v, (int, float)) and not isinstance(v, bool),
+        str: lambda v: isinstance(v, str),
+    }.get(hint)
+    if ok is not None and not ok(value):
+        raise ConfigFieldError(field, expected_type(hint), value)
+    return value
 
 
 def nested_configs(cls: type) -> dict[str, type]:
@@ -369,7 +468,7 @@ def _lang2d_tasks(goal_type: str, **overrides: Any) -> TrainConfig:
     """The 8 tasks of :data:`TASKS_2D` on the 2D tabletop, 30k steps: one-hot task ids
     without relabelling (``task``) or the same instructions as language goals with
     language HER (``language``); gradient conflict measured every 10 updates."""
-    relabel = goal_type == "language"
+    relabel = goal_modality(goal_type).relabel
     agent = _net2d()
     agent.multitask = MultiTaskOptions(conflict_every=10)
     cfg = _lang2d(

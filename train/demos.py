@@ -749,6 +749,10 @@ class RelabelCommand:
         """``lcrl demos relabel``."""
         if not self.out:
             raise LcrlError("pass --out DST (the relabelled dataset; SRC itself to replace it)")
+        if self.json:  # before the work: a --json that cannot be written fails now
+            from train.trainer import check_output_file
+
+            check_output_file(self.json, "--json")
         counts = relabel(
             self.src,
             self.out,

@@ -128,6 +128,10 @@ class EnvSpec:
         step_cost: ``fast`` (microseconds a step: evaluation steps sub-envs in one
             process) or ``slow`` (physics and cameras: a process per sub-env).
         caption_name: the name its caption datasets and learned captioners record.
+        slot_layout: ``(start, count, width, position_dims)`` of the bare simulator's
+            object slots in its ``observation`` (what :func:`envs.features.slot_layout`
+            reads from the env class; ``tests/test_tasks.py`` checks the two agree), for
+            readers of the registry; None: it has no object slots (``gym``).
     """
 
     make: Callable[[EnvConfig], gym.Env]
@@ -139,6 +143,7 @@ class EnvSpec:
     time_limit: bool = True
     step_cost: str = "fast"
     caption_name: str = ""
+    slot_layout: tuple[int, int, int, int] | None = None
 
 
 def env_spec(kind: str) -> EnvSpec:
@@ -312,6 +317,7 @@ ENVS: dict[str, EnvSpec] = {
         scripted=_scripted_2d,
         scene=unwrapped_scene,
         caption_name="lang2d",
+        slot_layout=(2, 8, 3, 2),  # pusher x, y; 8 object kinds of x, y, present
     ),
     "robosuite": EnvSpec(
         make=make_robosuite,
@@ -322,6 +328,7 @@ ENVS: dict[str, EnvSpec] = {
         scene=unwrapped_scene,
         step_cost="slow",
         caption_name="robosuite",
+        slot_layout=(4, 8, 4, 3),  # gripper x, y, z, opening; 8 kinds of x, y, z, present
     ),
     "gym": EnvSpec(
         make=make_gym,

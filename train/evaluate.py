@@ -70,8 +70,10 @@ def build_task(
         encoder = FrozenTextEncoder(cfg.text_encoder)
         kwargs: dict[str, Any] = {}
         if ckpt is not None:
-            saved = ckpt.json("instructions")
-            kwargs = {"table": saved["texts"], "num_train": saved["num_train"]}
+            from train.run_meta import instruction_table
+
+            texts, num_train = instruction_table(ckpt)
+            kwargs = {"table": texts, "num_train": num_train}
         elif table is not None:
             kwargs = {"table": list(table[0]), "num_train": int(table[1])}
         task = make_task(cfg.env, env, encoder.encode, **kwargs)

@@ -28,6 +28,7 @@ from train.config import TrainConfig, config_to_dict
 from train.environments import canonical_kind
 from train.evaluate import build_agent, build_task
 from train.perception import embedded_meta, find_perception
+from train.run_meta import restoring, state_fields
 from train.tasks import ScriptedActor, is_language, make_env, reset_feasible, task_texts
 from train.trainer import BaseTrainer, eval_row, open_run, prune_checkpoints
 
@@ -35,16 +36,25 @@ __all__ = ["Trainer", "checkpoint_meta", "eval_row", "open_run"]
 
 
 def checkpoint_meta(
-    cfg: TrainConfig, algo: str, problem: Any, env: Any, task: Any, step: int, episodes: int
+    cfg: TrainConfig,
+    algo: str,
+    problem: Any,
+    env: Any,
+    task: Any,
+    step: int,
+    episodes: int,
+    eval_pending: bool = False,
 ) -> tuple[dict[str, Any], dict[str, Any]]:
     """``meta`` and JSON files of a run's checkpoint: config, algo, problem, env spaces,
-    and for language tasks the instruction table, the split and the text encoder."""
+    whether a periodic evaluation at this step is still to run, and for language tasks
+    the instruction table, the split and the text encoder."""
     meta: dict[str, Any] = {
         "config": config_to_dict(cfg),
         "algo": algo,
         "problem": problem.to_dict(),
         "step": step,
         "episodes": episodes,
+        "eval_pending": bool(eval_pending),
         "env": {
             "kind": cfg.env.kind,
             "observation_space": str(env.observation_space),
@@ -360,7 +370,14 @@ class Trainer(BaseTrainer):
         cfg = self.cfg
         directory = self.out / "checkpoints" / f"step_{self.step:09d}"
         meta, json_files = checkpoint_meta(
-            cfg, self.algo, self.problem, self.env, self.task, self.step, self.episodes
+            cfg,
+            self.algo,
+            self.problem,
+            self.env,
+            self.task,
+            self.step,
+            self.episodes,
+            self.eval_pending,
         )
         states = {
             **self.agent.states(),
@@ -400,23 +417,33 @@ class Trainer(BaseTrainer):
     def restore(self, ckpt: Any) -> None:
         """Weights, optimiser and RNG states, counters and the replay buffer of a
         checkpoint."""
+        self.resume_schedule(ckpt)
+        trainer = state_fields(
+            ckpt,
+            "trainer",
+            {"step": int, "episodes": int, "recent": list, "credit": float},
+            optional={"sim_errors": int, "scripted_episodes": int},
+        )
         for name, module in self.agent.modules().items():
             ckpt.load_module(name, module)
-        states = {name: ckpt.state(name) for name in self.agent.states()}
-        self.agent.load_states(states)
-        self.buffer.rng.bit_generator.state = ckpt.state("buffer_rng")
-        self.rng.bit_generator.state = ckpt.state("trainer_rng")
+        with restoring(ckpt, "the learner's states"):
+            states = {name: ckpt.state(name) for name in self.agent.states()}
+            self.agent.load_states(states)
+        for name, rng in (("buffer_rng", self.buffer.rng), ("trainer_rng", self.rng)):
+            with restoring(ckpt, f"the state {name!r}"):
+                rng.bit_generator.state = ckpt.state(name)
         if ckpt.has_state("scripted_rng"):
-            self.scripted_rng.bit_generator.state = ckpt.state("scripted_rng")
-        trainer = ckpt.state("trainer")
+            with restoring(ckpt, "the state 'scripted_rng'"):
+                self.scripted_rng.bit_generator.state = ckpt.state("scripted_rng")
         self.step, self.episodes = int(trainer["step"]), int(trainer["episodes"])
         self.sim_errors = int(trainer.get("sim_errors", 0))
         self.scripted_episodes = int(trainer.get("scripted_episodes", 0))
-        self.recent.extend(trainer["recent"])
+        self.recent.extend(float(x) for x in trainer["recent"])
         self._credit = float(trainer["credit"])
         if self.sampler is not None and ckpt.has_state("task_sampler"):
-            self.sampler.load_state_dict(ckpt.state("task_sampler"))
-            self.task_rng.bit_generator.state = ckpt.state("task_rng")
+            with restoring(ckpt, "the states 'task_sampler' and 'task_rng'"):
+                self.sampler.load_state_dict(ckpt.state("task_sampler"))
+                self.task_rng.bit_generator.state = ckpt.state("task_rng")
         if ckpt.has_arrays():
             self.buffer.load_arrays(ckpt.arrays())
         print(f"resumed {self.out} at step {self.step} ({self.episodes} episodes)")

@@ -311,6 +311,10 @@ class PerceptionEvalCommand:
     """Also write the figures to this JSON file."""
 
     def run(self) -> dict[str, Any]:
+        if self.json:  # before the work: a --json that cannot be written fails now
+            from train.trainer import check_output_file
+
+            check_output_file(self.json, "--json")
         model, meta = load_model(self.model)
         layout = model.layout
         if self.data:

@@ -61,7 +61,7 @@ from lcrl.checkpoint import Checkpoint
 from lcrl.errors import LcrlError
 from train.config import TrainConfig
 from train.environments import describe
-from train.tasks import Task, make_env, task_texts
+from train.tasks import Task, goal_modality, make_env, task_texts
 
 
 class Neighbour(NamedTuple):
@@ -126,7 +126,7 @@ def describe_env(cfg: TrainConfig) -> str:
     """A few words naming a config's environment (for error messages)."""
     env = cfg.env
     name = f"{describe(env)} ({env.goal_type} goals)"
-    if env.goal_type == "task":
+    if goal_modality(env.goal_type).task_ids:
         name += f", {len(env.tasks)} task ids"
     return name + (", image observations" if env.image_obs else "")
 

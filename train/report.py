@@ -29,8 +29,10 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
+from lcrl.algos import ALGOS
 from lcrl.errors import LcrlError
 from train.environments import ENVS, KIND_ALIASES, describe
+from train.tasks import GOALS, goals_label
 
 EVAL_FORMAT = "lcrl-eval"
 EVAL_VERSION = 1
@@ -99,17 +101,18 @@ def task_name(env: dict[str, Any]) -> str:
     reach/push``, ``2D tabletop (state goals)``, ``robosuite tabletop (image goals)``, a
     gym id."""
     kind, alias_goal = KIND_ALIASES.get(str(env.get("kind", "?")), (env.get("kind", "?"), None))
-    goal_type = alias_goal or env.get("goal_type", "language")
+    goal_type = str(alias_goal or env.get("goal_type", "language"))
     name = describe(env)
     spec = ENVS.get(kind)
-    if goal_type == "language" and spec is not None and spec.families:
+    modality = GOALS.get(goal_type)
+    text = modality is not None and modality.text
+    if text and spec is not None and spec.families:
         name += " " + "/".join(env.get("families", ()))
     tasks = env.get("tasks") or ()
     if tasks:
-        name += f", {len(tasks)} tasks"
-        return name + (" as task ids" if goal_type == "task" else " as language goals")
-    if goal_type != "language":
-        name += f" ({goal_type} goals)"
+        return name + f", {len(tasks)} tasks as {goals_label(goal_type)}"
+    if not text:
+        name += f" ({goals_label(goal_type)})"
     return name
 
 
@@ -653,7 +656,7 @@ def write_report(
     algo = config.get("resolved_algo", config.get("algo", "?"))
     lines.append(
         f"{what}, {algo}, {learning_summary(config)}, "
-        f"{config.get('total_steps', 0):,} {'updates' if algo == 'bc' else 'steps'}, "
+        f"{config.get('total_steps', 0):,} {_unit(algo)}s, "
         f"seed {config.get('seed', '?')}."
     )
     if progress:
@@ -700,19 +703,30 @@ def write_report(
     return path
 
 
+def _unit(algo: str) -> str:
+    """What a run's steps count (``step``, or ``update`` for learning from
+    demonstrations)."""
+    spec = ALGOS.get(algo)
+    return spec.unit if spec is not None else "step"
+
+
 def learning_summary(config: dict[str, Any]) -> str:
     """How a run learns, from its config: ``behavioural cloning from FILE (hindsight
     segments on)``, ``task ids, no relabelling``, or the relabelling settings
     (``relabelling future k=4``)."""
     algo = config.get("resolved_algo", config.get("algo", "?"))
-    if algo == "bc":
-        hindsight = (config.get("bc") or {}).get("hindsight", True)
-        return (
-            f"behavioural cloning from {config.get('demos') or '?'} "
-            f"(hindsight segments {'on' if hindsight else 'off'})"
-        )
-    if (config.get("env") or {}).get("goal_type") == "task":
-        return "task ids, no relabelling"
+    spec = ALGOS.get(algo)
+    if spec is not None and spec.learns_from == "demos":
+        # configs saved before the option existed had its default
+        default = getattr(spec.config(), "hindsight", None)
+        hindsight = (config.get(algo) or {}).get("hindsight", default)
+        on = "on" if hindsight else "off"
+        segments = "" if hindsight is None else f" (hindsight segments {on})"
+        return f"{spec.title or spec.name} from {config.get('demos') or '?'}{segments}"
+    goal_type = str((config.get("env") or {}).get("goal_type", ""))
+    modality = GOALS.get(goal_type)
+    if modality is not None and not modality.relabel:
+        return f"{goals_label(goal_type)}, no relabelling"
     buf = config.get("buffer", {})
     return f"relabelling {buf.get('strategy', '?')} k={buf.get('k', '?')}"
 

@@ -55,6 +55,7 @@ __all__ = [
     "env_spec",
     "find_language_wrapper",
     "goal_modality",
+    "goals_label",
     "has_instructions",
     "is_language",
     "make_env",
@@ -65,6 +66,29 @@ __all__ = [
 
 #: Layouts tried per episode for a layout in which the episode's task is feasible.
 FEASIBLE_TRIES = 100
+
+#: Names of earlier versions, and what took their place.
+RENAMED = {
+    "ENV_KINDS": "train.environments.ENVS (one EnvSpec per simulator; the goal type is "
+    "EnvConfig.goal_type)",
+    "GOAL_TYPES": "train.tasks.GOALS (one GoalModality per goal type)",
+}
+
+
+class RenamedError(LcrlError, ImportError):
+    """A name of an earlier version was asked for; the message gives the new spelling.
+    An ``ImportError`` (not an ``AttributeError``, which ``from train.tasks import NAME``
+    would replace by a message of its own)."""
+
+
+def __getattr__(name: str) -> Any:
+    """Names of earlier versions fail with an error that gives the new spelling."""
+    if name in RENAMED:
+        raise RenamedError(
+            f"train.tasks.{name} was replaced by {RENAMED[name]}: use that registry instead",
+            name=name,
+        )
+    raise AttributeError(f"module 'train.tasks' has no attribute {name!r}")
 
 
 def make_env(cfg: EnvConfig, split_set: str = "train", training: bool = False) -> gym.Env:
@@ -221,8 +245,9 @@ class Task:
     :meth:`embed_goals`; :meth:`from_config` builds it for a run.
     """
 
-    #: The network's goal encoder (:class:`lcrl.nets.GoalEncoder` kinds: ``vector``,
-    #: ``text``, ``onehot``, ``image``); it also picks the goal normaliser of the learner.
+    #: How the networks read the goals: a key of :data:`lcrl.nets.GOAL_ENCODERS`
+    #: (``vector``, ``text``, ``onehot``, ``image``), which names the goal encoder; it
+    #: also picks the learner's goal normaliser (:data:`lcrl.algos.GOAL_NORMALISERS`).
     goal_kind = "vector"
     #: Evaluation sets (seen instructions first).
     sets: tuple[str, ...] = ("train",)
@@ -804,6 +829,8 @@ class GoalModality:
             families (:attr:`train.environments.EnvSpec.families`).
         needs_tasks: the goal type needs a fixed task set (``env.tasks``).
         relabel: goals may be relabelled in hindsight (task ids may not).
+        label: what its goals are called in reports and messages (``task ids``);
+            empty: ``<goal type> goals``.
     """
 
     task: type[Task]
@@ -811,11 +838,18 @@ class GoalModality:
     instructed: bool = False
     needs_tasks: bool = False
     relabel: bool = True
+    label: str = ""
 
     @property
     def text(self) -> bool:
         """Goals are texts embedded by the frozen text encoder."""
         return bool(self.task.text_goals)
+
+    @property
+    def task_ids(self) -> bool:
+        """Goals are ids of the fixed task set: a trained policy is asked with a task id
+        (its :class:`Task` has ``query = "task_id"``), never with free text."""
+        return self.task.query == "task_id"
 
 
 #: Every goal type, by ``EnvConfig.goal_type``.
@@ -831,8 +865,16 @@ GOALS: dict[str, GoalModality] = {
         instructed=True,
         needs_tasks=True,
         relabel=False,
+        label="task ids",
     ),
 }
+
+
+def goals_label(goal_type: str) -> str:
+    """What a goal type's goals are called in reports (``task ids``, ``state goals``);
+    unregistered goal types too."""
+    modality = GOALS.get(goal_type)
+    return (modality.label if modality is not None else "") or f"{goal_type} goals"
 
 
 def goal_modality(goal_type: str) -> GoalModality:

@@ -23,7 +23,9 @@ Stopping
     writes a checkpoint and exits with status 130 (SIGINT) or 143 (SIGTERM); ``--resume``
     then continues exactly as if nothing had happened. While a checkpoint is being
     written, further SIGINT and SIGTERM are held back and reported, so the checkpoint is
-    always completed: stopping again only repeats the note. SIGKILL cannot be caught:
+    always completed: stopping again only repeats the note. A stop during a periodic
+    evaluation saves it as pending (:attr:`BaseTrainer.eval_pending`): the resumed run
+    evaluates at that step first, so eval.csv has every row. SIGKILL cannot be caught:
     ``--resume`` continues from the last checkpoint, cuts ``progress.csv`` and
     ``eval.csv`` back to its step and removes half-written checkpoint folders.
 """
@@ -45,7 +47,13 @@ from collections.abc import Iterator, Mapping
 from pathlib import Path
 from typing import Any
 
-from lcrl.checkpoint import find_latest, load_checkpoint, remove_stale
+from lcrl.checkpoint import (
+    CheckpointWriteError,
+    find_latest,
+    load_checkpoint,
+    remove_stale,
+    write_problem,
+)
 from lcrl.errors import LcrlError
 from train.config import TrainConfig, config_to_dict
 from train.evaluate import evaluate, format_results
@@ -65,15 +73,30 @@ class CsvLog:
             self.fields = header.split(",") if header else None
 
     def write(self, row: Mapping[str, Any]) -> None:
-        """Write one row (keys outside the header are dropped)."""
+        """Write one row (keys outside the header are dropped).
+
+        Raises:
+            LcrlError: the file cannot be written (a full disk), naming it.
+        """
         new = self.fields is None
-        if new:
-            self.fields = list(row)
-        with self.path.open("a", newline="") as f:
-            w = csv.DictWriter(f, fieldnames=self.fields, extrasaction="ignore")
+        fields = list(row) if new else self.fields
+        with writing(self.path), self.path.open("a", newline="") as f:
+            w = csv.DictWriter(f, fieldnames=fields, extrasaction="ignore")
             if new:
                 w.writeheader()
             w.writerow({k: _fmt(v) for k, v in row.items()})
+        self.fields = fields
+
+
+@contextlib.contextmanager
+def writing(path: Path) -> Iterator[None]:
+    """Name ``path`` in the error of a write inside the block that fails: an ``OSError``
+    (a full disk, a read-only folder) becomes an :class:`LcrlError` saying which file and
+    what went wrong (the operating system's error of a failed write names no file)."""
+    try:
+        yield
+    except OSError as e:
+        raise LcrlError(f"cannot write {path}: {write_problem(e)}") from None
 
 
 def _fmt(v: Any) -> Any:
@@ -204,9 +227,13 @@ def open_run(cfg: TrainConfig) -> tuple[TrainConfig, Any]:
     return cfg, None
 
 
-def check_out_dir(out: Path) -> None:
+def check_out_dir(out: Path, what: str = "the run folder") -> None:
     """Refuse a run folder that cannot be one: a file, or a folder that cannot be written.
     Leaves nothing behind: folders made for the check are removed again.
+
+    Args:
+        out: the folder (``--out``).
+        what: what it is, in the message.
 
     Raises:
         LcrlError: naming the path and the problem.
@@ -220,11 +247,32 @@ def check_out_dir(out: Path) -> None:
         probe.write_text("")
         probe.unlink()
     except OSError as e:
-        raise LcrlError(f"cannot write the run folder {out}: {e.strerror or e}") from None
+        raise LcrlError(f"cannot write {what} {out}: {e.strerror or e}") from None
     finally:
         for p in made:  # innermost first
             with contextlib.suppress(OSError):
                 p.rmdir()
+
+
+def check_output_file(path: str | Path, option: str) -> None:
+    """Refuse an output file that cannot be written, before any work is done: a folder, a
+    path below a file, or a path in a folder that cannot be written. Creates nothing.
+
+    Args:
+        path: the file the command will write.
+        option: the option that names it (``--json``), for the message.
+
+    Raises:
+        LcrlError: naming the option, the path and the problem.
+    """
+    p = Path(path)
+    if p.is_dir():
+        raise LcrlError(f"{option} {p} is a folder: name a file, e.g. {p / 'eval.json'}")
+    folder = next(q for q in (*p.parents, Path(".")) if q.exists())
+    if not folder.is_dir():
+        raise LcrlError(f"{option} {p} cannot be written: {folder} is a file, not a folder")
+    if not os.access(folder, os.W_OK):
+        raise LcrlError(f"{option} {p} cannot be written: the folder {folder} is not writable")
 
 
 def truncate_log(path: Path, step: int) -> int:
@@ -332,6 +380,12 @@ class BaseTrainer(ABC):
     last_eval: dict[str, Any] | None = None
     #: The step of the last progress.csv row (-1: none yet).
     last_logged: int = -1
+    #: A periodic evaluation was due at :attr:`step` and did not finish (the run was
+    #: stopped during it): saved with the checkpoint, and run first when the run resumes,
+    #: so that eval.csv has the row an uninterrupted run has.
+    eval_pending: bool = False
+    #: A periodic evaluation is running (what :meth:`interrupted` saves as pending).
+    _periodic_eval: bool = False
     tb: Any = None
 
     # --- what a trainer implements -----------------------------------------------------
@@ -384,9 +438,10 @@ class BaseTrainer(ABC):
         """Create the run folder, its config.json, progress.csv, eval.csv and TensorBoard."""
         cfg = self.cfg
         self.out.mkdir(parents=True, exist_ok=True)
-        (self.out / "config.json").write_text(
-            json.dumps({**config_to_dict(cfg), "resolved_algo": self.algo}, indent=1)
-        )
+        with writing(self.out / "config.json"):
+            (self.out / "config.json").write_text(
+                json.dumps({**config_to_dict(cfg), "resolved_algo": self.algo}, indent=1)
+            )
         self.progress_log = CsvLog(self.out / "progress.csv")
         self.eval_log = CsvLog(self.out / "eval.csv")
         self.tb = tensorboard_writer(self.out / "tb") if cfg.tensorboard else None
@@ -404,6 +459,9 @@ class BaseTrainer(ABC):
         next_log = next_multiple(self.step, cfg.log_every)
         with StopSignals() as self.signals:
             try:
+                if self.eval_pending and self.step < cfg.total_steps:
+                    self.periodic_evaluation()  # the one a stop cut short at this step
+                self.eval_pending = False
                 while self.step < cfg.total_steps:
                     before = self.step
                     self.advance()
@@ -412,7 +470,7 @@ class BaseTrainer(ABC):
                         self.log()
                         next_log = next_multiple(self.step, cfg.log_every)
                     if cfg.eval_every and self.step >= next_eval and self.step < cfg.total_steps:
-                        self.evaluate()
+                        self.periodic_evaluation()
                         next_eval = next_multiple(self.step, cfg.eval_every)
                     if (
                         cfg.checkpoint_every
@@ -429,6 +487,18 @@ class BaseTrainer(ABC):
                 bar.close()
                 self.interrupted(e)
                 raise
+
+    def periodic_evaluation(self) -> None:
+        """:meth:`evaluate`, remembered as pending while it runs: a run stopped during it
+        saves that, and its resumption runs the evaluation again at the same step."""
+        self._periodic_eval = True
+        self.evaluate()
+        self._periodic_eval = False
+
+    def resume_schedule(self, ckpt: Any) -> None:
+        """Read what the loop itself keeps in a checkpoint (an evaluation left pending);
+        called by :meth:`restore`."""
+        self.eval_pending = ckpt.meta.get("eval_pending", False) is True
 
     def holding_signals(self) -> Any:
         """A context in which SIGINT and SIGTERM wait (see :class:`StopSignals`)."""
@@ -448,16 +518,23 @@ class BaseTrainer(ABC):
         became read-only) is an :class:`LcrlError` naming it and the checkpoint kept."""
         try:
             return self.save()
-        except OSError as e:
+        except (OSError, CheckpointWriteError) as e:
+            if isinstance(e, CheckpointWriteError):
+                where, problem = e.path, e.problem
+            else:
+                where, problem = e.filename or self.out / "checkpoints", write_problem(e)
             try:
                 kept = find_latest(self.out)
             except LcrlError:
                 kept = None
-            keep = f"the previous checkpoint {kept} is kept" if kept else "no checkpoint is kept"
-            where = e.filename or self.out / "checkpoints"
+            keep = (
+                f"the previous checkpoint {kept} is kept (latest.json points at it)"
+                if kept
+                else "no earlier checkpoint exists"
+            )
             raise LcrlError(
                 f"cannot write a checkpoint at {self.unit} {self.step} in {where}: "
-                f"{e.strerror or e}; {keep} (latest.json points at it)"
+                f"{problem}; {keep}"
             ) from None
 
     def elapsed(self) -> float:
@@ -503,6 +580,7 @@ class BaseTrainer(ABC):
         name = why.args[0] if isinstance(why, RunInterrupted) else "SIGINT"
         with self.holding_signals():
             self.rollback()
+            self.eval_pending = self._periodic_eval
             saved = getattr(self, "_saved", None)
             if saved is not None and saved[0] == self.step:
                 path = saved[1]

@@ -26,6 +26,7 @@ from lcrl.algos import bc, dqn, sac, td3
 from lcrl.algos.base import (
     ACTION_KINDS,
     DATA_SOURCES,
+    GOAL_NORMALISERS,
     TEXT_GOAL_NORMS,
     Agent,
     AgentOptions,
@@ -59,6 +60,7 @@ __all__ = [
     "BC_LOSSES",
     "DATA_SOURCES",
     "DQN",
+    "GOAL_NORMALISERS",
     "SAC",
     "TD3",
     "TEXT_GOAL_NORMS",

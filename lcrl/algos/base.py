@@ -50,7 +50,8 @@ class Problem:
     Attributes:
         obs_shapes: ``{key: shape}`` of the stored observation (vectors ``(d,)``, uint8
             images ``(H, W, C)``).
-        goal_kind: ``vector``, ``text``, ``onehot`` or ``image`` (see :mod:`lcrl.nets`).
+        goal_kind: how the networks read the goals: a key of :data:`lcrl.nets.GOAL_ENCODERS`
+            (``vector``, ``text``, ``onehot`` or ``image``).
         goal_shape: shape of one embedded goal.
         action_dim: continuous action width (actions in ``[-1, 1]``), or the number of
             discrete actions.
@@ -183,6 +184,33 @@ def resolve_device(name: str) -> torch.device:
     return device
 
 
+def text_goal_normaliser(problem: Problem, options: AgentOptions) -> nn.Module:
+    """Language goals (frozen text embeddings): standardised per dimension, or whitened
+    over the instruction table (``options.text_goal_norm``)."""
+    # Frozen sentence embeddings of instructions are close to each other (cosine 0.98
+    # between "push the red cube left" and "... right"); whitening over the instruction
+    # table spreads them apart (cosine 0.61), standardising each dimension much less
+    # (0.91).
+    if options.text_goal_norm == "whiten":
+        return WhiteningNorm(problem.goal_shape[0], eps=options.text_whiten_eps)
+    return RunningNorm(problem.goal_shape[0], eps=1e-3)
+
+
+def vector_goal_normaliser(problem: Problem, options: AgentOptions) -> nn.Module:
+    """Goal vectors: running statistics of the achieved goals."""
+    return RunningNorm(problem.goal_shape[0], eps=1e-2)
+
+
+#: ``(problem, options) -> module``: the goal normaliser of each goal kind
+#: (:data:`lcrl.nets.GOAL_ENCODERS`), saved as ``norms.goal.*`` and used when
+#: ``options.normalize_goal`` is on. Kinds without an entry (one-hot task ids, image
+#: goals) are not normalised.
+GOAL_NORMALISERS: dict[str, Callable[[Problem, AgentOptions], nn.Module]] = {
+    "text": text_goal_normaliser,
+    "vector": vector_goal_normaliser,
+}
+
+
 class Agent:
     """Shared machinery: device, normalisers, tensors from batches, saving.
 
@@ -221,19 +249,9 @@ class Agent:
             )
         if options.text_whiten_eps <= 0:
             raise LcrlError(f"text_whiten_eps must be positive, got {options.text_whiten_eps}")
-        if options.normalize_goal and problem.goal_kind == "text":
-            # Frozen sentence embeddings of instructions are close to each other (cosine
-            # 0.98 between "push the red cube left" and "... right"); whitening over the
-            # instruction table spreads them apart (cosine 0.61), standardising each
-            # dimension much less (0.91).
-            if options.text_goal_norm == "whiten":
-                self.norms["goal"] = WhiteningNorm(
-                    problem.goal_shape[0], eps=options.text_whiten_eps
-                )
-            else:
-                self.norms["goal"] = RunningNorm(problem.goal_shape[0], eps=1e-3)
-        elif options.normalize_goal and problem.goal_kind == "vector":
-            self.norms["goal"] = RunningNorm(problem.goal_shape[0], eps=1e-2)
+        goal_norm = GOAL_NORMALISERS.get(problem.goal_kind)
+        if options.normalize_goal and goal_norm is not None:
+            self.norms["goal"] = goal_norm(problem, options)
         self.norms.to(self.device)
         self.updates = 0
         self.acts = 0
@@ -453,6 +471,8 @@ class AlgoSpec:
         summary: one line for listings.
         privileged_critic: whether its critics can read privileged observation keys that
             its actor does not (:attr:`Problem.privileged`: an asymmetric actor-critic).
+        title: how it learns, in a few words for reports (``behavioural cloning``);
+            empty: its name.
     """
 
     name: str
@@ -463,6 +483,7 @@ class AlgoSpec:
     learns_from: str = "env"
     summary: str = ""
     privileged_critic: bool = False
+    title: str = ""
 
     def __post_init__(self) -> None:
         if self.actions not in ACTION_KINDS:
@@ -474,6 +495,13 @@ class AlgoSpec:
                 f"AlgoSpec {self.name!r} names agent class {self.agent.__name__} whose name is "
                 f"{self.agent.name!r}"
             )
+
+    @property
+    def unit(self) -> str:
+        """What ``total_steps`` and the ``*_every`` settings of its runs count: ``step``
+        (environment steps, online RL) or ``update`` (gradient updates on
+        demonstrations)."""
+        return "update" if self.learns_from == "demos" else "step"
 
     def takes(self, discrete: bool) -> bool:
         """Whether the algorithm takes discrete (or continuous) actions."""

@@ -249,4 +249,5 @@ SPEC = AlgoSpec(
     multitask=False,
     learns_from="demos",
     summary="behavioural cloning from instruction-labelled demonstrations (--demos)",
+    title="behavioural cloning",
 )
