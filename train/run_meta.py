@@ -111,6 +111,11 @@ PROBLEM_FIELDS: dict[str, tuple[Any, str, bool]] = {
     "action_dim": (_count(1), "a positive integer", True),
     "discrete": (lambda v: isinstance(v, bool), "true or false", True),
     "num_tasks": (_count(0), "an integer >= 0", False),
+    "privileged": (
+        lambda v: isinstance(v, list) and all(isinstance(k, str) for k in v),
+        "a list of observation keys",
+        False,
+    ),
 }
 
 
