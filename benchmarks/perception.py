@@ -5,7 +5,8 @@ on held-out episodes and on new layouts of another seed.
 
 Writes ``benchmarks/results/perception-robosuite.{json,md,png}``; the headline is the mean
 position error of present objects in cm (target <= 1.0) and the presence accuracy
-(target >= 0.99), on held-out episodes. Wall-clock of each phase is recorded.
+(target >= 0.99), on held-out episodes. Wall-clock of each phase is recorded, also in
+``WORK/times.json`` (what ``benchmarks/image_policy.py`` counts when it reuses the model).
 """
 
 from __future__ import annotations
@@ -33,6 +34,11 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--image-size", type=int, default=84)
     parser.add_argument("--threads", type=int, default=1)
     parser.add_argument("--work", default="data/bench-perception")
+    parser.add_argument(
+        "--no-results",
+        action="store_true",
+        help="only the model and WORK/times.json (a stage of benchmarks/image_policy.py)",
+    )
     args = parser.parse_args(argv)
 
     import torch
@@ -72,6 +78,9 @@ def main(argv: list[str] | None = None) -> int:
     )
     heldout = train(cfg)
     times["train_s"] = time.perf_counter() - t0
+    (work / "times.json").write_text(json.dumps(times, indent=1))
+    if args.no_results:
+        return 0
     layouts = PerceptionEvalCommand(str(work / "model"), data=str(work / "layouts.h5")).run()
     history = json.loads((work / "model" / "model" / "history.json").read_text())
 

@@ -1,0 +1,263 @@
+"""Robosuite reach (and push) acting from the agentview camera: perception, then language HER.
+
+    python benchmarks/image_policy.py --perception-work data/bench-perception-3k --parallel
+
+The actor reads one 84 px camera frame and the gripper's state per step: a frozen
+perception model (``benchmarks/perception.py``) estimates the object slots, and the policy
+reads positions relative to the gripper and displacements computed from the estimate
+(preset ``robosuite-image-reach``; the critic reads the true state in training). Rewards
+and relabelling come from the rule captioner, as in every language-HER run.
+
+The wall clock counts everything a user waits for on this machine: collecting the labelled
+frames and training perception (measured by ``benchmarks/perception.py`` in the folder
+given, read from its ``times.json``; or run here when no folder is given), then training
+the reach policy. Reach and push train side by side with one torch thread each
+(``--parallel``), so the reach run shares the two cores with the push run. The final
+figures are ``lcrl eval`` with 100 episodes per instruction set.
+
+Writes ``benchmarks/results/robosuite-image-reach.{json,md,png}``; targets: seen
+instructions >= 0.80 within 5,400 s (3,600 s beyond it).
+"""
+
+from __future__ import annotations
+
+import argparse
+import csv
+import json
+import os
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
+
+from benchmarks.common import command, machine, save_figure, save_json, save_markdown
+
+NAME = "robosuite-image-reach"
+TARGETS = {"seen": 0.80, "wall_clock_s": 5400.0}
+GOAL_WALL_CLOCK_S = 3600.0
+LCRL = [sys.executable, "-m", "train.cli"]
+
+
+def child_env() -> dict[str, str]:
+    """One torch thread per run (two runs share the two cores), offscreen rendering."""
+    env = dict(os.environ)
+    env.update(OMP_NUM_THREADS="1", MKL_NUM_THREADS="1", MUJOCO_GL="egl")
+    return env
+
+
+def perception_stage(args: argparse.Namespace) -> tuple[Path, dict[str, float]]:
+    """The perception model and the seconds its collection and training took."""
+    if args.perception_work:
+        work = Path(args.perception_work)
+        times_file = work / "times.json"
+        if not times_file.is_file():
+            raise SystemExit(
+                f"{times_file} is missing: run python benchmarks/perception.py --work {work}"
+            )
+        times = json.loads(times_file.read_text())
+        return work / "model", {k: float(v) for k, v in times.items()}
+    from benchmarks.perception import main as perception_main
+
+    work = Path(args.work) / "perception"
+    perception_main(["--work", str(work), "--no-results"])
+    times = json.loads((work / "times.json").read_text())
+    return work / "model", {k: float(v) for k, v in times.items()}
+
+
+def train_args(args: argparse.Namespace, model: Path, family: str) -> list[str]:
+    out = Path(args.work) / family
+    return [
+        *LCRL,
+        "train",
+        "robosuite-image-reach",
+        "--env.perception",
+        str(model),
+        "--env.families",
+        family,
+        "--out",
+        str(out),
+        "--total-steps",
+        str(args.steps),
+        "--eval-every",
+        str(args.eval_every),
+        "--eval-episodes",
+        str(args.eval_episodes),
+        "--seed",
+        str(args.seed),
+        "--overwrite",
+        "--no-progress",
+    ]
+
+
+def evaluate(run: Path, episodes: int, sets: tuple[str, ...]) -> dict:
+    """``lcrl eval`` of a run's final checkpoint."""
+    path = run / "final-eval.json"
+    cmd = [*LCRL, "eval", str(run), "--episodes", str(episodes), "--json", str(path)]
+    cmd += ["--sets", *sets, "--no-progress"]
+    subprocess.run(cmd, check=True, env=child_env())
+    return json.loads(path.read_text())["sets"]
+
+
+def verdict(ok: bool) -> str:
+    return "reached" if ok else "NOT reached"
+
+
+def curve(run: Path) -> list[dict[str, float]]:
+    with open(run / "eval.csv") as f:
+        return [{k: float(v) for k, v in row.items() if v != ""} for row in csv.DictReader(f)]
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--perception-work", default="", help="benchmarks/perception.py --work")
+    parser.add_argument("--work", default="runs/bench/image-policy")
+    parser.add_argument("--steps", type=int, default=30_000)
+    parser.add_argument("--eval-every", type=int, default=5_000)
+    parser.add_argument("--eval-episodes", type=int, default=50)
+    parser.add_argument("--final-episodes", type=int, default=100)
+    parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--parallel", action="store_true", help="reach and push side by side")
+    parser.add_argument("--no-push", action="store_true")
+    args = parser.parse_args(argv)
+
+    info = machine()
+    model, ptimes = perception_stage(args)
+    families = ["reach"] if args.no_push else ["reach", "push"]
+    seconds: dict[str, float] = {}
+    procs: dict[str, tuple[subprocess.Popen, float]] = {}
+    logs = {}
+    Path(args.work).mkdir(parents=True, exist_ok=True)
+    for family in families:
+        logs[family] = open(Path(args.work) / f"{family}.log", "w")  # noqa: SIM115
+        cmd = train_args(args, model, family)
+        procs[family] = (
+            subprocess.Popen(cmd, stdout=logs[family], stderr=subprocess.STDOUT, env=child_env()),
+            time.perf_counter(),
+        )
+        if not args.parallel:
+            proc, t0 = procs[family]
+            if proc.wait() != 0:
+                raise SystemExit(f"the {family} run failed: see {logs[family].name}")
+            seconds[family] = time.perf_counter() - t0
+    if args.parallel:
+        for family, (proc, t0) in procs.items():
+            if proc.wait() != 0:
+                raise SystemExit(f"the {family} run failed: see {logs[family].name}")
+            seconds[family] = time.perf_counter() - t0
+    for f in logs.values():
+        f.close()
+
+    t0 = time.perf_counter()
+    reach = evaluate(
+        Path(args.work) / "reach", args.final_episodes, ("train", "heldout", "paraphrase")
+    )
+    eval_s = time.perf_counter() - t0
+    push = None
+    if not args.no_push:
+        push = evaluate(Path(args.work) / "push", args.final_episodes, ("train",))
+    perception_s = ptimes.get("collect_s", 0.0) + ptimes.get("train_s", 0.0)
+    wall = perception_s + seconds["reach"]
+    headline = {
+        "seen": round(reach["train"]["success"], 3),
+        "heldout": round(reach["heldout"]["success"], 3),
+        "paraphrase": round(reach["paraphrase"]["success"], 3),
+        "wall_clock_s": round(wall, 1),
+        "push_seen": None if push is None else round(push["train"]["success"], 3),
+        "steps": args.steps,
+    }
+    reached = {
+        "seen": headline["seen"] >= TARGETS["seen"],
+        "wall_clock_s": wall <= TARGETS["wall_clock_s"],
+        "wall_clock_goal_3600_s": wall <= GOAL_WALL_CLOCK_S,
+    }
+    curves = {family: curve(Path(args.work) / family) for family in families}
+    payload = {
+        "headline": headline,
+        "targets": TARGETS,
+        "reached": reached,
+        "command": command(),
+        "machine": info,
+        "settings": {**vars(args), "preset": "robosuite-image-reach", "perception": str(model)},
+        "times": {
+            "perception_collect_s": ptimes.get("collect_s"),
+            "perception_train_s": ptimes.get("train_s"),
+            **{f"{k}_train_s": round(v, 1) for k, v in seconds.items()},
+            "final_eval_s": round(eval_s, 1),
+        },
+        "final": {
+            "reach": {
+                k: {"success": v["success"], "ci": v["ci"], "episodes": v["episodes"]}
+                for k, v in reach.items()
+            },
+            "push": None
+            if push is None
+            else {k: {"success": v["success"], "ci": v["ci"]} for k, v in push.items()},
+        },
+        "curves": curves,
+    }
+    save_json(NAME, payload)
+
+    lines = [
+        "| set | success | 95% CI |",
+        "|---|---:|---|",
+        *(
+            f"| reach, {name} | {v['success']:.2f} | [{v['ci'][0]:.2f}, {v['ci'][1]:.2f}] |"
+            for name, v in reach.items()
+        ),
+    ]
+    if push is not None:
+        v = push["train"]
+        lines.append(f"| push, train | {v['success']:.2f} | [{v['ci'][0]:.2f}, {v['ci'][1]:.2f}] |")
+    lines += [
+        "",
+        "| stage | seconds |",
+        "|---|---:|",
+        f"| perception: collect labelled frames | {ptimes.get('collect_s', 0):.0f} |",
+        f"| perception: train | {ptimes.get('train_s', 0):.0f} |",
+        *(f"| {k} policy: train ({args.steps} steps) | {v:.0f} |" for k, v in seconds.items()),
+        f"| **to a reach policy** | **{wall:.0f}** |",
+        "",
+        f"Learning curves (seen instructions, {args.eval_episodes} episodes per evaluation):",
+        "",
+        "| run | " + " | ".join(str(int(r["step"])) for r in curves["reach"]) + " |",
+        "|---|" + "---:|" * len(curves["reach"]),
+        *(
+            f"| {family} | " + " | ".join(f"{r['train/success']:.2f}" for r in rows) + " |"
+            for family, rows in curves.items()
+        ),
+        "",
+        f"Targets: seen >= {TARGETS['seen']} ({verdict(reached['seen'])}); wall clock <= "
+        f"{TARGETS['wall_clock_s']:.0f} s ({verdict(reached['wall_clock_s'])}; "
+        f"{GOAL_WALL_CLOCK_S:.0f} s: {verdict(reached['wall_clock_goal_3600_s'])})."
+        + (" Reach and push trained side by side, one torch thread each." if args.parallel else ""),
+    ]
+    save_markdown(
+        NAME, "Robosuite tabletop from camera images: reach (and push)", "\n".join(lines), info
+    )
+
+    import matplotlib.pyplot as plt
+
+    fig, (ax1, ax2) = plt.subplots(1, 2, figsize=(10, 4))
+    for family, rows in curves.items():
+        ax1.plot([r["step"] for r in rows], [r["train/success"] for r in rows], "o-", label=family)
+    ax1.axhline(TARGETS["seen"], ls="--", c="grey", lw=0.8)
+    ax1.set(xlabel="environment steps", ylabel="success (seen instructions)", ylim=(0, 1.02))
+    ax1.set_title("acting from the agentview camera")
+    ax1.legend()
+    names = list(reach) + ([f"push {k}" for k in push] if push else [])
+    values = [v for v in reach.values()] + (list(push.values()) if push else [])
+    ax2.bar(names, [v["success"] for v in values], color="tab:blue")
+    for i, v in enumerate(values):
+        ax2.plot([i, i], v["ci"], c="k", lw=1)
+    ax2.set(ylim=(0, 1.02), ylabel=f"success ({args.final_episodes} episodes, 95% CI)")
+    ax2.set_title(f"final policy; {wall:.0f} s to the reach policy")
+    fig.tight_layout(rect=(0, 0.06, 1, 1))
+    save_figure(NAME, fig, info)
+    print(json.dumps(headline, indent=1))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
