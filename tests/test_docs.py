@@ -93,6 +93,7 @@ FAMILIES_2D = {
     "train", "eval", "act", "report", "demo", "split", "parse", "caption collect",
     "caption train", "caption eval", "demos record", "demos relabel", "demos info",
     "demos import-robomimic", "perception collect", "perception train", "perception eval",
+    "distill",
 }  # fmt: skip
 INSTRUCTIONS_FILE = """\
 # mine.txt
@@ -259,8 +260,11 @@ def shrink(argv: list[str]) -> list[str]:
         "demos record": ["--episodes", "4", "--no-progress"],
         "demos relabel": ["--no-progress"],
         "demos import-robomimic": ["--no-progress"],
-        "perception collect": ["--episodes", "6", "--max-episode-steps", "5", "--no-progress"],
+        "perception collect": ["--episodes", "8", "--max-episode-steps", "10", "--no-progress"],
         "perception train": TINY_PERCEPTION_TRAIN,
+        "distill": ["--rounds", "1", "--episodes-per-round", "2", "--updates-per-round", "4",
+                    "--batch-size", "8", "--eval-episodes", "1", "--no-progress",
+                    "--no-tensorboard"],
     }.get(sub, [])  # fmt: skip
 
 
