@@ -755,7 +755,10 @@ class RunningNorm(nn.Module):
 
     def _scale(self) -> torch.Tensor:
         if self._inv_std is None:
-            self._inv_std = self.var.sqrt().clamp_min(self.eps).reciprocal()
+            inv = self.var.sqrt().clamp_min(self.eps).reciprocal()
+            if torch.is_inference_mode_enabled():  # not cached: autograd cannot save it
+                return inv
+            self._inv_std = inv
         return self._inv_std
 
     def _load_from_state_dict(self, *args: object, **kwargs: object) -> None:

@@ -198,19 +198,77 @@ class Perception(nn.Module):
         """Positions in the env's units from normalised ones."""
         return normalised * self.pos_std + self.pos_mean
 
-    @torch.no_grad()
-    def observation(self, frames: np.ndarray, proprio: np.ndarray) -> np.ndarray:
-        """The estimated privileged observation ``(B, dim)``: the proprioception, then per
-        slot the estimated position and presence (1 or 0; an absent object's position is 0,
-        as the envs write it)."""
-        device = self.pos_mean.device
-        f = torch.as_tensor(np.asarray(frames, np.uint8), device=device)
-        p = torch.as_tensor(np.asarray(proprio, np.float32), device=device)
-        pos, logit = self(f, p)
+    def estimate(self, frames: torch.Tensor, proprio: torch.Tensor) -> torch.Tensor:
+        """The estimated privileged observation ``(B, dim)`` as a tensor (differentiable in
+        the positions): the proprioception, then per slot the estimated position and
+        presence (1 or 0; an absent object's position is 0, as the envs write it)."""
+        pos, logit = self(frames, proprio)
         present = (logit > 0).float()
         pos = self.positions(pos) * present[..., None]
         slots = torch.cat([pos, present[..., None]], -1).flatten(1)
-        return torch.cat([p, slots], -1).cpu().numpy()
+        return torch.cat([proprio, slots], -1)
+
+    @torch.no_grad()
+    def observation(self, frames: np.ndarray, proprio: np.ndarray) -> np.ndarray:
+        """:meth:`estimate` of numpy frames ``(B, H, W, 3)`` uint8 and proprioception."""
+        device = self.pos_mean.device
+        f = torch.as_tensor(np.asarray(frames, np.uint8), device=device)
+        p = torch.as_tensor(np.asarray(proprio, np.float32), device=device)
+        return self.estimate(f, p).cpu().numpy()
+
+
+class PerceivedSlots(nn.Module):
+    """Camera frames -> the observation a policy reads, as a differentiable module: for
+    fine-tuning perception end to end with the policy's losses.
+
+    The output is :meth:`Perception.estimate` extended as :class:`envs.features.SlotFeatures`
+    extends the simulator's observation: each slot ``[position, present]`` followed by the
+    position relative to the agent (``relative``) and the displacement from the episode's
+    first estimate (``displacement``), both 0 for absent objects.
+
+    Args:
+        perception: the model to fine-tune.
+        relative: add positions relative to the agent (its first ``d`` values).
+        displacement: add displacements from ``origin``.
+    """
+
+    #: The stored observation keys it reads: the frame, the proprioception and the slot
+    #: positions estimated in the episode's first frame.
+    KEYS = ("image", "proprio", "origin")
+
+    def __init__(self, perception: Perception, relative: bool, displacement: bool) -> None:
+        super().__init__()
+        self.perception = perception
+        self.relative, self.displacement = bool(relative), bool(displacement)
+        lay = perception.layout
+        d = lay.position_dims
+        self.width = lay.width + d * (int(self.relative) + int(self.displacement))
+        self.out_dim = lay.start + lay.count * self.width
+
+    def forward(
+        self, image: torch.Tensor, proprio: torch.Tensor, origin: torch.Tensor
+    ) -> torch.Tensor:
+        """``(B, out_dim)`` observations of frames ``(B, H, W, 3)``, proprioception
+        ``(B, start)`` and first-frame slot positions ``(B, count * d)``."""
+        lay = self.perception.layout
+        d = lay.position_dims
+        x = self.perception.estimate(image, proprio)
+        slots = x[:, lay.start :].reshape(-1, lay.count, lay.width)
+        present = slots[..., -1:]
+        parts = [slots]
+        if self.relative:
+            parts.append((slots[..., :d] - x[:, None, :d]) * present)
+        if self.displacement:
+            parts.append((slots[..., :d] - origin.view(-1, lay.count, d)) * present)
+        return torch.cat([x[:, : lay.start], torch.cat(parts, -1).flatten(1)], -1)
+
+    def origin(self, observation: np.ndarray) -> np.ndarray:
+        """The slot positions ``(..., count * d)`` of observations in this layout (what
+        ``origin`` takes, from the episode's first observation)."""
+        lay = self.perception.layout
+        x = np.asarray(observation, np.float32)
+        slots = x[..., lay.start : self.out_dim].reshape(*x.shape[:-1], lay.count, self.width)
+        return slots[..., : lay.position_dims].reshape(*x.shape[:-1], -1).copy()
 
 
 def _stat(stats: Mapping[str, Any], name: str, shape: tuple[int, ...], fill: float) -> torch.Tensor:

@@ -78,6 +78,8 @@ def build_task(
             kwargs = {"table": list(table[0]), "num_train": int(table[1])}
         task = make_task(cfg.env, env, encoder.encode, **kwargs)
         task.encoder = encoder  # type: ignore[attr-defined]
+    if cfg.agent.perception_lr > 0:
+        task.use_perception_frames(env)
     if cfg.agent.privileged_critic:
         task.use_privileged_critic(env)
     return task
@@ -103,16 +105,37 @@ def check_slots(cfg: TrainConfig, env: gym.Env) -> None:
         )
 
 
-def build_agent(algo: str, problem: Problem, cfg: TrainConfig, goal_embed: Any) -> Agent:
+def build_agent(
+    algo: str, problem: Problem, cfg: TrainConfig, goal_embed: Any, env: gym.Env | None = None
+) -> Agent:
     """The learner named ``algo`` for ``problem`` (:func:`lcrl.algos.build_agent`), with the
-    options ``cfg.agent`` and its config from the field of ``cfg`` named after it.
+    options ``cfg.agent`` and its config from the field of ``cfg`` named after it. A problem
+    whose frames go through perception fine-tuned with the losses
+    (``agent.perception_lr``) gets the env's perception model attached.
 
     Raises:
         LcrlError: an unknown algorithm, or one that does not take ``problem``'s actions.
     """
     algo = algos.resolve_algo(algo, problem.discrete)
     algos.check_algo(algo, problem.discrete)
-    return algos.build_agent(algo, problem, cfg.agent, goal_embed, getattr(cfg, algo))
+    agent = algos.build_agent(algo, problem, cfg.agent, goal_embed, getattr(cfg, algo))
+    if problem.perceived:
+        from lcrl.perception import PerceivedSlots
+        from train.perception import find_perception
+
+        if algo != "sac":
+            raise LcrlError(
+                f"fine-tuning perception with the losses (agent.perception_lr) is done by sac, "
+                f"not {algo}"
+            )
+        wrapper = find_perception(env) if env is not None else None
+        if wrapper is None:
+            raise LcrlError("fine-tuning perception needs the env's perception model")
+        module = PerceivedSlots(
+            wrapper.model, cfg.env.relative_positions, cfg.env.displacements
+        )  # the env's own model: the frames it caches are read with the tuned weights
+        agent.attach_perception(module, cfg.agent.perception_lr)
+    return agent
 
 
 def run_episode(
@@ -308,7 +331,7 @@ def load_policy(
             f"checkpoint {ckpt.path} does not match the environment: it was trained with "
             f"{_describe(saved)}, the environment gives {_describe(problem)}"
         )
-    agent = build_agent(meta.algo, problem, cfg, task.goal_space.embed)
+    agent = build_agent(meta.algo, problem, cfg, task.goal_space.embed, env)
     for name, module in agent.modules().items():
         ckpt.load_module(name, module)
     return LoadedPolicy(cfg, agent, task, env, ckpt)

@@ -117,7 +117,9 @@ class Trainer(BaseTrainer):
             )
         self.problem = self.task.problem()
         self.algo = cfg.resolved_algo(self.problem.discrete)
-        self.agent: Agent = build_agent(self.algo, self.problem, cfg, self.task.goal_space.embed)
+        self.agent: Agent = build_agent(
+            self.algo, self.problem, cfg, self.task.goal_space.embed, self.env
+        )
         p = self.problem
         self.buffer = HindsightReplayBuffer(
             cfg.buffer.capacity,

@@ -116,6 +116,12 @@ PROBLEM_FIELDS: dict[str, tuple[Any, str, bool]] = {
         "a list of observation keys",
         False,
     ),
+    "perceived": (
+        lambda v: isinstance(v, list) and all(isinstance(k, str) for k in v),
+        "a list of observation keys",
+        False,
+    ),
+    "perceived_dim": (_count(0), "an integer >= 0", False),
 }
 
 

@@ -227,6 +227,18 @@ def _image_shape(env: gym.Env) -> tuple[int, ...]:
     return tuple(space["image"].shape)
 
 
+def _slot_feature_flags(env: gym.Env) -> tuple[bool, bool]:
+    """Whether ``env``'s observation slots carry relative positions and displacements."""
+    from envs.features import SlotFeatures
+
+    e: Any = env
+    while isinstance(e, gym.Wrapper):
+        if isinstance(e, SlotFeatures):
+            return e.relative, e.displacement
+        e = e.env
+    return False, False
+
+
 def _action_spec(env: gym.Env) -> tuple[int, bool]:
     space = env.action_space
     if isinstance(space, gym.spaces.Discrete):
@@ -338,6 +350,60 @@ class Task:
         self.privileged = keys
         self.obs_shapes = {**self.obs_shapes, **dict.fromkeys(keys, shape)}
 
+    #: Stored keys that the agent's fine-tuned perception reads (:meth:`use_perception_frames`).
+    perceived: tuple[str, ...] = ()
+    perceived_dim: int = 0
+
+    def use_perception_frames(self, env: gym.Env) -> None:
+        """Store the camera frame, the proprioception and the slot positions perception
+        estimated in the episode's first frame instead of the estimate itself, so that the
+        agent reads the frames through a perception model it fine-tunes
+        (``agent.perception_lr``); the episode's first observation (``initial``) stays the
+        estimate computed when it was seen.
+
+        Raises:
+            LcrlError: the env acts through no perception model.
+        """
+        from lcrl.perception import PerceivedSlots
+        from train.perception import find_perception
+
+        wrapper = find_perception(env)
+        if wrapper is None or getattr(self, "image_obs", False):
+            raise LcrlError(
+                "agent.perception_lr fine-tunes the perception model the policy acts through: "
+                "set --env.perception MODEL (and not --env.image-obs)"
+            )
+        features = _slot_feature_flags(env)
+        reader = PerceivedSlots(wrapper.model, *features)
+        space = env.observation_space
+        if (reader.out_dim,) != tuple(space["observation"].shape):
+            raise LcrlError(
+                f"perception's observation has {reader.out_dim} values, the env's "
+                f"{tuple(space['observation'].shape)}"
+            )
+        lay = wrapper.model.layout
+        shapes = {k: v for k, v in self.obs_shapes.items() if k != "observation"}
+        self.obs_shapes = {
+            **shapes,
+            "image": tuple(space["image"].shape),
+            "proprio": (lay.start,),
+            "origin": (lay.count * lay.position_dims,),
+        }
+        self.perceived = PerceivedSlots.KEYS
+        self.perceived_dim = reader.out_dim
+        stored = self.storage_obs
+
+        def storage_obs(obs: Mapping[str, Any], first: Mapping[str, Any]) -> dict[str, Any]:
+            out = stored(obs, first)
+            out.pop("observation", None)
+            estimate = np.asarray(obs["observation"], np.float32)
+            out["image"] = np.asarray(obs["image"], np.uint8)
+            out["proprio"] = estimate[: lay.start].copy()
+            out["origin"] = reader.origin(np.asarray(first["observation"], np.float32))
+            return out
+
+        self.storage_obs = storage_obs  # type: ignore[method-assign]
+
     def training_obs(
         self, obs: Mapping[str, Any], first: Mapping[str, Any]
     ) -> dict[str, np.ndarray]:
@@ -374,6 +440,8 @@ class Task:
             discrete=self.discrete,
             num_tasks=self.num_tasks,
             privileged=self.privileged,
+            perceived=self.perceived,
+            perceived_dim=self.perceived_dim,
         )
 
 

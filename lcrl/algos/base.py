@@ -24,6 +24,7 @@ from lcrl.buffer import Batch
 from lcrl.errors import LcrlError
 from lcrl.multitask import MultiTaskOptions
 from lcrl.nets import (
+    FlatAdam,
     GoalConditionedEnsemble,
     GoalConditionedNet,
     NetConfig,
@@ -62,6 +63,10 @@ class Problem:
             actor-critic: the simulator's true state, stored in training, which acting
             never needs). When set, the critics read exactly these keys and the actor
             every other key; empty: every network reads every key.
+        perceived: stored observation keys that a perception module attached to the agent
+            (:meth:`Agent.attach_perception`, fine-tuned with the losses) turns into one
+            vector, the networks' ``observation`` of width ``perceived_dim``; empty: none.
+        perceived_dim: the width of that ``observation``.
     """
 
     obs_shapes: dict[str, tuple[int, ...]]
@@ -71,9 +76,20 @@ class Problem:
     discrete: bool = False
     num_tasks: int = 0
     privileged: tuple[str, ...] = ()
+    perceived: tuple[str, ...] = ()
+    perceived_dim: int = 0
 
     def __post_init__(self) -> None:
         self.privileged = tuple(self.privileged)
+        self.perceived = tuple(self.perceived)
+        missing = [k for k in self.perceived if k not in self.obs_shapes]
+        if missing or (self.perceived and self.perceived_dim <= 0):
+            raise LcrlError(
+                f"perceived observation keys {list(self.perceived)} must be observation keys "
+                f"(of {sorted(self.obs_shapes)}) with a positive perceived_dim"
+            )
+        if set(self.perceived) & set(self.privileged):
+            raise LcrlError("an observation key cannot be both perceived and privileged")
         unknown = [k for k in self.privileged if k not in self.obs_shapes]
         if unknown:
             raise LcrlError(
@@ -83,16 +99,29 @@ class Problem:
         if self.privileged and not self.actor_shapes:
             raise LcrlError("every observation key is privileged: the actor would read nothing")
 
+    def _network(self, shapes: dict[str, tuple[int, ...]]) -> dict[str, tuple[int, ...]]:
+        """Stored keys -> what the networks read: perceived keys become ``observation``."""
+        if not self.perceived or not set(self.perceived) & set(shapes):
+            return shapes
+        out = {k: v for k, v in shapes.items() if k not in self.perceived}
+        out["observation"] = (self.perceived_dim,)
+        return out
+
+    @property
+    def network_shapes(self) -> dict[str, tuple[int, ...]]:
+        """Every observation input of the networks, after perception."""
+        return self._network(dict(self.obs_shapes))
+
     @property
     def actor_shapes(self) -> dict[str, tuple[int, ...]]:
-        """The observation keys the actor (the acting network) reads."""
-        return {k: v for k, v in self.obs_shapes.items() if k not in self.privileged}
+        """The observation inputs of the actor (the acting network)."""
+        return self._network({k: v for k, v in self.obs_shapes.items() if k not in self.privileged})
 
     @property
     def critic_shapes(self) -> dict[str, tuple[int, ...]]:
-        """The observation keys the critics read."""
+        """The observation inputs of the critics."""
         if not self.privileged:
-            return dict(self.obs_shapes)
+            return self.network_shapes
         return {k: self.obs_shapes[k] for k in self.privileged}
 
     def to_dict(self) -> dict[str, Any]:
@@ -105,6 +134,8 @@ class Problem:
             "discrete": self.discrete,
             "num_tasks": self.num_tasks,
             "privileged": list(self.privileged),
+            "perceived": list(self.perceived),
+            "perceived_dim": self.perceived_dim,
         }
 
     @classmethod
@@ -118,6 +149,8 @@ class Problem:
             discrete=bool(d["discrete"]),
             num_tasks=int(d.get("num_tasks", 0)),
             privileged=tuple(d.get("privileged", ())),
+            perceived=tuple(d.get("perceived", ())),
+            perceived_dim=int(d.get("perceived_dim", 0)),
         )
 
 
@@ -151,6 +184,13 @@ class AgentOptions:
     """Random-shift augmentation of image inputs in updates (DrQ): each image (observation,
     next observation, image goal) is padded by this many edge pixels and cropped back at a
     random offset. 0 turns it off; 4 is DrQ's value for 84x84 images."""
+    perception_lr: float = 0.0
+    """Fine-tune the perception model the policy acts through (``--env.perception``) end
+    to end with the SAC losses, at this learning rate: the replay buffer then stores the
+    camera frames and the networks read them through the model at every update (its
+    critic loss, or its actor loss where the critic reads privileged state). 0: frozen,
+    its estimates computed once per frame. On a CPU core an update at batch 256 then costs
+    seconds instead of milliseconds: a GPU option."""
     privileged_critic: bool = False
     """An asymmetric actor-critic: the critics read the simulator's true state (stored in
     training only) while the actor reads what it acts from: a perception model's estimate
@@ -239,7 +279,7 @@ class Agent:
         self.np_rng = np.random.default_rng(options.seed)
         self.norms = nn.ModuleDict()
         if options.normalize_obs:
-            for key, shape in problem.obs_shapes.items():
+            for key, shape in problem.network_shapes.items():
                 if len(shape) == 1:
                     self.norms[f"obs_{key}"] = RunningNorm(shape[0])
         if options.text_goal_norm not in TEXT_GOAL_NORMS:
@@ -269,10 +309,56 @@ class Agent:
                 )
         algos.check_multitask(self.name, options.multitask)
 
+    #: The perception module fine-tuned with the losses (:meth:`attach_perception`).
+    perceiver: nn.Module | None = None
+    perceiver_opt: FlatAdam | None = None
+
+    def attach_perception(self, module: nn.Module, lr: float) -> None:
+        """Read the :attr:`Problem.perceived` keys through ``module`` (frames -> the
+        networks' ``observation``, e.g. :class:`lcrl.perception.PerceivedSlots`) and
+        fine-tune it at learning rate ``lr`` with the critic loss, or with the actor loss
+        when the critics read privileged state instead.
+
+        Raises:
+            LcrlError: the problem has no perceived keys, or the module's output width
+                differs from ``perceived_dim``.
+        """
+        p = self.problem
+        if not p.perceived:
+            raise LcrlError("attach_perception: the problem has no perceived observation keys")
+        width = getattr(module, "out_dim", p.perceived_dim)
+        if width != p.perceived_dim:
+            raise LcrlError(
+                f"the perception module gives {width} values; the networks read {p.perceived_dim}"
+            )
+        if lr <= 0:
+            raise LcrlError(f"the perception learning rate must be positive, got {lr}")
+        self.perceiver = module.to(self.device)
+        for param in module.parameters():
+            param.requires_grad_(True)
+        self.perceiver_opt = FlatAdam(list(module.parameters()), lr)
+
+    def _perceive(self, obs: Mapping[str, Any], grad: bool = True) -> dict[str, Any]:
+        """Observations with the perceived keys replaced by the module's ``observation``
+        (unnormalised)."""
+        if self.perceiver is None or not all(k in obs for k in self.problem.perceived):
+            return dict(obs)
+        keys = self.problem.perceived
+        tensors = [torch.as_tensor(np.asarray(obs[k]), device=self.device) for k in keys]
+        tensors = [t if t.dtype == torch.uint8 else t.float() for t in tensors]
+        with torch.set_grad_enabled(grad and torch.is_grad_enabled()):
+            x = self.perceiver(*tensors)
+        out = {k: v for k, v in obs.items() if k not in keys}
+        out["observation"] = x
+        return out
+
     # --- inputs ----------------------------------------------------------------------
     def observe(self, obs: Mapping[str, np.ndarray], goals: np.ndarray | None = None) -> None:
         """Update the running normalisers with observations and goal vectors (achieved state
         goals, or the embeddings of the training instructions)."""
+        if self.perceiver is not None:
+            with torch.no_grad():
+                obs = {k: _numpy(v) for k, v in self._perceive(obs, grad=False).items()}
         for key, arr in obs.items():
             if f"obs_{key}" in self.norms:
                 self.norms[f"obs_{key}"].update(torch.as_tensor(np.asarray(arr, np.float32)))
@@ -285,9 +371,10 @@ class Agent:
             self.norms["goal"].update(t)
 
     def obs_tensors(self, obs: Mapping[str, np.ndarray]) -> dict[str, torch.Tensor]:
-        """Observation arrays as (normalised) tensors on the device."""
+        """Observation arrays as (normalised) tensors on the device (frames read by an
+        attached perception module become the ``observation`` it computes)."""
         out = {}
-        for key, arr in obs.items():
+        for key, arr in self._perceive(obs).items():
             t = torch.as_tensor(arr, device=self.device)
             if t.dtype != torch.uint8:
                 t = t.float()
@@ -315,7 +402,8 @@ class Agent:
         terminate, 0 where it did.
         """
         obs = self.obs_tensors(batch.obs)
-        nobs = self.obs_tensors(batch.next_obs)
+        with torch.set_grad_enabled(self.perceiver is None and torch.is_grad_enabled()):
+            nobs = self.obs_tensors(batch.next_obs)  # targets only: no gradient
         goal = self.goal_tensor(batch.goal)
         pad = self.options.augment_pad
         if pad:
@@ -371,18 +459,26 @@ class Agent:
     # --- saving ----------------------------------------------------------------------
     def modules(self) -> dict[str, nn.Module]:
         """Weights to checkpoint, by name."""
-        return {"norms": self.norms}
+        out: dict[str, nn.Module] = {"norms": self.norms}
+        if self.perceiver is not None:
+            out["perceiver"] = self.perceiver
+        return out
 
     def states(self) -> dict[str, Any]:
         """Optimiser moments, noise generator and counters to checkpoint."""
-        return {
+        out = {
             "generator": self.gen.get_state(),
             "np_rng": self.np_rng.bit_generator.state,
             "counters": {"updates": self.updates, "acts": self.acts},
         }
+        if self.perceiver_opt is not None:
+            out["perceiver_opt"] = self.perceiver_opt.state_dict()
+        return out
 
     def load_states(self, states: Mapping[str, Any]) -> None:
         """Restore :meth:`states`."""
+        if self.perceiver_opt is not None and "perceiver_opt" in states:
+            self.perceiver_opt.load_state_dict(states["perceiver_opt"])
         self.gen.set_state(torch.as_tensor(states["generator"], dtype=torch.uint8).cpu())
         self.np_rng.bit_generator.state = states["np_rng"]
         self.updates = int(states["counters"]["updates"])
@@ -390,6 +486,11 @@ class Agent:
 
 
 # --- shared helpers -------------------------------------------------------------------------
+def _numpy(x: Any) -> np.ndarray:
+    """A tensor or array as a numpy array."""
+    return x.detach().cpu().numpy() if isinstance(x, torch.Tensor) else np.asarray(x)
+
+
 def flat_target(module: nn.Module) -> tuple[nn.Module, torch.Tensor]:
     """A frozen copy of ``module`` for a target network, and one flat tensor that its
     parameters are views of (so a Polyak step is one ``lerp_``).

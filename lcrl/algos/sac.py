@@ -174,7 +174,12 @@ class SAC(Agent):
         the same weighted loss. The targets, the temperature (tuned on the whole batch) and
         the target critics' step are the same on every update.
         """
+        if self.perceiver_opt is not None:
+            self.perceiver_opt.zero_grad()
         obs, nobs, goal, act, rew, boot = self.batch_tensors(batch)
+        # a fine-tuned perception module learns from the critic loss; from the actor loss
+        # where the critics read privileged state instead
+        critic_perceives = self.perceiver is not None and not self.problem.privileged
         cfg = self.cfg
         alpha = self.log_alpha.detach().exp()
         with torch.no_grad():
@@ -187,12 +192,12 @@ class SAC(Agent):
         relabelled = np.asarray(batch.relabelled, bool)
         n_rel = int(relabelled.sum())
 
-        def take(rows: np.ndarray | None) -> tuple[Any, ...]:
+        def take(rows: np.ndarray | None, o: Any = obs) -> tuple[Any, ...]:
             """Observations, goals, actions, targets and row weights of a part."""
             if rows is None:
-                return obs, goal, act, y, weights
+                return o, goal, act, y, weights
             idx = torch.as_tensor(rows, device=self.device)
-            return {k: v[idx] for k, v in obs.items()}, goal[idx], act[idx], y[idx], None
+            return {k: v[idx] for k, v in o.items()}, goal[idx], act[idx], y[idx], None
 
         # critic: 0.5 (Q_k - y)^2 per critic and row
         losses: list[torch.Tensor | None] = []
@@ -207,6 +212,10 @@ class SAC(Agent):
             qs.append(q.detach().reshape(-1))
         metrics = self._step("critic", measure, losses, coefs)
         critic_value = _weighted(coefs, losses)
+        actor_obs = obs
+        if critic_perceives:
+            self.perceiver_opt.step()
+            actor_obs = {k: v.detach() for k, v in obs.items()}
 
         # actor: alpha log pi - min_k Q_k per row, plus hindsight BC on relabelled rows
         self.critic.requires_grad_(False)
@@ -216,7 +225,7 @@ class SAC(Agent):
                 losses.append(None)
                 bc_losses.append(None)
                 continue
-            o, g, a_taken, _, w = take(rows)
+            o, g, a_taken, _, w = take(rows, actor_obs)
             a, logp, mean_action = self._policy(o, g, with_mean=True)
             q_pi = self.critic(o, g, a).min(0).values.squeeze(-1)
             loss = _weighted_mean(alpha * logp - q_pi, w)
@@ -233,6 +242,8 @@ class SAC(Agent):
             bc_losses.append(bc_loss)
             logps.append(logp)
         metrics.update(self._step("actor", measure, losses, coefs))
+        if self.perceiver_opt is not None and not critic_perceives:
+            self.perceiver_opt.step()
         self.critic.requires_grad_(True)
         actor_value = _weighted(coefs, losses)
         logp = torch.cat(logps)
