@@ -16,6 +16,7 @@ from helpers import cli, error_line, tiny
 import envs
 import lcrl
 from lcrl.errors import LcrlError
+from train.config import PRESETS
 from train.loop import Trainer
 from train.policy import check_instruction
 
@@ -126,7 +127,7 @@ def test_a_mistyped_preset_is_named_first(capsys):
     err = capsys.readouterr().err.strip().splitlines()
     assert err == [
         "lcrl: error: unknown preset 'lang2dd': did you mean lang2d, lang2d-td3, "
-        "lang2d-dqn? lcrl train --help lists all 16 presets"
+        f"lang2d-dqn? lcrl train --help lists all {len(PRESETS)} presets"
     ]
     assert cli("train", "nothing-like-it") == 2
     assert "did you mean" not in capsys.readouterr().err
