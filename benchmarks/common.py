@@ -19,6 +19,7 @@ __all__ = [
     "save_figure",
     "save_json",
     "save_markdown",
+    "success_bars",
 ]
 
 RESULTS_DIR = Path(__file__).resolve().parent / "results"
@@ -63,3 +64,11 @@ def save_figure(name: str, fig: Any, info: dict[str, Any]) -> Path:
     fig.savefig(path, dpi=120)
     plt.close(fig)
     return path
+
+
+def success_bars(ax: Any, names: list[str], results: list[dict], episodes: int, **bar: Any) -> None:
+    """Bars of ``lcrl eval`` success rates with their 95% intervals as whiskers."""
+    ax.bar(names, [r["success"] for r in results], **bar)
+    for i, r in enumerate(results):
+        ax.plot([i, i], r["ci"], c="k", lw=1)
+    ax.set(ylim=(0, 1.02), ylabel=f"success ({episodes} episodes, 95% CI)")

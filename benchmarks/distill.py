@@ -22,7 +22,14 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
-from benchmarks.common import command, machine, save_figure, save_json, save_markdown
+from benchmarks.common import (
+    command,
+    machine,
+    save_figure,
+    save_json,
+    save_markdown,
+    success_bars,
+)
 from benchmarks.image_policy import LCRL, child_env, evaluate
 
 NAME = "distill-robosuite"
@@ -148,10 +155,7 @@ def main(argv: list[str] | None = None) -> int:
     names = [f"{who}\n{k}" for k in SETS for who in ("teacher", "student")]
     vals = [results[who][k] for k in SETS for who in ("teacher", "student")]
     colors = ["tab:grey", "tab:blue"] * len(SETS)
-    ax2.bar(names, [v["success"] for v in vals], color=colors)
-    for i, v in enumerate(vals):
-        ax2.plot([i, i], v["ci"], c="k", lw=1)
-    ax2.set(ylim=(0, 1.02), ylabel=f"success ({args.final_episodes} episodes, 95% CI)")
+    success_bars(ax2, names, vals, args.final_episodes, color=colors)
     fig.tight_layout(rect=(0, 0.06, 1, 1))
     save_figure(NAME, fig, info)
     print(json.dumps(headline, indent=1))

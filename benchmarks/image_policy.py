@@ -32,7 +32,14 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
-from benchmarks.common import command, machine, save_figure, save_json, save_markdown
+from benchmarks.common import (
+    command,
+    machine,
+    save_figure,
+    save_json,
+    save_markdown,
+    success_bars,
+)
 
 NAME = "robosuite-image-reach"
 TARGETS = {"seen": 0.80, "wall_clock_s": 5400.0}
@@ -248,10 +255,7 @@ def main(argv: list[str] | None = None) -> int:
     ax1.legend()
     names = list(reach) + ([f"push {k}" for k in push] if push else [])
     values = [v for v in reach.values()] + (list(push.values()) if push else [])
-    ax2.bar(names, [v["success"] for v in values], color="tab:blue")
-    for i, v in enumerate(values):
-        ax2.plot([i, i], v["ci"], c="k", lw=1)
-    ax2.set(ylim=(0, 1.02), ylabel=f"success ({args.final_episodes} episodes, 95% CI)")
+    success_bars(ax2, names, values, args.final_episodes, color="tab:blue")
     ax2.set_title(f"final policy; {wall:.0f} s to the reach policy")
     fig.tight_layout(rect=(0, 0.06, 1, 1))
     save_figure(NAME, fig, info)

@@ -44,14 +44,13 @@ import numpy as np
 
 from lcrl.algos import ALGOS
 from lcrl.bc import BC
-from lcrl.checkpoint import save_checkpoint, write_latest
 from lcrl.errors import LcrlError
 from train.config import PRESETS, TrainConfig
 from train.evaluate import build_agent, build_task
 from train.loop import checkpoint_meta
 from train.run_meta import restoring, state_fields
 from train.tasks import make_env, make_task
-from train.trainer import BaseTrainer, open_run, prune_checkpoints
+from train.trainer import BaseTrainer, open_run
 
 #: What to do when no demonstration file is given.
 DEMOS_HINT = "pass --demos FILE (record one with lcrl demos record)"
@@ -280,7 +279,6 @@ class BCTrainer(BaseTrainer):
     def save(self) -> Path:
         """Checkpoint the run: weights, optimiser and RNG state, the instruction table."""
         cfg = self.cfg
-        directory = self.out / "checkpoints" / f"step_{self.step:09d}"
         meta, json_files = checkpoint_meta(
             cfg, self.algo, self.problem, self.env, self.task, self.step, 0, self.eval_pending
         )
@@ -292,16 +290,7 @@ class BCTrainer(BaseTrainer):
             "hindsight": bool(cfg.bc.hindsight),
         }
         states = {**self.agent.states(), "trainer": {"step": self.step}}
-        path = save_checkpoint(
-            directory,
-            modules=self.agent.modules(),
-            states=states,
-            meta=meta,
-            json_files=json_files,
-        )
-        write_latest(self.out, path)
-        prune_checkpoints(self.out, cfg.keep_checkpoints)
-        return path
+        return self.write_checkpoint(meta, json_files, states)
 
     def restore(self, ckpt: Any) -> None:
         """Weights, optimiser and RNG states and the batch stream's place."""

@@ -33,14 +33,12 @@ from typing import Any
 import numpy as np
 
 from lcrl.buffer import Batch
-from lcrl.checkpoint import save_checkpoint, write_latest
 from lcrl.errors import LcrlError
 from train.config import BCConfig, TrainConfig
 from train.evaluate import build_agent, build_task, load_policy, resolve_checkpoint
 from train.loop import checkpoint_meta
-from train.perception import embedded_meta, find_perception
 from train.tasks import make_env
-from train.trainer import BaseTrainer, open_run, prune_checkpoints
+from train.trainer import BaseTrainer, open_run
 
 #: Seeds of the collection episodes: round r, episode e of a run with seed s.
 EPISODE_SEED = 1_000_003
@@ -330,40 +328,32 @@ class DistillTrainer(BaseTrainer):
         """Checkpoint the student (with the perception model it acts through), the
         dataset and the random state."""
         cfg = self.cfg
-        directory = self.out / "checkpoints" / f"step_{self.step:09d}"
         meta, json_files = checkpoint_meta(
-            cfg, self.algo, self.problem, self.env, self.task, self.step, self.episodes
+            cfg,
+            self.algo,
+            self.problem,
+            self.env,
+            self.task,
+            self.step,
+            self.episodes,
+            self.eval_pending,
         )
         meta["distill"] = {
             "teacher": str(self.teacher.checkpoint.path),
             "teacher_step": self.teacher.checkpoint.meta.get("step"),
             "rows": self.rows,
         }
-        modules = dict(self.agent.modules())
-        perceiving = find_perception(self.env)
-        if perceiving is not None:
-            modules["perception"] = perceiving.model
-            meta["perception"] = embedded_meta(perceiving.model, cfg.env.perception)
         states = {
             **self.agent.states(),
             "trainer": {"step": self.step, "episodes": self.episodes, "round": self._round},
             "rng": self.rng.bit_generator.state,
         }
         arrays = {f"data_{k}": v for k, v in self._arrays().items()} if self.rows else None
-        path = save_checkpoint(
-            directory,
-            modules=modules,
-            states=states,
-            meta=meta,
-            json_files=json_files,
-            arrays=arrays,
-        )
-        write_latest(self.out, path)
-        prune_checkpoints(self.out, cfg.keep_checkpoints)
-        return path
+        return self.write_checkpoint(meta, json_files, states, arrays)
 
     def restore(self, ckpt: Any) -> None:
         """The student, the dataset and the random state of a checkpoint."""
+        self.resume_schedule(ckpt)
         for name, module in self.agent.modules().items():
             ckpt.load_module(name, module)
         self.agent.load_states({name: ckpt.state(name) for name in self.agent.states()})

@@ -21,16 +21,14 @@ import numpy as np
 
 from lcrl.algos import ALGOS, Agent
 from lcrl.buffer import HindsightReplayBuffer
-from lcrl.checkpoint import save_checkpoint, write_latest
 from lcrl.errors import LcrlError
 from lcrl.multitask import CONFLICT_KEYS, TaskSampler
 from train.config import TrainConfig, config_to_dict
 from train.environments import canonical_kind
 from train.evaluate import build_agent, build_task
-from train.perception import embedded_meta, find_perception
 from train.run_meta import restoring, state_fields
 from train.tasks import ScriptedActor, is_language, make_env, reset_feasible, task_texts
-from train.trainer import BaseTrainer, eval_row, open_run, prune_checkpoints
+from train.trainer import BaseTrainer, eval_row, open_run
 
 __all__ = ["Trainer", "checkpoint_meta", "eval_row", "open_run"]
 
@@ -370,7 +368,6 @@ class Trainer(BaseTrainer):
     def save(self) -> Path:
         """Checkpoint the run (weights, optimiser and RNG state, buffer, tables)."""
         cfg = self.cfg
-        directory = self.out / "checkpoints" / f"step_{self.step:09d}"
         meta, json_files = checkpoint_meta(
             cfg,
             self.algo,
@@ -399,22 +396,7 @@ class Trainer(BaseTrainer):
             states["task_sampler"] = self.sampler.state_dict()
             states["task_rng"] = self.task_rng.bit_generator.state
         arrays = self.buffer.arrays() if cfg.save_buffer else None
-        modules = dict(self.agent.modules())
-        perceiving = find_perception(self.env)
-        if perceiving is not None:  # the policy carries the perception it acts through
-            modules["perception"] = perceiving.model
-            meta["perception"] = embedded_meta(perceiving.model, cfg.env.perception)
-        path = save_checkpoint(
-            directory,
-            modules=modules,
-            states=states,
-            meta=meta,
-            json_files=json_files,
-            arrays=arrays,
-        )
-        write_latest(self.out, path)
-        prune_checkpoints(self.out, cfg.keep_checkpoints)
-        return path
+        return self.write_checkpoint(meta, json_files, states, arrays)
 
     def restore(self, ckpt: Any) -> None:
         """Weights, optimiser and RNG states, counters and the replay buffer of a

@@ -406,6 +406,37 @@ class BaseTrainer(ABC):
     def restore(self, ckpt: Any) -> None:
         """Continue from a checkpoint written by :meth:`save`."""
 
+    def write_checkpoint(
+        self,
+        meta: dict[str, Any],
+        json_files: dict[str, Any],
+        states: dict[str, Any],
+        arrays: dict[str, Any] | None = None,
+    ) -> Path:
+        """What :meth:`save` implementations share: the learner's weights (and the
+        perception model its policy acts through, which the checkpoint carries) saved
+        with ``meta``, ``json_files``, ``states`` and ``arrays`` at the current step;
+        ``latest.json`` pointed at it; older checkpoints pruned."""
+        from lcrl.checkpoint import save_checkpoint, write_latest
+        from train.perception import embedded_meta, find_perception
+
+        modules = dict(self.agent.modules())
+        perceiving = find_perception(self.env)
+        if perceiving is not None:
+            modules["perception"] = perceiving.model
+            meta = {**meta, "perception": embedded_meta(perceiving.model, self.cfg.env.perception)}
+        path = save_checkpoint(
+            self.out / "checkpoints" / f"step_{self.step:09d}",
+            modules=modules,
+            states=states,
+            meta=meta,
+            json_files=json_files,
+            arrays=arrays,
+        )
+        write_latest(self.out, path)
+        prune_checkpoints(self.out, self.cfg.keep_checkpoints)
+        return path
+
     def rollback(self) -> None:
         """Go back to the state at the start of the unit in hand (called when a run is
         stopped inside one, before its checkpoint): what :meth:`advance` changed must not
