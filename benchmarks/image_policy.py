@@ -107,6 +107,12 @@ def evaluate(run: Path, episodes: int, sets: tuple[str, ...]) -> dict:
     return json.loads(path.read_text())["sets"]
 
 
+def run_seconds(run: Path) -> float:
+    """How long a finished run trained: from its config.json (written when it starts) to
+    its report.md (written when it ends)."""
+    return (run / "report.md").stat().st_mtime - (run / "config.json").stat().st_mtime
+
+
 def verdict(ok: bool) -> str:
     return "reached" if ok else "NOT reached"
 
@@ -127,6 +133,12 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--parallel", action="store_true", help="reach and push side by side")
     parser.add_argument("--no-push", action="store_true")
+    parser.add_argument(
+        "--eval-only",
+        action="store_true",
+        help="evaluate the runs already in --work (their training time: from the run "
+        "folder's config.json to its report.md)",
+    )
     args = parser.parse_args(argv)
 
     info = machine()
@@ -136,7 +148,9 @@ def main(argv: list[str] | None = None) -> int:
     procs: dict[str, tuple[subprocess.Popen, float]] = {}
     logs = {}
     Path(args.work).mkdir(parents=True, exist_ok=True)
-    for family in families:
+    if args.eval_only:
+        seconds = {family: run_seconds(Path(args.work) / family) for family in families}
+    for family in families if not args.eval_only else []:
         logs[family] = open(Path(args.work) / f"{family}.log", "w")  # noqa: SIM115
         cmd = train_args(args, model, family)
         procs[family] = (
@@ -148,7 +162,7 @@ def main(argv: list[str] | None = None) -> int:
             if proc.wait() != 0:
                 raise SystemExit(f"the {family} run failed: see {logs[family].name}")
             seconds[family] = time.perf_counter() - t0
-    if args.parallel:
+    if args.parallel and not args.eval_only:
         for family, (proc, t0) in procs.items():
             if proc.wait() != 0:
                 raise SystemExit(f"the {family} run failed: see {logs[family].name}")
@@ -238,7 +252,13 @@ def main(argv: list[str] | None = None) -> int:
         f"Targets: seen >= {TARGETS['seen']} ({verdict(reached['seen'])}); wall clock <= "
         f"{TARGETS['wall_clock_s']:.0f} s ({verdict(reached['wall_clock_s'])}; "
         f"{GOAL_WALL_CLOCK_S:.0f} s: {verdict(reached['wall_clock_goal_3600_s'])})."
-        + (" Reach and push trained side by side, one torch thread each." if args.parallel else ""),
+        + (" Reach and push trained side by side, one torch thread each." if args.parallel else "")
+        + (
+            " The runs were trained by this command without --eval-only; this pass evaluated "
+            "them (training time: from each run's config.json to its report.md)."
+            if args.eval_only
+            else ""
+        ),
     ]
     save_markdown(
         NAME, "Robosuite tabletop from camera images: reach (and push)", "\n".join(lines), info

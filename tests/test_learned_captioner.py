@@ -365,3 +365,72 @@ def test_captioner_rewards_store_the_captions_as_rewards(trained, tmp_path, one_
     assert fields["labels"] == task.labeller.labels(frames, proprio)
     trainer.run()
     assert trainer.buffer.size >= 120
+
+
+# --- the models over perception -----------------------------------------------------------
+@pytest.fixture(scope="module")
+def slots_dataset(tmp_path_factory):
+    path = tmp_path_factory.mktemp("lc") / "slots.h5"
+    collect(
+        CollectConfig(
+            out=str(path), episodes=400, image_size=32, families=("reach", "push"), progress=False
+        )
+    )
+    return path
+
+
+def _oracle(dataset):
+    """Perception that reads the simulator's own state of each dataset frame (what a
+    perfect model would estimate), saved as a perception checkpoint."""
+    from lcrl.perception import Perception, SlotLayout
+
+    with CaptionDataset(dataset) as data:
+        lookup = {f.tobytes(): s for f, s in zip(data.frames[:], data.state[:], strict=True)}
+        layout = SlotLayout.of(data.meta["slot_layout"])
+        shape = data.frame_shape
+
+    class Oracle(Perception):
+        def observation(self, frames, proprio):
+            return np.stack([lookup[f.tobytes()] for f in np.asarray(frames, np.uint8)])
+
+    return Oracle(shape, layout)
+
+
+def test_models_over_perception_learn_from_the_slots(slots_dataset, tmp_path, monkeypatch):
+    """``--model.encoder perception``: the models read perception's estimates of the first
+    and current frame; given exact estimates (the simulator's state) they caption held-out
+    episodes and rank their rewards far above chance."""
+    import captioner.learned as learned
+    from train.perception import PerceptionTrainConfig, save_model
+
+    oracle = _oracle(slots_dataset)
+    save_model(tmp_path / "oracle", oracle, PerceptionTrainConfig(), {}, 0, [], np.zeros(0, int))
+    monkeypatch.setattr(learned, "load_model", lambda path, device="cpu": (oracle, {}))
+    model = dataclasses.replace(TINY, encoder="perception")
+    cfg = CaptionTrainConfig(
+        data=str(slots_dataset), out=str(tmp_path / "ckpt"), steps=800, model=model,
+        perception=str(tmp_path / "oracle"), progress=False,
+    )  # fmt: skip
+    lc = LearnedCaptioner.load(train_models(cfg))
+    assert lc.perception is oracle and lc.meta["perception"]["format"] == "lcrl-perception"
+    with CaptionDataset(slots_dataset) as data:
+        seen = evaluate_models(lc, data)["seen"]
+    # chance is about 1 in 30 instructions for the captioner, 0.5 for the reward AUC
+    assert seen["exact_match"] >= 0.5 and seen["auc"] >= 0.85, seen
+
+
+def test_models_over_perception_refuse_another_camera(dataset, tmp_path):
+    from lcrl.perception import Perception, SlotLayout
+    from train.perception import PerceptionTrainConfig, save_model
+
+    other = Perception((48, 48, 3), SlotLayout(2, 8, 3, 2))
+    save_model(tmp_path / "p", other, PerceptionTrainConfig(), {}, 0, [], np.zeros(0, int))
+    model = dataclasses.replace(TINY, encoder="perception")
+    cfg = CaptionTrainConfig(
+        data=str(dataset), out=str(tmp_path / "c"), steps=2, model=model,
+        perception=str(tmp_path / "p"), progress=False,
+    )  # fmt: skip
+    with pytest.raises(LcrlError, match=r"reads \(48, 48, 3\) frames; .* has \(32, 32, 3\)"):
+        train_models(cfg)
+    with pytest.raises(LcrlError, match="--perception MODEL"):
+        train_models(dataclasses.replace(cfg, perception=""))

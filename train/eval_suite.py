@@ -570,7 +570,9 @@ def run_set(
     if _vector_kind(vector, cfg, n) == "sync":
         envs: gym.vector.VectorEnv = gym.vector.SyncVectorEnv(fns, copy=False)
     else:
-        envs = gym.vector.AsyncVectorEnv(fns, shared_memory=False, copy=False)
+        # spawned, not forked: a parent that has rendered (an OpenGL / EGL context, a
+        # perception model's threads) leaves locks a forked child can wait on forever
+        envs = gym.vector.AsyncVectorEnv(fns, shared_memory=False, copy=False, context="spawn")
     runner = PolicyRunner(agent, task, vectors)
     results: dict[int, EpisodeResult] = {}
     try:
