@@ -411,8 +411,10 @@ def test_models_over_perception_learn_from_the_slots(slots_dataset, tmp_path, mo
         data=str(slots_dataset), out=str(tmp_path / "ckpt"), steps=800, model=model,
         perception=str(tmp_path / "oracle"), progress=False,
     )  # fmt: skip
-    lc = LearnedCaptioner.load(train_models(cfg))
-    assert lc.perception is oracle and lc.meta["perception"]["format"] == "lcrl-perception"
+    path = train_models(cfg)
+    lc = LearnedCaptioner.load(path)
+    saved = json.loads((path / "meta.json").read_text())["perception"]
+    assert lc.perception is oracle and saved["format"] == "lcrl-perception"
     with CaptionDataset(slots_dataset) as data:
         seen = evaluate_models(lc, data)["seen"]
     # chance is about 1 in 30 instructions for the captioner, 0.5 for the reward AUC
