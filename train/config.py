@@ -251,6 +251,20 @@ class TrainConfig:
         if self.keep_checkpoints < 1:
             raise LcrlError("keep_checkpoints must be at least 1")
         self.distill.validate()
+        if self.agent.perception_lr < 0:
+            raise LcrlError(f"agent.perception_lr must be >= 0, got {self.agent.perception_lr}")
+        if self.agent.perception_lr > 0:
+            if not self.env.perception:
+                raise LcrlError(
+                    "agent.perception_lr fine-tunes the perception model the policy acts "
+                    "through: set --env.perception MODEL"
+                )
+            mt = self.agent.multitask
+            if mt.pcgrad or mt.conflict_every > 0:
+                raise LcrlError(
+                    "agent.perception_lr cannot be combined with per-task gradients (PCGrad, "
+                    "multitask.conflict_every): the frames would be read once per task"
+                )
         self._validate_tasks()
 
     def _validate_tasks(self) -> None:
