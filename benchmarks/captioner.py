@@ -269,14 +269,23 @@ def _row(group: str, decoding: str, r: dict) -> str:
     )
 
 
+def _encoder_text(settings: dict) -> str:
+    """How the models read the frames, in words."""
+    if settings.get("encoder") == "perception":
+        return f"over the slots of the frozen perception model {settings.get('perception')}"
+    return (
+        f"{settings.get('encoder', 'flatten')} encoder, random-shift augmentation pad "
+        f"{settings.get('augment_pad', 0)}"
+    )
+
+
 def _table(p: dict) -> str:
     d = p["dataset"]
     lines = [
         f"Dataset: {d['episodes']} episodes ({d['episodes_per_source']}), "
         f"{d['observations']} frames, {d['labelled_observations']} with labels. Models "
         f"trained {p['settings']['steps']} steps each at batch {p['settings']['batch_size']} "
-        f"({p['settings'].get('encoder', 'flatten')} encoder, random-shift augmentation "
-        f"pad {p['settings'].get('augment_pad', 0)}) on 80% of the episodes; figures on the "
+        f"({_encoder_text(p['settings'])}) on 80% of the episodes; figures on the "
         "other 20% (and, to show what the models memorise, on as many training episodes).",
         "",
         "| observations | decoding | n | exact match | verb | object | colour | shape | direction "
@@ -319,6 +328,9 @@ def _table(p: dict) -> str:
         )
     t = p["timings_s"]
     names = {"collect_s": "collect", "train_s": "train", "eval_s": "evaluate"}
+    if p["settings"].get("data"):  # a dataset collected before, by its own command
+        names.pop("collect_s")
+        lines.append(f"- Dataset: {p['settings']['data']} (given with --data).")
     parts = [f"{names[k]} {t[k]:.0f} s" for k in names if t.get(k) is not None]
     lines.append(f"- Time: {', '.join(parts)}.")
     return "\n".join(lines)
