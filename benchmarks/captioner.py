@@ -80,6 +80,13 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--data", default="", help="an existing caption dataset to use")
     parser.add_argument("--augment-pad", type=int, default=4)
     parser.add_argument(
+        "--near-negatives",
+        type=float,
+        default=0.0,
+        help="fraction of near misses among the reward model's negatives and the "
+        "captioner's <none> targets (CaptionTrainConfig.near_negative_fraction)",
+    )
+    parser.add_argument(
         "--strides",
         type=int,
         nargs="*",
@@ -145,6 +152,7 @@ def main(argv: list[str] | None = None) -> int:
             steps=args.steps,
             batch_size=args.batch_size,
             augment_pad=args.augment_pad,
+            near_negative_fraction=args.near_negatives,
             model=CaptionModelConfig(encoder=args.encoder, strides=tuple(args.strides)),
             perception=args.perception,
             threads=args.threads,
@@ -303,6 +311,13 @@ def _table(p: dict) -> str:
             "with these settings; this pass evaluated them again."
         )
     for decoding, res in p["results"].items():
+        seen = res.get("seen", {})
+        if "auc_near" in seen:
+            lines.append(
+                f"- {decoding}: reward AUC against near misses (the same instruction a few "
+                f"steps before or after, not satisfied) {seen['auc_near']:.3f}; near misses "
+                f"scored as satisfied {seen['near_false_positive_rate']:.2f}."
+            )
         if "none_accuracy" in res:
             lines.append(
                 f"- {decoding}: the captioner says `<none>` on {res['none_accuracy']:.2f} of "

@@ -49,6 +49,40 @@ def run_args(args: argparse.Namespace, name: str) -> list[str]:
     return cmd
 
 
+def reuse(run: Path, into: Path, args: argparse.Namespace) -> float:
+    """Copy a finished run whose config is this benchmark's rule run's (all but ``out``)
+    to ``into``; returns its training seconds (config.json to report.md).
+
+    Raises:
+        SystemExit: the run is unfinished or was trained with another config.
+    """
+    import shutil
+
+    if not (run / "report.md").is_file():
+        raise SystemExit(f"--reuse-rule {run}: not a finished run (no report.md)")
+    wanted = _config_of(run_args(args, "rule"))
+    have = json.loads((run / "config.json").read_text())
+    for cfg in (wanted, have):
+        for key in ("out", "overwrite", "progress"):
+            cfg.pop(key, None)
+    if wanted != have:
+        raise SystemExit(f"--reuse-rule {run}: its config differs from the rule run's")
+    if into.exists():
+        shutil.rmtree(into)
+    shutil.copytree(run, into, symlinks=True)
+    return round((run / "report.md").stat().st_mtime - (run / "config.json").stat().st_mtime, 1)
+
+
+def _config_of(cmd: list[str]) -> dict:
+    """The resolved config a ``lcrl train`` command line would write to config.json."""
+    import dataclasses
+
+    from train.cli import parse_train_args
+
+    cfg = parse_train_args(cmd[cmd.index("train") + 1 :])
+    return {**dataclasses.asdict(cfg), "resolved_algo": "sac"}
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--env", choices=tuple(PRESETS), required=True)
@@ -60,6 +94,12 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--eval-episodes", type=int, default=50)
     parser.add_argument("--final-episodes", type=int, default=100)
     parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument(
+        "--reuse-rule",
+        default="",
+        help="a finished run of the same preset, seed, budget and perception (e.g. the "
+        "image_policy.py reach run) to take as the rule run instead of training it again",
+    )
     args = parser.parse_args(argv)
     if args.env == "robosuite" and not args.perception:
         parser.error("--env robosuite trains the image policy: pass --perception MODEL")
@@ -68,7 +108,11 @@ def main(argv: list[str] | None = None) -> int:
     info = machine()
     Path(args.work).mkdir(parents=True, exist_ok=True)
     procs, seconds = {}, {}
-    for name in ("rule", "learned"):
+    names = ("rule", "learned")
+    if args.reuse_rule:
+        seconds["rule"] = reuse(Path(args.reuse_rule), Path(args.work) / "rule", args)
+        names = ("learned",)
+    for name in names:
         log = open(Path(args.work) / f"{name}.log", "w")  # noqa: SIM115
         proc = subprocess.Popen(
             run_args(args, name), stdout=log, stderr=subprocess.STDOUT, env=child_env()
@@ -80,9 +124,10 @@ def main(argv: list[str] | None = None) -> int:
         seconds[name] = round(time.perf_counter() - t0, 1)
         log.close()
     sets = ("train", "heldout", "paraphrase")
-    final = {name: evaluate(Path(args.work) / name, args.final_episodes, sets) for name in procs}
+    runs = ("rule", "learned")
+    final = {name: evaluate(Path(args.work) / name, args.final_episodes, sets) for name in runs}
     curves = {}
-    for name in procs:
+    for name in runs:
         with open(Path(args.work) / name / "eval.csv") as f:
             curves[name] = [{k: float(v) for k, v in r.items() if v} for r in csv.DictReader(f)]
     agreement = {}

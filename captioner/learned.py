@@ -52,6 +52,8 @@ from lcrl.nets import spatial_softmax
 from lcrl.perception import Perception, embedded_meta, load_model
 
 SPECIALS: tuple[str, ...] = ("<pad>", "<bos>", "<eos>", "<none>")
+#: Steps around an achievement whose observations count as near misses in evaluation.
+NEAR_WINDOW = 10
 PAD, BOS, EOS, NONE = 0, 1, 2, 3
 NONE_TEXT = "<none>"
 CHECKPOINT_KIND = "lcrl-learned-captioner"
@@ -704,6 +706,15 @@ class CaptionTrainConfig:
     hard_negative_fraction: float = 0.5
     """Reward model: fraction of the negatives that share the object or the family of an
     instruction the observation satisfies (the rest are any other instruction)."""
+    near_negative_fraction: float = 0.0
+    """Reward model: fraction of the negatives that are near misses: the same instruction
+    on an observation of the same episode, within ``near_window`` steps, that does not
+    satisfy it (where the achievement begins or ends). Captioner: the same fraction of its
+    ``<none>`` targets are observations that achieved nothing within ``near_window``
+    steps of one that did. They teach the boundary of an achievement, where relabelling
+    in a training loop asks most."""
+    near_window: int = 10
+    """Steps around an achievement that count as near (``near_negative_fraction``)."""
     val_fraction: float = 0.2
     """Episodes held out of training for evaluation."""
     model: CaptionModelConfig = field(default_factory=CaptionModelConfig)
@@ -735,7 +746,9 @@ class CaptionTrainConfig:
                 raise LcrlError(f"{name} must be positive")
         if self.augment_pad < 0:
             raise LcrlError("augment_pad must be >= 0")
-        for name in ("none_fraction", "hard_negative_fraction"):
+        if self.near_window < 1:
+            raise LcrlError("near_window must be at least 1")
+        for name in ("none_fraction", "hard_negative_fraction", "near_negative_fraction"):
             if not 0.0 <= getattr(self, name) <= 1.0:
                 raise LcrlError(f"{name} must be in [0, 1]")
         if not 0.0 < self.val_fraction < 1.0:
@@ -756,8 +769,15 @@ def _text_encoder(name: str) -> Any:
 class _Sampler:
     """Training batches for both models from the training episodes."""
 
-    def __init__(self, pairs: _Pairs, table: list[Instruction], rng: np.random.Generator):
+    def __init__(
+        self,
+        pairs: _Pairs,
+        table: list[Instruction],
+        rng: np.random.Generator,
+        near_window: int = 10,
+    ):
         self.pairs, self.rng, self.table = pairs, rng, table
+        self.near_window = int(near_window)
         data = pairs.data
         obs = pairs.observations(pairs.train_episodes)
         seen = pairs.seen
@@ -774,6 +794,17 @@ class _Sampler:
             # observations whose labels are all held-out never enter training
         self.labelled_arr = np.asarray(self.labelled, np.int64)
         self.empty_arr = np.asarray(self.empty, np.int64)
+        # near misses: observations that achieved nothing within near_window steps of one
+        # that achieved something, in the same episode (where an achievement begins or ends)
+        ep = data.episode_of(self.empty_arr) if len(self.empty_arr) else self.empty_arr
+        lab_ep = data.episode_of(self.labelled_arr)
+        near = []
+        for j, e in zip(self.empty_arr, ep, strict=True):
+            lo = np.searchsorted(self.labelled_arr, j - self.near_window)
+            hi = np.searchsorted(self.labelled_arr, j + self.near_window, side="right")
+            if np.any(lab_ep[lo:hi] == e):
+                near.append(int(j))
+        self.near_empty_arr = np.asarray(near, np.int64)
         self.seen_ids = np.flatnonzero(seen)
         if not self.labelled:
             raise LcrlError("no training observation carries a training instruction label")
@@ -787,7 +818,11 @@ class _Sampler:
             ]
             self.related.append(np.asarray(rel, np.int64))
 
-    def caption_batch(self, n: int, none_fraction: float) -> tuple[np.ndarray, list[int | None]]:
+    def caption_batch(
+        self, n: int, none_fraction: float, near: float = 0.0
+    ) -> tuple[np.ndarray, list[int | None]]:
+        """Observation indices and target instruction ids (None: ``<none>``); a fraction
+        ``near`` of the ``<none>`` rows are near misses."""
         n_none = int(self.rng.binomial(n, none_fraction)) if self.empty else 0
         k = self.rng.integers(len(self.labelled), size=n - n_none)
         idx = list(self.labelled_arr[k])
@@ -795,12 +830,31 @@ class _Sampler:
             int(self.targets[i][self.rng.integers(len(self.targets[i]))]) for i in k
         ]
         if n_none:
-            idx += list(self.empty_arr[self.rng.integers(len(self.empty), size=n_none)])
+            n_near = int(self.rng.binomial(n_none, near)) if len(self.near_empty_arr) else 0
+            pools = ((self.empty_arr, n_none - n_near), (self.near_empty_arr, n_near))
+            for pool, m in pools:
+                idx += list(pool[self.rng.integers(len(pool), size=m)])
             texts += [None] * n_none
         return np.asarray(idx, np.int64), texts
 
-    def reward_batch(self, n: int, hard: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """Observation indices, instruction ids and 0/1 targets, half positives."""
+    def near_negative(self, j: int, instruction: int) -> int:
+        """An observation of ``j``'s episode, within ``near_window`` steps, where
+        ``instruction`` is not satisfied (-1: none): the boundary of an achievement."""
+        data = self.pairs.data
+        e = int(data.episode_of(np.asarray([j]))[0])
+        lo = max(int(data.episode_start[e]) + 1, j - self.near_window)
+        hi = min(int(data.episode_start[e + 1]), j + self.near_window + 1)
+        for _ in range(8):
+            c = int(self.rng.integers(lo, hi)) if hi > lo else -1
+            if c >= 0 and instruction not in data.labels(c):
+                return c
+        return -1
+
+    def reward_batch(
+        self, n: int, hard: float, near: float = 0.0
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Observation indices, instruction ids and 0/1 targets, half positives; a
+        fraction ``near`` of the negatives are near misses (:meth:`near_negative`)."""
         n_pos = n // 2
         k = self.rng.integers(len(self.labelled), size=n)
         idx = self.labelled_arr[k].copy()
@@ -812,6 +866,12 @@ class _Sampler:
                 ids[r] = sat[self.rng.integers(len(sat))]
                 y[r] = 1.0
                 continue
+            if near and self.rng.random() < near:  # the same instruction, just before or after
+                i = int(sat[self.rng.integers(len(sat))])
+                c = self.near_negative(int(idx[r]), i)
+                if c >= 0:
+                    idx[r], ids[r] = c, i
+                    continue
             if self.empty and self.rng.random() < 0.3:  # nothing achieved: any instruction
                 idx[r] = self.empty_arr[self.rng.integers(len(self.empty))]
                 ids[r] = self.seen_ids[self.rng.integers(len(self.seen_ids))]
@@ -1140,7 +1200,7 @@ def train_models(cfg: CaptionTrainConfig) -> Path:
         lc.meta["val_episodes"] = pairs.val_episodes.tolist()
         lc.p_mean, lc.p_std = pairs.p_mean, pairs.p_std
         table = [_parse(t) for t in data.instructions]
-        sampler = _Sampler(pairs, table, rng)
+        sampler = _Sampler(pairs, table, rng, cfg.near_window)
         pad = 0 if perception is not None else cfg.augment_pad  # slots are not shifted
         history: dict[str, list[float]] = {}
         if "captioner" in cfg.models:
@@ -1157,7 +1217,9 @@ def train_models(cfg: CaptionTrainConfig) -> Path:
             losses = []
             bar = tqdm(range(cfg.steps), disable=not cfg.progress, desc="captioner")
             for _ in bar:
-                idx, targets = sampler.caption_batch(cfg.batch_size, cfg.none_fraction)
+                idx, targets = sampler.caption_batch(
+                    cfg.batch_size, cfg.none_fraction, cfg.near_negative_fraction
+                )
                 rows = torch.as_tensor(
                     [none_row if t is None else t for t in targets], device=device
                 )
@@ -1190,7 +1252,9 @@ def train_models(cfg: CaptionTrainConfig) -> Path:
             losses = []
             bar = tqdm(range(cfg.steps), disable=not cfg.progress, desc="reward model")
             for _ in bar:
-                idx, ids, y = sampler.reward_batch(cfg.batch_size, cfg.hard_negative_fraction)
+                idx, ids, y = sampler.reward_batch(
+                    cfg.batch_size, cfg.hard_negative_fraction, cfg.near_negative_fraction
+                )
                 ctx = model_r.context(*_augment(pairs.tensors(idx, device), pad, gen))
                 logit = model_r(ctx, emb[torch.as_tensor(ids, device=device)])
                 loss = F.binary_cross_entropy_with_logits(logit, torch.as_tensor(y, device=device))
@@ -1297,7 +1361,10 @@ def evaluate_models(
     ranks each satisfied instruction against an unsatisfied one of the same family on the
     same frames (about the same object where the family allows: the instruction alone
     decides); ``auc_with_idle`` adds observations that achieved nothing, paired with any
-    instruction, to the negatives.
+    instruction, to the negatives; ``auc_near`` ranks each satisfied instruction against
+    the same instruction a few steps before or after in the same episode, where it is not
+    satisfied (near misses: the boundary a training loop's relabelling asks about most),
+    and ``near_false_positive_rate`` is how often those score as satisfied.
     """
     lc.check_dataset(data)
     if episodes is None:
@@ -1390,6 +1457,21 @@ def evaluate_models(
                     neg_idx.append(j)
                     neg_txt.append(cands[rng.integers(len(cands))])
             n_hard = len(neg_idx)
+            # near misses: the positive's instruction a few steps before or after, in the
+            # same episode, where it is not satisfied (the boundary of the achievement)
+            near_pos, near_idx, near_txt = [], [], []
+            for k, (j, text) in enumerate(zip(pos_idx, pos_txt, strict=True)):
+                e = int(data.episode_of(np.asarray([j]))[0])
+                lo, hi = int(data.episode_start[e]) + 1, int(data.episode_start[e + 1])
+                cands = [
+                    c
+                    for c in range(max(lo, j - NEAR_WINDOW), min(hi, j + NEAR_WINDOW + 1))
+                    if text not in {names[i] for i in data.labels(c)}
+                ]
+                if cands:
+                    near_pos.append(k)
+                    near_idx.append(cands[rng.integers(len(cands))])
+                    near_txt.append(text)
             for j in (
                 rng.choice(empty, min(len(empty), len(pos_idx) // 2), replace=False)
                 if empty
@@ -1397,8 +1479,8 @@ def evaluate_models(
             ):  # observations that achieved nothing, with any instruction
                 neg_idx.append(int(j))
                 neg_txt.append(pool[rng.integers(len(pool))])
-            all_idx = pos_idx + neg_idx
-            all_txt = pos_txt + neg_txt
+            all_idx = pos_idx + neg_idx + near_idx
+            all_txt = pos_txt + neg_txt + near_txt
             y = np.asarray([1] * len(pos_idx) + [0] * len(neg_idx), bool)
             scores = []
             for s in range(0, len(all_idx), batch_size):
@@ -1415,6 +1497,15 @@ def evaluate_models(
                     )
                 )
             sc = np.concatenate(scores) if scores else np.zeros(0)
+            near_sc = sc[len(pos_idx) + len(neg_idx) :]
+            sc = sc[: len(pos_idx) + len(neg_idx)]
+            if near_pos:
+                pos_sc = sc[np.asarray(near_pos)]
+                res["auc_near"] = roc_auc(
+                    np.concatenate([pos_sc, near_sc]),
+                    np.concatenate([np.ones(len(pos_sc), bool), np.zeros(len(near_sc), bool)]),
+                )
+                res["near_false_positive_rate"] = float(np.mean(near_sc >= 0.5))
             pred = sc >= 0.5
             tp = int(np.sum(pred & y))
             res["reward_pairs"] = len(y)

@@ -390,10 +390,10 @@ def check_preset(argv: Sequence[str], presets: Mapping[str, Any]) -> None:
     )
 
 
-def _train(argv: Sequence[str]) -> None:
-    from lcrl.algos import ALGOS
+def parse_train_args(argv: Sequence[str]) -> Any:
+    """The :class:`train.config.TrainConfig` of ``lcrl train ARGV`` (a preset, then
+    overrides), as the command builds it."""
     from train.config import PRESETS, TrainConfig
-    from train.loop import Trainer
 
     check_preset(argv, PRESETS)
     presets = {name: cfg for name, (_, cfg) in PRESETS.items()}
@@ -405,6 +405,14 @@ def _train(argv: Sequence[str]) -> None:
         args=list(argv),
     )
     assert isinstance(cfg, TrainConfig)
+    return cfg
+
+
+def _train(argv: Sequence[str]) -> None:
+    from lcrl.algos import ALGOS
+    from train.loop import Trainer
+
+    cfg = parse_train_args(argv)
     spec = ALGOS.get(cfg.algo)
     if spec is not None and spec.learns_from == "demos":  # behavioural cloning from --demos
         from train.bc import BCTrainer
