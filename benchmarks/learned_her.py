@@ -80,7 +80,7 @@ def _config_of(cmd: list[str]) -> dict:
     from train.cli import parse_train_args
 
     cfg = parse_train_args(cmd[cmd.index("train") + 1 :])
-    return {**dataclasses.asdict(cfg), "resolved_algo": "sac"}
+    return json.loads(json.dumps({**dataclasses.asdict(cfg), "resolved_algo": "sac"}))
 
 
 def main(argv: list[str] | None = None) -> int:
