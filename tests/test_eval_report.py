@@ -203,6 +203,106 @@ def test_instruction_file_errors(tmp_path, content, match):
     assert str(path) in str(e.value)
 
 
+def test_instruction_file_canonical_parts(tmp_path):
+    path = tmp_path / "mine.txt"
+    path.write_text(
+        "could you nudge the red block left\tpush the red cube left\n"
+        "reach the red cube\n"
+        "  go   to the green one\t  reach   the green cube # spaces collapse\n"
+        "raise the green thing\tlift the green cube\n"
+    )
+    lines = read_instruction_file(path, FAMILIES_2D)
+    assert [(x.text, x.canonical) for x in lines] == [
+        ("could you nudge the red block left", "push the red cube left"),
+        ("reach the red cube", ""),
+        ("go to the green one", "reach the green cube"),
+        ("raise the green thing", "lift the green cube"),
+    ]
+    assert [x.judged for x in lines[:3]] == [
+        "push the red cube left",
+        "reach the red cube",
+        "reach the green cube",
+    ]
+    # a free text that does not parse is checked through its canonical part
+    assert [x.checked for x in lines] == [True, True, True, False]
+    assert "lift is not a family" in lines[3].note
+
+
+@pytest.mark.parametrize(
+    ("content", "match"),
+    [
+        ("reach the red cube\ngo there\tdance a jig\n", r"line 2: the canonical part 'dance a "),
+        ("a\tb\tc\n", r"line 1: 2 tabs"),
+        ("\treach the red cube\n", r"line 1: no free text before the tab"),
+        ("reach the red cube\t  # nothing after\n", r"line 1: no canonical instruction after"),
+        ("go\tpush the red cube → left\n", r"line 1: unsupported characters"),
+    ],
+)
+def test_instruction_file_bad_canonical_parts(tmp_path, content, match):
+    path = tmp_path / "bad.txt"
+    path.write_text(content, encoding="utf-8")
+    with pytest.raises(LcrlError, match=match) as e:
+        read_instruction_file(path)
+    assert str(path) in str(e.value) and "\n" not in str(e.value)
+
+
+class MeaningOracle(ReachOracle):
+    """A reach oracle that reads free text: each goal embedding is matched exactly to one
+    of ``vectors``' texts, and ``means`` gives the instruction that text is taken for."""
+
+    def __init__(self, task, env, vectors, means) -> None:
+        super().__init__(task, env)
+        self.texts = [means.get(t, t) for t in vectors]
+        self.embeddings = np.stack([vectors[t] for t in vectors])
+        self.read: set[str] = set()
+        self.names = list(vectors)
+
+    def act(self, obs, goal, deterministic=True, embedded=False):
+        for g in np.asarray(goal):
+            match = [i for i, e in enumerate(self.embeddings) if np.array_equal(e, g)]
+            assert len(match) == 1
+            self.read.add(self.names[match[0]])
+        return super().act(obs, goal, deterministic, embedded)
+
+
+def test_free_text_is_read_and_the_canonical_part_judged(policy, tmp_path):
+    from train.eval_suite import goal_vectors
+
+    path = tmp_path / "mine.txt"
+    path.write_text(
+        "please touch the crimson box\treach the red cube\n"
+        "please touch the scarlet box\treach the blue cube\n"
+        "reach the red cube\n"
+    )
+    lines = read_instruction_file(path, FAMILIES_2D)
+    texts = [x.text for x in lines]
+    vectors = goal_vectors(policy.task, texts)
+    # both free texts are taken for the red cube; only the first line means it
+    means = {texts[0]: "reach the red cube", texts[1]: "reach the red cube"}
+    oracle = MeaningOracle(policy.task, policy.env, vectors, means)
+    res = run_evaluation(
+        oracle, policy.task, policy.cfg, episodes=24, seed=0, sets=("custom",), instructions=lines
+    )["custom"]
+    assert oracle.read == set(texts)  # the policy read the free text, never the canonical
+    per_line = res["instructions"]
+    assert set(per_line) == set(texts)
+    assert per_line[texts[0]]["success"] >= 0.75
+    assert per_line[texts[1]]["success"] <= 0.25  # judged as reaching the blue cube
+    assert per_line[texts[2]]["success"] >= 0.75
+    firsts = [e["attempts"][0] for e in res["episode_results"]]
+    assert firsts[1]["instruction"] == texts[1]
+    assert firsts[1]["canonical"] == "reach the blue cube"
+    assert firsts[1]["slots"]["object"] == "blue cube"
+    assert "canonical" not in firsts[2]
+    # the report's per-line table says what each line was judged as
+    from train.report import _breakdown
+
+    md = "\n".join(_breakdown("custom", res))
+    assert "| line | instruction | judged as | success |" in md
+    assert "| 2 | please touch the scarlet box | reach the blue cube | " in md
+    assert "| 3 | reach the red cube | reach the red cube | " in md
+
+
 def test_instruction_file_missing_or_binary(tmp_path):
     with pytest.raises(LcrlError, match="not found"):
         read_instruction_file(tmp_path / "nope.txt")

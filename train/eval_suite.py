@@ -125,15 +125,24 @@ class FileInstruction:
 
     Attributes:
         line: its line number (1-based).
-        text: the instruction, spaces collapsed.
+        text: the instruction the policy reads, spaces collapsed.
         checked: whether the rule captioner can judge its success in this environment.
         note: why it is not checked (empty when it is).
+        canonical: the canonical instruction written after a tab on the line (empty when
+            the line has none): success is judged by its meaning, while the policy reads
+            ``text``.
     """
 
     line: int
     text: str
     checked: bool = True
     note: str = ""
+    canonical: str = ""
+
+    @property
+    def judged(self) -> str:
+        """The instruction whose meaning success is judged by."""
+        return self.canonical or self.text
 
 
 def read_instruction_file(
@@ -141,14 +150,19 @@ def read_instruction_file(
 ) -> list[FileInstruction]:
     """Read instructions, one per line; blank lines and ``#`` comments are skipped.
 
-    Lines the grammar cannot parse, or whose family the environment cannot do (not in
-    ``env_families``), are kept: the policy still runs on them, but their success is not
-    checked.
+    A line may carry its canonical instruction after a tab (``could you nudge the red
+    block left<TAB>push the red cube left``): the policy reads the free text before the
+    tab, and success is judged by the meaning of the canonical part, which must parse.
+
+    Lines without a tab that the grammar cannot parse, or whose family the environment
+    cannot do (not in ``env_families``), are kept: the policy still runs on them, but
+    their success is not checked.
 
     Raises:
         LcrlError: a missing or unreadable file, a line with characters an instruction
-            cannot hold or longer than the limit (the message names the line), or a file
-            without instructions.
+            cannot hold or longer than the limit, a line with more than one tab or an
+            empty part, a canonical part that does not parse (each message names the
+            line), or a file without instructions.
     """
     from captioner.grammar import try_parse
     from captioner.lang_env import INSTRUCTION_CHARSET, MAX_INSTRUCTION_LENGTH
@@ -162,10 +176,8 @@ def read_instruction_file(
         raise LcrlError(f"instruction file {p} is not UTF-8 text: {e}") from None
     allowed = set(INSTRUCTION_CHARSET)
     out = []
-    for number, raw in enumerate(lines, 1):
-        text = " ".join(raw.split("#", 1)[0].split())
-        if not text:
-            continue
+
+    def check(text: str, number: int) -> None:
         bad = sorted(set(text) - allowed)
         if bad:
             raise LcrlError(
@@ -177,15 +189,40 @@ def read_instruction_file(
                 f"{p}, line {number}: the instruction is {len(text)} characters long; the "
                 f"limit is {MAX_INSTRUCTION_LENGTH}"
             )
-        meaning = try_parse(text)
+
+    for number, raw in enumerate(lines, 1):
+        content = raw.split("#", 1)[0]
+        parts = [" ".join(part.split()) for part in content.split("\t")]
+        if not any(parts):
+            continue
+        if len(parts) > 2:
+            raise LcrlError(
+                f"{p}, line {number}: {len(parts) - 1} tabs; a line holds an instruction and "
+                "optionally, after one tab, its canonical form"
+            )
+        text, canonical = parts[0], parts[1] if len(parts) == 2 else ""
+        if len(parts) == 2 and not (text and canonical):
+            which = "free text before" if not text else "canonical instruction after"
+            raise LcrlError(f"{p}, line {number}: no {which} the tab")
+        check(text, number)
+        if canonical:
+            check(canonical, number)
+            meaning = try_parse(canonical)
+            if meaning is None:
+                raise LcrlError(
+                    f"{p}, line {number}: the canonical part {canonical!r} does not parse "
+                    "(see `lcrl parse` for the instructions the grammar reads)"
+                )
+        else:
+            meaning = try_parse(text)
         if meaning is None:
             out.append(FileInstruction(number, text, False, "the rule captioner cannot parse it"))
         elif env_families is not None and meaning.family not in env_families:
             can = ", ".join(env_families)
             note = f"{meaning.family} is not a family of this environment ({can})"
-            out.append(FileInstruction(number, text, False, note))
+            out.append(FileInstruction(number, text, False, note, canonical))
         else:
-            out.append(FileInstruction(number, text))
+            out.append(FileInstruction(number, text, canonical=canonical))
     if not out:
         raise LcrlError(
             f"instruction file {p} has no instructions (one per line; blank lines and "
@@ -207,6 +244,9 @@ class EpisodeSpec:
     instruction: str | None = None
     checked: bool = True
     task: int | None = None
+    reads: str | None = None
+    """What the policy reads instead of ``instruction`` (a free-text line whose canonical
+    form, ``instruction``, judges success)."""
 
 
 @dataclass
@@ -265,6 +305,8 @@ class EvalEpisodes(gym.Wrapper):
             wrapper's instruction set).
         start_info: ``env -> goal information`` put in ``info["goal"]`` at each start
             (:meth:`train.tasks.Task.start_info`: the goal frame of image goals).
+        aliases: canonical instruction -> the free text the policy reads for it (lines of
+            an instruction file with a canonical part), also when a chain switches to it.
     """
 
     def __init__(
@@ -276,6 +318,7 @@ class EvalEpisodes(gym.Wrapper):
         chain: int = 1,
         pool: Sequence[str] | None = None,
         start_info: Callable[[gym.Env], Any] | None = None,
+        aliases: dict[str, str] | None = None,
     ) -> None:
         if language and isinstance(env, gym.wrappers.TimeLimit):
             env = env.env  # the budget is counted here, per instruction
@@ -286,6 +329,8 @@ class EvalEpisodes(gym.Wrapper):
         self.chain = max(1, int(chain))
         self.pool = list(pool) if pool is not None else None
         self.start_info = start_info
+        self.aliases = dict(aliases or {})
+        self._reads: str | None = None  # the free text read for the canonical instruction
         self.lang = find_language_wrapper(env) if language else None
         self.features = _features_wrapper(env) if language else None
         self._next = 0
@@ -315,7 +360,8 @@ class EvalEpisodes(gym.Wrapper):
         self._next += 1
         self._spec = spec
         self._result = EpisodeResult(spec.index, spec.seed)
-        obs = self._reset_episode(spec)
+        self._reads = spec.reads
+        obs = self._reads_instead(self._reset_episode(spec))
         self._begin_attempt(info)
         self._last_obs = obs
         return obs, info
@@ -344,6 +390,14 @@ class EvalEpisodes(gym.Wrapper):
             obs, _ = self.env.reset(options=options)
         return obs
 
+    def _reads_instead(self, obs: Any) -> Any:
+        """The observation with the free text the policy reads, where one is set."""
+        if self._reads is None:
+            return obs
+        obs = dict(obs)
+        obs["instruction"] = self._reads
+        return obs
+
     def _begin_attempt(self, info: dict[str, Any]) -> None:
         self._attempt_steps = 0
         self._success_since = None
@@ -360,9 +414,10 @@ class EvalEpisodes(gym.Wrapper):
                 slots = _slots(meaning)
             else:
                 text, checked, slots = spec.instruction, False, {}
-            self._result.attempts.append(
-                {"instruction": text, "slots": slots, "checked": checked, "success": None}
-            )
+            attempt = {"instruction": text, "slots": slots, "checked": checked, "success": None}
+            if self._reads is not None:  # reported per line: the free text, and its meaning
+                attempt.update(instruction=self._reads, canonical=text)
+            self._result.attempts.append(attempt)
 
     def _finish_attempt(self, success: bool | None) -> None:
         attempt = self._result.attempts[-1]
@@ -385,6 +440,7 @@ class EvalEpisodes(gym.Wrapper):
             success = False
         else:
             obs, reward, terminated, truncated, info = self.env.step(action)
+            obs = self._reads_instead(obs)
             success = bool(info.get("is_success", False))
         self._attempt_steps += 1
         res.steps += 1
@@ -415,8 +471,9 @@ class EvalEpisodes(gym.Wrapper):
             if self.lang.switch_instruction(candidates=self.pool) is None:
                 res.stop = "no_feasible"
                 return self._end(out, reward)
+            self._reads = self.aliases.get(self.lang.instruction)
             obs = dict(obs)
-            obs["instruction"] = self.lang.instruction
+            obs["instruction"] = self._reads or self.lang.instruction
             if self.features is not None:
                 obs["observation"] = self.features.restart_displacements()
             self._begin_attempt(out)
@@ -530,6 +587,7 @@ def run_set(
     chain: int = 1,
     pool: Sequence[str] | None = None,
     on_episode: Callable[[EpisodeResult], None] | None = None,
+    aliases: dict[str, str] | None = None,
 ) -> list[EpisodeResult]:
     """Run ``specs`` on copies of the task's env for ``split_set``; results by index.
 
@@ -543,6 +601,7 @@ def run_set(
         chain: instructions per episode at most.
         pool: sentences the next instruction of a chain is drawn from.
         on_episode: called with each finished episode (progress bars).
+        aliases: canonical instruction -> the free text the policy reads for it.
     """
     if not specs:
         return []
@@ -562,6 +621,7 @@ def run_set(
                 chain=chain,
                 pool=pool,
                 start_info=start_info,
+                aliases=aliases,
             )
 
         return make
@@ -845,11 +905,8 @@ def run_evaluation(
         elif name == CUSTOM_SET:
             assert instructions is not None
             lines = list(instructions)
-            specs = [
-                EpisodeSpec(i, s, lines[i % len(lines)].text, lines[i % len(lines)].checked)
-                for i, s in enumerate(seeds)
-            ]
-            pool = [x.text for x in lines if x.checked]
+            specs = [_file_spec(i, s, lines[i % len(lines)]) for i, s in enumerate(seeds)]
+            pool = list(dict.fromkeys(x.judged for x in lines if x.checked))
             plans.append((name, "train", specs, pool, [x.text for x in lines]))
         else:
             specs = [EpisodeSpec(i, s) for i, s in enumerate(seeds)]
@@ -878,6 +935,7 @@ def run_evaluation(
                 chain=chain,
                 pool=pool,
                 on_episode=(lambda _r: bar.update(1)) if bar is not None else None,
+                aliases=_aliases(instructions) if name == CUSTOM_SET else None,
             )
             key = name if task.instructed else "all"
             out[key] = summarise(results, chain, tasks if tasks and name == "train" else ())
@@ -888,6 +946,26 @@ def run_evaluation(
         if bar is not None:
             bar.close()
     return out
+
+
+def _file_spec(index: int, seed: int, line: FileInstruction) -> EpisodeSpec:
+    """The episode of an instruction-file line: a line with a canonical part is judged by
+    it while the policy reads the free text."""
+    if line.checked and line.canonical:
+        return EpisodeSpec(index, seed, line.canonical, True, reads=line.text)
+    return EpisodeSpec(index, seed, line.text, line.checked)
+
+
+def _aliases(lines: Sequence[FileInstruction] | None) -> dict[str, str]:
+    """Canonical instruction -> the free text read for it (the first line that has it);
+    instructions that are their own canonical form read themselves."""
+    out: dict[str, str] = {}
+    for x in lines or ():
+        if x.checked and x.canonical:
+            out.setdefault(x.canonical, x.text)
+        elif x.checked:
+            out.setdefault(x.text, x.text)
+    return {k: v for k, v in out.items() if k != v}
 
 
 def check_task_id_options(

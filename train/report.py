@@ -509,12 +509,16 @@ def _breakdown(name: str, r: dict[str, Any]) -> list[str]:
                 _row([key, value, _pct(st["success"]), _ci(st), st["episodes"], _steps(st)])
             )
     if r.get("file_instructions"):
+        canonical = any(x.get("canonical") for x in r["file_instructions"])
+        head = ["line", "instruction", "success", "95% CI", "episodes", "steps to success"]
+        if canonical:  # lines judged by the meaning of their canonical part
+            head.insert(2, "judged as")
         lines += [
             "",
             "Per line of the instruction file:",
             "",
-            _row(["line", "instruction", "success", "95% CI", "episodes", "steps to success"]),
-            "|---:|---|---:|---|---:|---:|",
+            _row(head),
+            "|---:|---|" + ("---|" if canonical else "") + "---:|---|---:|---:|",
         ]
         for x in r["file_instructions"]:
             st = r["instructions"].get(x["text"])
@@ -525,7 +529,10 @@ def _breakdown(name: str, r: dict[str, Any]) -> list[str]:
                 cells = ["not checked", x["note"] or "not feasible in the layouts drawn", n, ""]
             else:
                 cells = ["not run", "fewer episodes than lines", 0, ""]
-            lines.append(_row([x["line"], x["text"], *cells]))
+            first = [x["line"], x["text"]]
+            if canonical:
+                first.append(x.get("canonical") or x["text"])
+            lines.append(_row([*first, *cells]))
     elif r.get("unchecked_instructions"):
         lines += ["", "Not checked (the rule captioner cannot judge them here):", ""]
         for text, n in r["unchecked_instructions"].items():
