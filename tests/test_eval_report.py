@@ -8,6 +8,7 @@ really continue after successes.
 
 from __future__ import annotations
 
+import csv
 import itertools
 import json
 import re
@@ -659,6 +660,52 @@ def test_compare_runs(lang_run, state_run, tmp_path, capsys):
         compare_runs([lang, lang], out)
     with pytest.raises(LcrlError, match="two or more"):
         compare_runs([lang], out)
+
+
+def _seed_copy(run: Path, dest: Path, seed: int, train: float, heldout: float) -> Path:
+    """A copy of ``run`` as if trained with another seed, whose last evaluation row has
+    the given seen and held-out success."""
+    shutil.copytree(run, dest, ignore=shutil.ignore_patterns("evals"))
+    config = json.loads((dest / "config.json").read_text())
+    config.update(seed=seed, out=str(dest))
+    (dest / "config.json").write_text(json.dumps(config))
+    with open(dest / "eval.csv") as f:
+        rows = list(csv.DictReader(f))
+    rows[-1].update({"train/success": str(train), "heldout/success": str(heldout)})
+    with open(dest / "eval.csv", "w", newline="") as f:
+        w = csv.DictWriter(f, fieldnames=list(rows[0]))
+        w.writeheader()
+        w.writerows(rows)
+    return dest
+
+
+def test_compare_runs_shows_the_mean_and_spread_over_seeds(lang_run, state_run, tmp_path):
+    from train.report import seed_groups, spread
+
+    seeds = [
+        _seed_copy(lang_run, tmp_path / f"seed{k}", k, train, heldout)
+        for k, (train, heldout) in enumerate([(0.8, 0.4), (0.9, 0.45), (1.0, 0.7)])
+    ]
+    configs = [json.loads((r / "config.json").read_text()) for r in [*seeds, state_run]]
+    assert seed_groups(configs) == [[0, 1, 2], [3]]
+    md = compare_runs([*seeds, state_run], tmp_path / "cmp").read_text()
+    assert "## Across seeds" in md
+    # train 0.8, 0.9, 1.0: mean 0.90, sample std 0.10; held-out / seen 0.5, 0.5, 0.7
+    row = re.search(r"^\| seed0, seed1, seed2 \| last eval \|(.*)$", md, re.M)
+    assert row is not None
+    cells = [c.strip() for c in row.group(1).split("|")]
+    header = re.search(r"^\| runs \| figures \|(.*)$", md, re.M).group(1)
+    names = [c.strip() for c in header.split("|")]
+    got = dict(zip(names, cells, strict=False))
+    assert got["train"] == "0.90 ± 0.10 (0.80–1.00)"
+    assert got["heldout"] == "0.52 ± 0.16 (0.40–0.70)"
+    assert got["held-out / seen"] == "0.57 ± 0.12 (0.50–0.70)"
+    assert "state" not in row.group(0)  # a run alone is not an experiment over seeds
+    sp = spread([0.8, 0.9, 1.0])
+    assert sp["mean"] == pytest.approx(0.9) and sp["std"] == pytest.approx(0.1)
+    # runs of different configs only: no table
+    md = compare_runs([seeds[0], state_run], tmp_path / "cmp2").read_text()
+    assert "Across seeds" not in md
 
 
 def test_cli_errors(lang_run, state_run, tmp_path, capsys, monkeypatch):

@@ -787,9 +787,83 @@ def _labels(runs: Sequence[Path]) -> list[str]:
     return [f"{r.parent.name}/{r.name}" if names.count(r.name) > 1 else r.name for r in runs]
 
 
+#: Config keys that differ between the seeds of one experiment (and where it is written).
+PER_RUN_KEYS = ("out", "seed", "overwrite", "resume", "progress", "tensorboard")
+
+
+def seed_groups(configs: Sequence[dict[str, Any]]) -> list[list[int]]:
+    """Indices of runs whose configs are equal apart from :data:`PER_RUN_KEYS` (the
+    seeds of one experiment), in order of first appearance."""
+    groups: dict[str, list[int]] = {}
+    for i, config in enumerate(configs):
+        rest = {k: v for k, v in config.items() if k not in PER_RUN_KEYS}
+        groups.setdefault(json.dumps(rest, sort_keys=True, default=str), []).append(i)
+    return list(groups.values())
+
+
+def spread(values: Sequence[float]) -> dict[str, Any]:
+    """Mean, sample standard deviation, min and max of one figure over runs."""
+    n = len(values)
+    mean = sum(values) / n
+    std = math.sqrt(sum((v - mean) ** 2 for v in values) / (n - 1)) if n > 1 else 0.0
+    return {"mean": mean, "std": std, "min": min(values), "max": max(values), "runs": n}
+
+
+def _spread_cell(values: Sequence[float | None]) -> str:
+    have = [v for v in values if v is not None]
+    if len(have) < 2:
+        return ""
+    sp = spread(have)
+    return f"{_pct(sp['mean'])} ± {_pct(sp['std'])} ({_pct(sp['min'])}–{_pct(sp['max'])})"
+
+
+def _seeds_table(
+    labels: Sequence[str],
+    configs: Sequence[dict[str, Any]],
+    finals: Sequence[dict[str, Any]],
+    evaluations: Sequence[Any],
+) -> list[str]:
+    """The mean and spread over the seeds of each experiment (runs whose configs differ
+    only in seed and output folder): last evaluation and latest ``lcrl eval``, with the
+    ratio of held-out to seen success."""
+    groups = [g for g in seed_groups(configs) if len(g) > 1]
+    if not groups:
+        return []
+    figures: list[tuple[str, list[dict[str, Any]]]] = [("last eval", list(finals))]
+    if any(e is not None for e in evaluations):
+        figures.append(("lcrl eval", [e[1]["sets"] if e else {} for e in evaluations]))
+    lines = [
+        "## Across seeds (mean ± standard deviation over runs, min–max)",
+        "",
+        "Runs whose configs differ only in seed and output folder are one experiment.",
+        "",
+    ]
+    for source, per_run in figures:
+        sets = list(dict.fromkeys(s for i in range(len(per_run)) for s in per_run[i]))
+        ratio = "train" in sets and "heldout" in sets
+        head = ["runs", "figures", *sets, *(["held-out / seen"] if ratio else [])]
+        lines += [_row(head), "|---|---|" + "---|" * (len(head) - 2)]
+        for g in groups:
+            rates = {
+                s: [per_run[i][s]["success"] if s in per_run[i] else None for i in g] for s in sets
+            }
+            cells = [_spread_cell(rates[s]) for s in sets]
+            if ratio:
+                pairs = [
+                    (t, h)
+                    for t, h in zip(rates["train"], rates["heldout"], strict=True)
+                    if t and h is not None
+                ]
+                cells.append(_spread_cell([h / t for t, h in pairs]))
+            lines.append(_row([", ".join(labels[i] for i in g), source, *cells]))
+        lines.append("")
+    return lines
+
+
 def compare_runs(runs: Sequence[str | Path], out: str | Path) -> Path:
     """Runs side by side: ``comparison.md`` (a table of their settings, last evaluation
-    and latest ``lcrl eval`` figures) and ``comparison.png`` (overlaid curves) in ``out``.
+    and latest ``lcrl eval`` figures; the mean and spread over the seeds of each
+    experiment) and ``comparison.png`` (overlaid curves) in ``out``.
 
     Raises:
         LcrlError: fewer than two runs, the same run twice, or a folder that is not a run.
@@ -860,6 +934,7 @@ def compare_runs(runs: Sequence[str | Path], out: str | Path) -> Path:
                 _row([label, doc["step"], doc["settings"]["episodes"], *cells, "; ".join(avg)])
             )
         lines.append("")
+    lines += _seeds_table(labels, configs, finals, evaluations)
     lines.append("Runs: " + ", ".join(f"`{p}`" for p in paths))
     path = dest / "comparison.md"
     path.write_text("\n".join(lines) + "\n")
