@@ -167,6 +167,32 @@ def test_summary_breaks_down_by_family_and_slot_value():
     assert s["unchecked_instructions"] == {"do a little dance": 1}
 
 
+def test_combination_tables_list_failing_combinations_worst_first():
+    from train.report import _combinations_table, combinations
+
+    seen = summarise(
+        [
+            _episode(0, "push the red cube left", True),
+            _episode(1, "push the red cube right", True),
+            _episode(2, "reach the blue cylinder", False),
+            _episode(3, "touch the blue cylinder", True),
+            _episode(4, "reach the red cube", False),
+        ]
+    )
+    heldout = summarise([_episode(0, "reach the green cube", False)])
+    rows = combinations({"train": seen, "heldout": heldout})
+    assert [(r["set"], r["family"], r["object"], r["success"], r["fails"]) for r in rows] == [
+        ("train", "reach", "red cube", 0.0, True),
+        ("train", "reach", "blue cylinder", 0.5, False),
+        ("train", "push", "red cube", 1.0, False),
+        ("heldout", "reach", "green cube", 0.0, True),
+    ]
+    md = "\n".join(_combinations_table({"train": seen, "heldout": heldout}))
+    assert "### train: 1 of 3 combinations fail" in md
+    assert "### heldout: 1 of 1 combinations fail" in md
+    assert "| reach | red cube | 0.00 | [0.00, 0.79] | 1 | yes |" in md
+
+
 # --- instruction files ---------------------------------------------------------------------
 def test_instruction_file_parsing(tmp_path):
     path = tmp_path / "mine.txt"
@@ -588,6 +614,7 @@ def test_eval_cli_writes_json_markdown_and_figures(lang_run, tmp_path, capsys):
     md = (out / "eval.md").read_text()
     for part in ("## Success per set", "## Chains", "| family | reach |", "| colour |",
                  "Per line of the instruction file", "| 3 | wave hello | not checked",
+                 "## Combinations (family x colour x shape, worst first)", "### heldout: ",
                  "(sets.png)", "(heatmap.png)", "(chain.png)", "(curves.png)"):  # fmt: skip
         assert part in md, part
     for png in ("sets.png", "heatmap.png", "chain.png", "curves.png"):

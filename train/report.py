@@ -493,6 +493,63 @@ def _tasks_table(sets: dict[str, Any]) -> list[str]:
     return lines
 
 
+#: A combination whose success is below this fails (the combinations table marks it).
+FAILING = 0.5
+
+
+def combinations(sets: dict[str, Any]) -> list[dict[str, Any]]:
+    """Success of every family x colour x shape combination of every set, worst first
+    within each set: ``set``, ``family``, ``object``, ``success``, ``ci``, ``episodes``
+    and ``fails`` (success below :data:`FAILING`)."""
+    rows = []
+    for name, r in sets.items():
+        found = []
+        for fam, objects in r.get("family_object", {}).items():
+            for obj, st in objects.items():
+                if st["success"] is None:
+                    continue
+                found.append(
+                    {
+                        "set": name,
+                        "family": fam,
+                        "object": obj,
+                        "success": st["success"],
+                        "ci": st["ci"],
+                        "episodes": st["episodes"],
+                        "fails": st["success"] < FAILING,
+                    }
+                )
+        rows += sorted(found, key=lambda x: (x["success"], x["family"], x["object"]))
+    return rows
+
+
+def _combinations_table(sets: dict[str, Any]) -> list[str]:
+    """Per set, which family x colour x shape combinations fail (worst first)."""
+    rows = combinations(sets)
+    if not rows:
+        return []
+    lines = [
+        "## Combinations (family x colour x shape, worst first)",
+        "",
+        f"A combination fails when its success is below {FAILING:.2f}.",
+        "",
+    ]
+    for name in dict.fromkeys(r["set"] for r in rows):
+        mine = [r for r in rows if r["set"] == name]
+        failing = sum(r["fails"] for r in mine)
+        lines += [
+            f"### {name}: {failing} of {len(mine)} combinations fail",
+            "",
+            _row(["family", "object", "success", "95% CI", "episodes", "fails"]),
+            "|---|---|---:|---|---:|---|",
+        ]
+        for r in mine:
+            cells = [_pct(r["success"]), _ci(r), r["episodes"], "yes" if r["fails"] else ""]
+            lines.append(_row([r["family"], r["object"], *cells]))
+        lines.append("")
+    return lines
+
+
 def _breakdown(name: str, r: dict[str, Any]) -> list[str]:
     lines = [
         f"### {name}",
@@ -594,6 +651,7 @@ def evaluation_markdown(doc: dict[str, Any], images: dict[str, str]) -> str:
         lines += [f"![success per family and object]({images['heatmap']})", ""]
     for name, r in doc["sets"].items():
         lines += _breakdown(name, r)
+    lines += _combinations_table(doc["sets"])
     if "curves" in images:
         lines += ["## Learning curves", "", f"![learning curves]({images['curves']})", ""]
     return "\n".join(lines) + "\n"
