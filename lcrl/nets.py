@@ -154,7 +154,8 @@ class SlotAttention(_SlotReader):
         self.heads, self.d = heads, d
         self.out_dim = heads * d + self.extra
 
-    def forward(self, xs: Sequence[torch.Tensor], goal: torch.Tensor) -> torch.Tensor:
+    def _encode(self, xs: Sequence[torch.Tensor]) -> tuple[torch.Tensor, torch.Tensor]:
+        """Per-slot features ``(B, count, d)`` and the global and rest values."""
         b = xs[0].shape[0]
         slots = self._slots(xs)
         extra = torch.cat([torch.cat([x[:, : self.start], x[:, self.end :]], -1) for x in xs], -1)
@@ -166,10 +167,22 @@ class SlotAttention(_SlotReader):
             ],
             -1,
         )
-        h = self.slot_mlp(per_slot)  # (B, count, d)
+        return self.slot_mlp(per_slot), extra
+
+    def _scores(self, h: torch.Tensor, goal: torch.Tensor) -> torch.Tensor:
+        b = h.shape[0]
         q = self.query(goal).view(b, self.heads, 1, self.d)
         k = self.key(h).view(b, self.count, self.heads, self.d).transpose(1, 2)
-        w = torch.softmax((q * k).sum(-1) / math.sqrt(self.d), -1)  # (B, heads, count)
+        return (q * k).sum(-1) / math.sqrt(self.d)  # (B, heads, count)
+
+    def selection_logits(self, xs: Sequence[torch.Tensor], goal: torch.Tensor) -> torch.Tensor:
+        """Each head's attention logits over the slots, ``(B, heads, count)``."""
+        return self._scores(self._encode(xs)[0], goal)
+
+    def forward(self, xs: Sequence[torch.Tensor], goal: torch.Tensor) -> torch.Tensor:
+        b = xs[0].shape[0]
+        h, extra = self._encode(xs)
+        w = torch.softmax(self._scores(h, goal), -1)  # (B, heads, count)
         picked = torch.einsum("bhc,bcd->bhd", w, h).reshape(b, self.heads * self.d)
         return torch.cat([picked, extra], -1)
 
@@ -198,12 +211,39 @@ class SlotSelect(_SlotReader):
         self.logits = nn.Linear(goal_dim, self.heads * self.count)
         self.out_dim = self.heads * len(dims) * self.width + sum(dims)
 
+    def selection_logits(self, xs: Sequence[torch.Tensor], goal: torch.Tensor) -> torch.Tensor:
+        """Each head's logits over the slot positions, ``(B, heads, count)``."""
+        return self.logits(goal).view(goal.shape[0], self.heads, self.count)
+
     def forward(self, xs: Sequence[torch.Tensor], goal: torch.Tensor) -> torch.Tensor:
         b = xs[0].shape[0]
         slots = self._slots(xs)
-        w = torch.softmax(self.logits(goal).view(b, self.heads, self.count), -1)
+        w = torch.softmax(self.selection_logits(xs, goal), -1)
         picked = torch.bmm(w, slots).reshape(b, -1)  # (B, heads * keys * width)
         return torch.cat([picked, *xs], -1)
+
+
+def grounding_loss(logits: torch.Tensor, targets: torch.Tensor) -> torch.Tensor:
+    """Cross-entropy of slot selection against the slots an instruction names.
+
+    Args:
+        logits: ``(n, B, heads, count)`` selection logits of ``n`` networks.
+        targets: ``(B, T)`` slot index named for head ``t`` (the object acted on, then
+            the reference object of two-object families), -1 where none is.
+
+    Returns:
+        The mean over networks of the summed per-head cross-entropies (each averaged over
+        its rows with a target); 0 where no row has one.
+    """
+    n, b, heads, count = logits.shape
+    total = logits.new_zeros(())
+    for t in range(min(heads, targets.shape[1])):
+        y = targets[:, t]
+        if not bool((y >= 0).any()):
+            continue
+        flat = logits[:, :, t].reshape(n * b, count)
+        total = total + F.cross_entropy(flat, y.repeat(n), ignore_index=-1)
+    return total
 
 
 def spatial_softmax(h: torch.Tensor, temperature: torch.Tensor) -> torch.Tensor:
@@ -294,6 +334,17 @@ class ObsEncoder(nn.Module):
                 )
             self.encoders[key] = enc
         self.out_dim = dim
+
+    def selection_logits(self, obs: Mapping[str, torch.Tensor], goal: torch.Tensor) -> torch.Tensor:
+        """The slot reader's logits over object slots per head, ``(B, heads, count)``,
+        from the goal features.
+
+        Raises:
+            LcrlError: the encoder reads no object slots.
+        """
+        if self.slots is None:
+            raise LcrlError("grounding needs networks that read object slots (net.slots)")
+        return self.slots.selection_logits([obs[k] for k in self.slot_keys], goal)
 
     def forward(
         self, obs: Mapping[str, torch.Tensor], goal: torch.Tensor | None = None
@@ -599,6 +650,10 @@ class GoalConditionedNet(nn.Module):
             return self.head(x, g, goal.argmax(-1))
         return self.head(x, g)
 
+    def selection_logits(self, obs: Mapping[str, torch.Tensor], goal: torch.Tensor) -> torch.Tensor:
+        """Logits of the object slots the goal picks, ``(1, B, heads, count)``."""
+        return self.obs_encoder.selection_logits(obs, self.goal_encoder(goal)).unsqueeze(0)
+
 
 class BatchedLinear(nn.Module):
     """``n`` independent linear layers applied at once: ``(n, B, in) -> (n, B, out)``.
@@ -688,6 +743,16 @@ class GoalConditionedEnsemble(nn.Module):
         if action is not None:
             x = torch.cat([x, action], -1)
         return x, g
+
+    def selection_logits(self, obs: Mapping[str, torch.Tensor], goal: torch.Tensor) -> torch.Tensor:
+        """Each member's logits of the object slots the goal picks, ``(n, B, heads,
+        count)``."""
+        return torch.stack(
+            [
+                enc.selection_logits(obs, goal_enc(goal))
+                for enc, goal_enc in zip(self.obs_encoders, self.goal_encoders, strict=True)
+            ]
+        )
 
     def forward(
         self,

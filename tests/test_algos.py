@@ -844,6 +844,79 @@ def test_slot_select_picks_slots_by_goal_and_learns_which() -> None:
     assert float(loss.detach()) < 0.05
 
 
+def test_grounding_loss_ignores_rows_without_a_named_slot() -> None:
+    from lcrl.nets import grounding_loss
+
+    torch.manual_seed(0)
+    logits = torch.randn(2, 5, 2, 4)  # 2 networks, 5 rows, 2 heads, 4 slots
+    targets = torch.tensor([[0, -1], [3, 1], [-1, -1], [2, -1], [1, 0]])
+    expected = 0.0
+    for t in range(2):
+        rows = targets[:, t] >= 0
+        per_net = [F.cross_entropy(logits[i, rows, t], targets[rows, t]) for i in range(2)]
+        expected += sum(per_net) / 2
+    torch.testing.assert_close(grounding_loss(logits, targets), expected)
+    assert float(grounding_loss(logits, torch.full((5, 2), -1))) == 0.0
+
+
+def test_grounding_trains_every_network_to_pick_the_named_slot() -> None:
+    """SAC with ``grounding``: the actor's and both critics' slot selection learn which
+    slot each goal id names; without it nothing reports a grounding loss."""
+    rng = np.random.default_rng(0)
+    table = rng.normal(size=(6, 16)).astype(np.float32)
+
+    def embed(ids, device):
+        return torch.as_tensor(table[np.asarray(ids, np.int64)], device=device)
+
+    named = np.array([[0, -1], [1, -1], [2, -1], [3, -1], [1, 3], [2, 0]])
+    cfg = NetConfig(hidden=(32, 32), slots=(2, 4, 3), slot_heads=2, slot_mode="select")
+    prob = Problem({"observation": (14,), "initial": (14,)}, "text", (16,), 2)
+    agent = SAC(prob, AgentOptions(net=cfg, seed=0, grounding=1.0), embed)
+    agent.observe({}, table)
+    agent.set_grounding(named)
+
+    def batch(size=64):
+        obs = {k: rng.normal(size=(size, 14)).astype(np.float32) for k in prob.obs_shapes}
+        return Batch(
+            obs=obs,
+            action=rng.uniform(-1, 1, (size, 2)).astype(np.float32),
+            reward=rng.random(size).astype(np.float32),
+            next_obs=obs,
+            terminated=np.zeros(size, np.float32),
+            goal=rng.integers(0, 6, size),
+            relabelled=np.zeros(size, bool),
+            index=np.arange(size),
+        )
+
+    first = agent.update(batch())
+    assert first["grounding_actor"] > 1.0 and first["grounding_critic"] > 1.0  # ~ 2 log 4
+    for _ in range(150):
+        last = agent.update(batch())
+    assert last["grounding_actor"] < 0.3 and last["grounding_critic"] < 0.3
+    obs = agent.obs_tensors({k: np.zeros((6, 14), np.float32) for k in prob.obs_shapes})
+    goal = agent.goal_tensor(np.arange(6))
+    with torch.no_grad():
+        for net in (agent.actor, agent.critic):
+            picked = net.selection_logits(obs, goal).argmax(-1)  # (n, ids, heads)
+            assert (picked[..., 0] == torch.as_tensor(named[:, 0])).all()
+            assert (picked[:, 4:, 1] == torch.as_tensor(named[4:, 1])).all()
+
+    plain = SAC(prob, AgentOptions(net=cfg, seed=0), embed)
+    assert not any(k.startswith("grounding") for k in plain.update(batch()))
+    with pytest.raises(LcrlError, match="grounding loss is off"):
+        plain.set_grounding(named)
+    with pytest.raises(LcrlError, match=r"\(ids, 2\) integer"):
+        agent.set_grounding(named[:, :1])
+    with pytest.raises(LcrlError, match="slot indices below 4"):
+        agent.set_grounding(named + 4)
+    with pytest.raises(LcrlError, match="not td3"):
+        TD3(prob, AgentOptions(net=cfg, grounding=1.0), embed)
+    with pytest.raises(LcrlError, match="read object slots"):
+        SAC(prob, AgentOptions(grounding=1.0), embed)
+    with pytest.raises(LcrlError, match="0 \\(off\\) or positive"):
+        SAC(prob, AgentOptions(net=cfg, grounding=-1.0), embed)
+
+
 @pytest.mark.parametrize("algo", ["sac", "td3", "dqn"])
 def test_multi_step_batches_bootstrap_with_their_discount(algo: str) -> None:
     """A row's ``discount`` replaces gamma in the bootstrap; a reward shift counts once per

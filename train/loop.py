@@ -161,6 +161,13 @@ class Trainer(BaseTrainer):
             self.restore(ckpt)
         elif self.task.text_goals:
             self.agent.observe({}, self.task.embeddings[: self.task.num_train])
+        if cfg.agent.grounding:
+            if not hasattr(self.task, "grounding_targets"):
+                raise LcrlError(
+                    "agent.grounding needs language goals: the loss trains the networks to "
+                    "pick the objects instructions name"
+                )
+            self.agent.set_grounding(self.task.grounding_targets())
 
     # --- the loop ------------------------------------------------------------------
     def advance(self) -> None:

@@ -652,6 +652,23 @@ class LanguageTask(Task):
             len(self.table), self.embeddings, num_relabel=self.num_train, terminate_on_success=True
         )
 
+    def grounding_targets(self) -> np.ndarray:
+        """Per instruction id, the object slots it names, as the grammar parses it: the
+        kind acted on and the reference object of put and stack, ``(ids, 2)``, -1 where
+        there is none (slot ``k`` of both tabletops holds ``OBJECT_KINDS[k]``)."""
+        from captioner.grammar import try_parse
+        from envs.scene import OBJECT_KINDS
+
+        out = np.full((len(self.table), 2), -1, np.int64)
+        for i, text in enumerate(self.table):
+            meaning = try_parse(text)
+            if meaning is None:
+                continue
+            out[i, 0] = OBJECT_KINDS.index((meaning.colour, meaning.shape))
+            if meaning.target_colour is not None and meaning.target_shape is not None:
+                out[i, 1] = OBJECT_KINDS.index((meaning.target_colour, meaning.target_shape))
+        return out
+
     def storage_obs(
         self, obs: Mapping[str, Any], first: Mapping[str, Any]
     ) -> dict[str, np.ndarray]:

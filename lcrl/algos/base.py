@@ -35,6 +35,8 @@ from lcrl.nets import (
 )
 
 GoalEmbedder = Callable[[np.ndarray, torch.device], torch.Tensor]
+#: Learners with the auxiliary grounding loss (:attr:`AgentOptions.grounding`).
+GROUNDED_ALGOS = ("sac",)
 #: Normalisations of text goals (:attr:`AgentOptions.text_goal_norm`).
 TEXT_GOAL_NORMS = ("whiten", "standardize")
 #: Action spaces an algorithm can take (:attr:`AlgoSpec.actions`).
@@ -197,6 +199,13 @@ class AgentOptions:
     from camera frames (``--env.perception``) or the frames themselves
     (``--env.image-obs``). Acting and evaluation never need the true state. SAC and
     TD3."""
+    grounding: float = 0.0
+    """Weight of an auxiliary grounding loss (SAC, language goals, networks that read object
+    slots): every network's selection of object slots is trained by cross-entropy to pick
+    the object each training instruction names (its first head; the second head picks the
+    reference object of put and stack), as the grammar parses the instruction. The goal's
+    choice of object then no longer has to be discovered through the reward, and it
+    carries over to word combinations never trained on. 0: off."""
     device: str = "cpu"
     """``cpu``, ``cuda`` or ``cuda:N``."""
     seed: int = 0
@@ -308,6 +317,44 @@ class Agent:
                     f"its actor: the asymmetric actor-critic needs one of {able}"
                 )
         algos.check_multitask(self.name, options.multitask)
+        if options.grounding < 0:
+            raise LcrlError(f"grounding must be 0 (off) or positive, got {options.grounding}")
+        if options.grounding and self.name not in GROUNDED_ALGOS:
+            raise LcrlError(
+                f"the grounding loss is implemented for {', '.join(GROUNDED_ALGOS)}, not "
+                f"{self.name}"
+            )
+        if options.grounding and not options.net.slots:
+            raise LcrlError("the grounding loss needs networks that read object slots (net.slots)")
+
+    #: Per goal id, the slots its instruction names (:meth:`set_grounding`).
+    grounding_targets: torch.Tensor | None = None
+
+    def set_grounding(self, targets: np.ndarray) -> None:
+        """Turn on the grounding loss (:attr:`AgentOptions.grounding`) with, per goal id,
+        the object slots its instruction names: an ``(ids, 2)`` integer array of the slot
+        of the object acted on and of the reference object, -1 where there is none.
+
+        Raises:
+            LcrlError: grounding is off, or the array has the wrong shape or slot indices
+                outside the networks' slots.
+        """
+        if not self.options.grounding:
+            raise LcrlError("set_grounding: the grounding loss is off (agent.grounding is 0)")
+        t = np.asarray(targets)
+        count = int(self.options.net.slots[1])
+        if t.ndim != 2 or t.shape[1] != 2 or t.dtype.kind not in "iu":
+            raise LcrlError(f"grounding targets must be an (ids, 2) integer array, got {t.shape}")
+        if t.size and (t.min() < -1 or t.max() >= count):
+            raise LcrlError(f"grounding targets must be -1 or slot indices below {count}")
+        self.grounding_targets = torch.as_tensor(t.astype(np.int64), device=self.device)
+
+    def grounding_rows(self, goal_ids: np.ndarray) -> torch.Tensor | None:
+        """The named slots of a batch's goals, ``(B, 2)``; None when grounding is off."""
+        if self.grounding_targets is None:
+            return None
+        ids = torch.as_tensor(np.asarray(goal_ids, np.int64), device=self.device)
+        return self.grounding_targets[ids]
 
     #: The perception module fine-tuned with the losses (:meth:`attach_perception`).
     perceiver: nn.Module | None = None

@@ -22,7 +22,7 @@ from lcrl.algos.base import (
 )
 from lcrl.buffer import Batch
 from lcrl.multitask import TaskGradients, rows_by_task, task_weights
-from lcrl.nets import FlatAdam, gaussian_log_prob_tanh
+from lcrl.nets import FlatAdam, gaussian_log_prob_tanh, grounding_loss
 
 
 @dataclass
@@ -199,6 +199,19 @@ class SAC(Agent):
             idx = torch.as_tensor(rows, device=self.device)
             return {k: v[idx] for k, v in o.items()}, goal[idx], act[idx], y[idx], None
 
+        # the slots each row's instruction names (the auxiliary grounding loss)
+        named = self.grounding_rows(batch.goal)
+        grounding: dict[str, list[float]] = {"critic": [], "actor": []}
+
+        def ground(net: Any, o: Any, g: torch.Tensor, rows: np.ndarray | None, name: str) -> Any:
+            """The weighted grounding loss of a part (0 when grounding is off)."""
+            if named is None:
+                return 0.0
+            t = named if rows is None else named[torch.as_tensor(rows, device=self.device)]
+            loss = grounding_loss(net.selection_logits(o, g), t)
+            grounding[name].append(float(loss.detach()))
+            return self.options.grounding * loss
+
         # critic: 0.5 (Q_k - y)^2 per critic and row
         losses: list[torch.Tensor | None] = []
         qs = []
@@ -208,7 +221,8 @@ class SAC(Agent):
                 continue
             o, g, a, target, w = take(rows)
             q = self.critic(o, g, a).squeeze(-1)
-            losses.append(0.5 * _weighted_mean((q - target).pow(2), w).sum())
+            loss = 0.5 * _weighted_mean((q - target).pow(2), w).sum()
+            losses.append(loss + ground(self.critic, o, g, rows, "critic"))
             qs.append(q.detach().reshape(-1))
         metrics = self._step("critic", measure, losses, coefs)
         critic_value = _weighted(coefs, losses)
@@ -238,7 +252,7 @@ class SAC(Agent):
                 if rows is not None:  # the task's share of the mean over relabelled rows
                     bc_loss = bc_loss * (int(rel.sum()) / n_rel * n / len(rows))
                 loss = loss + cfg.hindsight_bc * bc_loss
-            losses.append(loss)
+            losses.append(loss + ground(self.actor, o, g, rows, "actor"))
             bc_losses.append(bc_loss)
             logps.append(logp)
         metrics.update(self._step("actor", measure, losses, coefs))
@@ -265,6 +279,9 @@ class SAC(Agent):
         }
         if any(x is not None for x in bc_losses):
             out["bc_loss"] = _weighted(coefs, bc_losses)
+        for name, values in grounding.items():
+            if values:  # cross-entropy of the slots picked against the slots named
+                out[f"grounding_{name}"] = float(np.mean(values))
         return {**out, **metrics}
 
     def _measures(self) -> bool:
