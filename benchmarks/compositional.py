@@ -1,0 +1,257 @@
+"""Compositional generalisation over seeds: the pooled-vector policy beside the policy with
+the auxiliary grounding loss, same presets, seeds and budget.
+
+    python benchmarks/compositional.py --env lang2d     # reach and push, 100k steps
+    python benchmarks/compositional.py --env robosuite  # reach, privileged state, 100k steps
+
+Each arm trains one run per seed (``lcrl train PRESET --seed S``; the grounded arm adds
+``--agent.grounding W``), two runs at a time with one torch thread each, and is evaluated
+with ``lcrl eval`` (100 episodes per set: seen, held-out combinations, paraphrases).
+Finished runs (their ``final-eval.json``) are kept, so an interrupted benchmark goes on
+where it stopped.
+
+Writes ``benchmarks/results/compositional-<env>.{json,md,png}``. The headline is the
+grounded arm's: ``seen`` (mean over seeds), ``heldout_ratio`` and ``paraphrase_ratio``
+(mean held-out or paraphrase success over mean seen success), with the spread over seeds;
+the pooled arm's figures stand beside them. Targets: lang2d seen >= 0.90, held-out ratio
+>= 0.70, paraphrase ratio >= 0.90; robosuite seen >= 0.85, held-out ratio >= 0.70.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import subprocess
+import sys
+import time
+from pathlib import Path
+from typing import Any
+
+sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
+
+from benchmarks.common import command, machine, save_figure, save_json, save_markdown
+from benchmarks.image_policy import LCRL, child_env
+
+PRESETS = {"lang2d": "lang2d", "robosuite": "robosuite-reach"}
+TARGETS = {
+    "lang2d": {"seen": 0.90, "heldout_ratio": 0.70, "paraphrase_ratio": 0.90},
+    "robosuite": {"seen": 0.85, "heldout_ratio": 0.70},
+}
+SETS = ("train", "heldout", "paraphrase")
+ARMS = ("pooled", "grounded")
+
+
+def arm_args(arm: str, grounding: float) -> list[str]:
+    """The ``lcrl train`` options of an arm."""
+    if arm == "pooled":
+        return ["--agent.grounding", "0"]
+    if arm == "grounded":
+        return ["--agent.grounding", str(grounding)]
+    raise SystemExit(f"unknown arm {arm!r}; choose from {ARMS}")
+
+
+def spread(values: list[float]) -> dict[str, float]:
+    """Mean, sample standard deviation, min and max over seeds."""
+    n = len(values)
+    mean = sum(values) / n
+    std = math.sqrt(sum((v - mean) ** 2 for v in values) / (n - 1)) if n > 1 else 0.0
+    return {"mean": mean, "std": std, "min": min(values), "max": max(values)}
+
+
+def summarise(per_seed: dict[int, dict[str, Any]]) -> dict[str, Any]:
+    """An arm's figures over seeds from each seed's ``lcrl eval`` sets: per set the mean,
+    spread and per-seed success; the held-out and paraphrase ratios (mean over mean) and
+    the spread of the per-seed ratios."""
+    out: dict[str, Any] = {"seeds": sorted(per_seed)}
+    for s in SETS:
+        values = [per_seed[k][s]["success"] for k in sorted(per_seed)]
+        out[s] = spread(values)
+    seen = out["train"]["mean"]
+    for s, key in (("heldout", "heldout_ratio"), ("paraphrase", "paraphrase_ratio")):
+        out[key] = out[s]["mean"] / seen if seen > 0 else 0.0
+        ratios = [
+            per_seed[k][s]["success"] / per_seed[k]["train"]["success"]
+            for k in sorted(per_seed)
+            if per_seed[k]["train"]["success"] > 0
+        ]
+        out[f"{key}_per_seed"] = spread(ratios) if ratios else None
+    return out
+
+
+def headline(env: str, arms: dict[str, dict[str, Any]], new: str = "grounded") -> dict:
+    """The issue's headline keys (the new arm's), and the baseline's beside them."""
+    a = arms[new]
+    h = {
+        "seen": round(a["train"]["mean"], 3),
+        "seen_std": round(a["train"]["std"], 3),
+        "heldout": round(a["heldout"]["mean"], 3),
+        "heldout_ratio": round(a["heldout_ratio"], 3),
+        "paraphrase": round(a["paraphrase"]["mean"], 3),
+        "paraphrase_ratio": round(a["paraphrase_ratio"], 3),
+        "seeds": len(a["seeds"]),
+    }
+    if "pooled" in arms and new != "pooled":
+        b = arms["pooled"]
+        h.update(
+            pooled_seen=round(b["train"]["mean"], 3),
+            pooled_heldout_ratio=round(b["heldout_ratio"], 3),
+            pooled_paraphrase_ratio=round(b["paraphrase_ratio"], 3),
+        )
+    return h
+
+
+def reached(env: str, h: dict[str, Any]) -> dict[str, bool]:
+    return {k: h[k] >= v for k, v in TARGETS[env].items()}
+
+
+def run_all(args: argparse.Namespace) -> dict[str, float]:
+    """Train and evaluate every (arm, seed) that has no ``final-eval.json`` yet, ``--parallel``
+    at a time; returns the seconds each took."""
+    todo = [(arm, seed) for seed in args.seeds for arm in args.arms]
+    todo = [(a, s) for a, s in todo if not (run_dir(args, a, s) / "final-eval.json").is_file()]
+    seconds: dict[str, float] = {}
+    running: list[tuple[str, subprocess.Popen, float, Any]] = []
+    while todo or running:
+        while todo and len(running) < args.parallel:
+            arm, seed = todo.pop(0)
+            out = run_dir(args, arm, seed)
+            out.parent.mkdir(parents=True, exist_ok=True)
+            train = [*LCRL, "train", PRESETS[args.env], "--out", str(out), "--seed", str(seed)]
+            train += ["--total-steps", str(args.steps), "--overwrite", "--no-progress"]
+            train += arm_args(arm, args.grounding)
+            ev = [*LCRL, "eval", str(out), "--episodes", str(args.episodes), "--num-envs", "1"]
+            ev += ["--sets", *SETS, "--no-progress", "--json", str(out / "final-eval.json")]
+            script = " && ".join(" ".join(_quote(c) for c in cmd) for cmd in (train, ev))
+            log = open(out.parent / f"{out.name}.log", "w")  # noqa: SIM115
+            proc = subprocess.Popen(
+                ["bash", "-c", script], stdout=log, stderr=subprocess.STDOUT, env=child_env()
+            )
+            running.append((f"{arm}-s{seed}", proc, time.perf_counter(), log))
+        time.sleep(5)
+        for item in list(running):
+            name, proc, t0, log = item
+            if proc.poll() is None:
+                continue
+            running.remove(item)
+            log.close()
+            if proc.returncode != 0:
+                raise SystemExit(f"{name} failed: see {log.name}")
+            seconds[name] = round(time.perf_counter() - t0, 1)
+            print(f"{name} done in {seconds[name]:.0f} s", flush=True)
+    return seconds
+
+
+def _quote(s: str) -> str:
+    import shlex
+
+    return shlex.quote(s)
+
+
+def run_dir(args: argparse.Namespace, arm: str, seed: int) -> Path:
+    return Path(args.work) / f"{arm}-s{seed}"
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--env", choices=tuple(PRESETS), default="lang2d")
+    parser.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2])
+    parser.add_argument("--arms", nargs="+", choices=ARMS, default=list(ARMS))
+    parser.add_argument("--steps", type=int, default=100_000)
+    parser.add_argument("--grounding", type=float, default=1.0, help="the grounded arm's weight")
+    parser.add_argument("--episodes", type=int, default=100, help="lcrl eval episodes per set")
+    parser.add_argument("--parallel", type=int, default=2, help="runs at a time")
+    parser.add_argument("--work", default="")
+    args = parser.parse_args(argv)
+    if args.steps <= 0 or args.episodes <= 0 or args.parallel <= 0:
+        parser.error("--steps, --episodes and --parallel must be positive")
+    args.work = args.work or f"runs/bench/compositional-{args.env}"
+    info = machine()
+    seconds = run_all(args)
+    per_arm: dict[str, dict[int, dict[str, Any]]] = {}
+    for arm in args.arms:
+        per_arm[arm] = {
+            s: json.loads((run_dir(args, arm, s) / "final-eval.json").read_text())["sets"]
+            for s in args.seeds
+        }
+    arms = {arm: summarise(runs) for arm, runs in per_arm.items()}
+    new = "grounded" if "grounded" in arms else args.arms[0]
+    head = headline(args.env, arms, new)
+    ok = reached(args.env, head)
+    name = f"compositional-{args.env}"
+    per_seed = {
+        arm: {
+            str(s): {k: {"success": r[k]["success"], "ci": r[k]["ci"]} for k in SETS}
+            for s, r in runs.items()
+        }
+        for arm, runs in per_arm.items()
+    }
+    combos = {
+        arm: {str(s): r["heldout"].get("family_object", {}) for s, r in runs.items()}
+        for arm, runs in per_arm.items()
+    }
+    save_json(
+        name,
+        {
+            "headline": head,
+            "targets": TARGETS[args.env],
+            "reached": ok,
+            "command": command(),
+            "machine": info,
+            "settings": {**vars(args), "preset": PRESETS[args.env]},
+            "arms": arms,
+            "per_seed": per_seed,
+            "heldout_family_object": combos,
+            "seconds": seconds,
+        },
+    )
+    lines = [
+        "| arm | seed | seen | held-out combinations | paraphrases | held-out / seen |",
+        "|---|---:|---|---|---|---:|",
+    ]
+    for arm, runs in per_arm.items():
+        for s, r in sorted(runs.items()):
+            cells = [
+                f"{r[k]['success']:.2f} [{r[k]['ci'][0]:.2f}, {r[k]['ci'][1]:.2f}]" for k in SETS
+            ]
+            seen = r["train"]["success"]
+            ratio = f"{r['heldout']['success'] / seen:.2f}" if seen else "n/a"
+            lines.append(f"| {arm} | {s} | {' | '.join(cells)} | {ratio} |")
+        a = arms[arm]
+        mean = [f"{a[k]['mean']:.2f} ± {a[k]['std']:.2f}" for k in SETS]
+        lines.append(f"| **{arm}** | mean ± sd | {' | '.join(mean)} | {a['heldout_ratio']:.2f} |")
+    verdict = ", ".join(
+        f"{k} {head[k]:.2f} {'reached' if v else 'NOT reached'} (target {TARGETS[args.env][k]})"
+        for k, v in ok.items()
+    )
+    body = (
+        f"Preset `{PRESETS[args.env]}`, {args.steps:,} steps, seeds {args.seeds}; "
+        f"`lcrl eval` with {args.episodes} episodes per set (95% Wilson intervals per run).\n\n"
+        + "\n".join(lines)
+        + f"\n\nHeadline ({new}): {verdict}.\n"
+    )
+    save_markdown(name, f"Compositional generalisation ({args.env})", body, info)
+
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(7, 4))
+    width = 0.8 / len(arms)
+    for j, (arm, a) in enumerate(arms.items()):
+        xs = [i + (j - (len(arms) - 1) / 2) * width for i in range(len(SETS))]
+        ax.bar(xs, [a[k]["mean"] for k in SETS], width, yerr=[a[k]["std"] for k in SETS],
+               capsize=3, label=arm, alpha=0.8)  # fmt: skip
+        for x, k in zip(xs, SETS, strict=True):
+            ys = [per_seed[arm][str(s)][k]["success"] for s in args.seeds]
+            ax.plot([x] * len(ys), ys, "k.", ms=4)
+    ax.set_xticks(range(len(SETS)), ["seen", "held-out combinations", "paraphrases"])
+    ax.set(ylim=(0, 1.02), ylabel="success (mean ± sd over seeds; dots: seeds)")
+    ax.set_title(f"{PRESETS[args.env]}, {args.steps:,} steps, {len(args.seeds)} seeds")
+    ax.legend()
+    fig.tight_layout(rect=(0, 0.08, 1, 1))
+    save_figure(name, fig, info)
+    print(json.dumps(head, indent=1))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

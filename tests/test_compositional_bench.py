@@ -1,0 +1,45 @@
+"""The compositional benchmark's figures over seeds: means, spreads and the ratios of
+held-out and paraphrase success to seen success, for the headline the issue names."""
+
+from __future__ import annotations
+
+import pytest
+
+from benchmarks.compositional import headline, reached, summarise
+
+
+def _sets(train, heldout, paraphrase):
+    return {
+        k: {"success": v, "ci": [max(0.0, v - 0.1), min(1.0, v + 0.1)]}
+        for k, v in (("train", train), ("heldout", heldout), ("paraphrase", paraphrase))
+    }
+
+
+def test_summary_over_seeds_and_headline():
+    grounded = summarise(
+        {0: _sets(0.9, 0.7, 0.9), 1: _sets(1.0, 0.8, 0.9), 2: _sets(0.8, 0.6, 0.6)}
+    )
+    pooled = summarise({0: _sets(0.9, 0.3, 0.8), 1: _sets(0.9, 0.2, 0.8), 2: _sets(0.9, 0.4, 0.8)})
+    assert grounded["seeds"] == [0, 1, 2]
+    assert grounded["train"]["mean"] == pytest.approx(0.9)
+    assert grounded["train"]["std"] == pytest.approx(0.1)
+    assert (grounded["heldout"]["min"], grounded["heldout"]["max"]) == (0.6, 0.8)
+    # ratios: mean over mean, and the spread of the per-seed ratios beside
+    assert grounded["heldout_ratio"] == pytest.approx(0.7 / 0.9)
+    assert grounded["heldout_ratio_per_seed"]["mean"] == pytest.approx((0.7 / 0.9 + 0.8 + 0.75) / 3)
+    assert grounded["paraphrase_ratio"] == pytest.approx(0.8 / 0.9)
+    h = headline("lang2d", {"pooled": pooled, "grounded": grounded})
+    assert h["seen"] == 0.9 and h["heldout_ratio"] == round(0.7 / 0.9, 3)
+    assert h["pooled_heldout_ratio"] == round(0.3 / 0.9, 3) and h["seeds"] == 3
+    ok = reached("lang2d", h)
+    assert ok == {"seen": True, "heldout_ratio": True, "paraphrase_ratio": False}
+    assert reached("robosuite", h) == {"seen": True, "heldout_ratio": True}
+
+
+def test_a_seed_that_learned_nothing_counts_in_the_means():
+    arm = summarise({0: _sets(0.0, 0.0, 0.0), 1: _sets(0.8, 0.4, 0.8)})
+    assert arm["train"]["mean"] == pytest.approx(0.4)
+    assert arm["heldout_ratio"] == pytest.approx(0.5)
+    assert arm["heldout_ratio_per_seed"]["mean"] == pytest.approx(0.5)  # the other seed only
+    nothing = summarise({0: _sets(0.0, 0.0, 0.0)})
+    assert nothing["heldout_ratio"] == 0.0 and nothing["heldout_ratio_per_seed"] is None
