@@ -28,7 +28,7 @@ from torch import nn
 from lcrl.errors import LcrlError
 
 FUSIONS = ("concat", "film")
-SLOT_MODES = ("attention", "select")
+SLOT_MODES = ("attention", "select", "attributes")
 
 
 @dataclass
@@ -58,10 +58,19 @@ class NetConfig:
     Empty: plain concatenation."""
     slot_mode: str = "attention"
     """How the goal reads the object slots: ``attention`` (each slot encoded by a shared
-    MLP, picked by query-key attention) or ``select`` (the goal alone picks slots by
+    MLP, picked by query-key attention), ``select`` (the goal alone picks slots by
     position, a softmax over slot indices per head, and the picked slots' raw values
     are added to the full observation: cheap, and enough wherever a slot's position
-    says which object it holds, as in both tabletops)."""
+    says which object it holds, as in both tabletops) or ``attributes`` (``select``
+    with each slot's logit the sum of the goal's scores of its attribute values,
+    ``slot_attributes``)."""
+    slot_attributes: tuple[int, ...] = ()
+    """With ``slot_mode="attributes"``: for each attribute the slots have (colour, then
+    shape on both tabletops), the value of that attribute in every slot, ``count``
+    numbers per attribute, attributes one after another. The goal then scores each
+    attribute value, and a slot's logit is the sum of its values' scores, so that
+    "blue" and "cylinder" each select what they name, also in combinations never
+    trained on."""
     slot_dim: int = 64
     """Width of the per-slot features of the object attention."""
     slot_heads: int = 2
@@ -246,6 +255,42 @@ def grounding_loss(logits: torch.Tensor, targets: torch.Tensor) -> torch.Tensor:
     return total
 
 
+class SlotAttributes(SlotSelect):
+    """:class:`SlotSelect` whose logits go through the slots' attributes: per head and
+    attribute the goal features score every value of the attribute, and a slot's logit
+    is the sum of the scores of its values (``cfg.slot_attributes``).
+
+    Raises:
+        LcrlError: ``slot_attributes`` is not ``count`` non-negative values per attribute.
+    """
+
+    def __init__(
+        self, dims: Sequence[int], layout: Sequence[int], goal_dim: int, cfg: NetConfig
+    ) -> None:
+        super().__init__(dims, layout, goal_dim, cfg)
+        del self.logits
+        values = [int(v) for v in cfg.slot_attributes]
+        if not values or len(values) % self.count or min(values) < 0:
+            raise LcrlError(
+                f"slot_mode attributes needs slot_attributes: {self.count} values (one per "
+                f"slot) for each attribute, got {tuple(values)}"
+            )
+        table = torch.tensor(values).view(-1, self.count)  # (attributes, count)
+        self.scores = nn.ModuleList()
+        for a, row in enumerate(table):
+            onehot = F.one_hot(row, int(row.max()) + 1).float()  # (count, values)
+            self.register_buffer(f"onehot{a}", onehot, persistent=False)
+            self.scores.append(nn.Linear(goal_dim, self.heads * onehot.shape[1]))
+
+    def selection_logits(self, xs: Sequence[torch.Tensor], goal: torch.Tensor) -> torch.Tensor:
+        b = goal.shape[0]
+        out = goal.new_zeros(b, self.heads, self.count)
+        for a, score in enumerate(self.scores):
+            onehot = getattr(self, f"onehot{a}")
+            out = out + score(goal).view(b, self.heads, -1) @ onehot.T
+        return out
+
+
 def spatial_softmax(h: torch.Tensor, temperature: torch.Tensor) -> torch.Tensor:
     """Expected image coordinates ``(B, 2C)`` in [-1, 1] of each channel's softmax over
     the positions of ``h`` ``(B, C, H, W)`` (rows first, then columns)."""
@@ -309,7 +354,11 @@ class ObsEncoder(nn.Module):
                 )
             if cfg.slot_mode not in SLOT_MODES:
                 raise LcrlError(f"unknown slot_mode {cfg.slot_mode!r}; choose one of {SLOT_MODES}")
-            reader = SlotAttention if cfg.slot_mode == "attention" else SlotSelect
+            reader = {
+                "attention": SlotAttention,
+                "select": SlotSelect,
+                "attributes": SlotAttributes,
+            }[cfg.slot_mode]
             self.slots = reader(
                 [obs_shapes[k][0] for k in self.slot_keys], cfg.slots, goal_dim, cfg
             )

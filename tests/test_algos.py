@@ -844,6 +844,70 @@ def test_slot_select_picks_slots_by_goal_and_learns_which() -> None:
     assert float(loss.detach()) < 0.05
 
 
+def test_slot_attributes_score_colours_and_shapes_and_compose() -> None:
+    """A slot's logit is its colour's score plus its shape's; trained to pick the named
+    kind on 6 of 8 colour x shape kinds, the attribute selector picks the 2 kinds never
+    named, where position-wise selection cannot."""
+    from lcrl.nets import GoalConditionedNet, SlotAttributes, SlotSelect, grounding_loss
+    from train.config import SLOT_ATTRIBUTES
+
+    cfg = NetConfig(hidden=(16,), slots=(2, 8, 3), slot_heads=1, slot_mode="attributes",
+                    slot_attributes=SLOT_ATTRIBUTES, text_dim=8)  # fmt: skip
+    net = GoalConditionedNet({"observation": (26,)}, "text", (6,), 1, cfg)
+    sel = net.obs_encoder.slots
+    assert isinstance(sel, SlotAttributes)
+    g = torch.randn(5, 8)
+    colour = sel.scores[0](g).view(5, 1, 4)
+    shape = sel.scores[1](g).view(5, 1, 2)
+    expected = torch.stack([colour[..., k // 2] + shape[..., k % 2] for k in range(8)], -1)
+    torch.testing.assert_close(sel.selection_logits([], g), expected)
+    for bad in ((), (0, 1, 2), (0,) * 7 + (-1,)):
+        with pytest.raises(LcrlError, match="slot_attributes"):
+            GoalConditionedNet({"observation": (26,)}, "text", (6,), 1,
+                               NetConfig(slots=(2, 8, 3), slot_mode="attributes",
+                                         slot_attributes=bad))  # fmt: skip
+
+    # goals whose words add up: one-hot colour then one-hot shape; kinds 3 and 7 held out
+    def goal(k):
+        return torch.cat([F.one_hot(torch.tensor(k // 2), 4), F.one_hot(torch.tensor(k % 2), 2)])
+
+    seen, held = [0, 1, 2, 4, 5, 6], [3, 7]
+    picked = {}
+    for mode in ("select", "attributes"):
+        torch.manual_seed(0)
+        net = GoalConditionedNet(
+            {"observation": (26,)},
+            "text",
+            (6,),
+            1,
+            NetConfig(
+                hidden=(16,),
+                slots=(2, 8, 3),
+                slot_heads=1,
+                slot_mode=mode,
+                slot_attributes=SLOT_ATTRIBUTES,
+                text_dim=8,
+            ),
+        )
+        assert isinstance(net.obs_encoder.slots, SlotSelect)
+        opt = torch.optim.Adam(net.parameters(), 1e-2)
+        obs = {"observation": torch.zeros(6, 26)}
+        goals = torch.stack([goal(k) for k in seen]).float()
+        targets = torch.tensor([[k, -1] for k in seen])
+        for _ in range(300):
+            loss = grounding_loss(net.selection_logits(obs, goals), targets)
+            opt.zero_grad()
+            loss.backward()
+            opt.step()
+        with torch.no_grad():
+            test = torch.stack([goal(k) for k in held]).float()
+            logits = net.selection_logits({"observation": torch.zeros(2, 26)}, test)
+            picked[mode] = logits[0, :, 0].argmax(-1).tolist()
+        assert float(loss.detach()) < 0.05
+    assert picked["attributes"] == held
+    assert not set(picked["select"]) & set(held)  # never-named slots are never picked
+
+
 def test_grounding_loss_ignores_rows_without_a_named_slot() -> None:
     from lcrl.nets import grounding_loss
 

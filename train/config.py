@@ -28,7 +28,7 @@ from lcrl.goals import STRATEGIES, TASK_RELABEL_ERROR
 from lcrl.multitask import MultiTaskOptions
 from lcrl.nets import NetConfig, check_task_heads
 from lcrl.text_encoder import TextEncoderConfig
-from train.tasks import EnvConfig, check_tasks, goal_modality
+from train.tasks import EnvConfig, check_tasks, goal_modality, slot_attributes
 
 
 @dataclass
@@ -433,6 +433,10 @@ def nested_configs(cls: type) -> dict[str, type]:
 #: displacements: after the pusher's x, y, 8 kinds of [x, y, present, x - pusher x,
 #: y - pusher y, x - x at reset, y - y at reset].
 SLOTS_2D = (2, 8, 7)
+#: The attributes of the 8 object slots of both tabletops (slot ``k`` holds
+#: ``envs.scene.OBJECT_KINDS[k]``): each slot's colour index, then its shape index, for
+#: ``--agent.net.slot-mode attributes``.
+SLOT_ATTRIBUTES = slot_attributes()
 
 
 def _env2d(**fields: Any) -> EnvConfig:

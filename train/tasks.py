@@ -557,6 +557,17 @@ class ImageGoalTask(StateTask):
         }
 
 
+def slot_attributes() -> tuple[int, ...]:
+    """Colour then shape index of each object slot of the tabletops (slot ``k`` holds
+    ``OBJECT_KINDS[k]``), the layout of :attr:`lcrl.nets.NetConfig.slot_attributes`."""
+    from envs.scene import COLOURS, OBJECT_KINDS, SHAPES
+
+    colours = list(COLOURS)
+    return tuple(colours.index(c) for c, _ in OBJECT_KINDS) + tuple(
+        SHAPES.index(s) for _, s in OBJECT_KINDS
+    )
+
+
 class LanguageTask(Task):
     """Language-goal envs (:class:`captioner.lang_env.LanguageGoalWrapper`).
 
