@@ -1,16 +1,20 @@
-"""Compositional generalisation over seeds: the pooled-vector policy beside the policy with
-the auxiliary grounding loss, same presets, seeds and budget.
+"""Compositional generalisation over seeds: slots selected by position from the pooled
+sentence vector, beside slots selected through their colour and shape with the auxiliary
+grounding loss; same presets, seeds and budget.
 
     python benchmarks/compositional.py --env lang2d     # reach and push, 100k steps
     python benchmarks/compositional.py --env robosuite  # reach, privileged state, 100k steps
+    python benchmarks/compositional.py --env lang2d --preset lang2d-quick --steps 8000
 
-Each arm trains one run per seed (``lcrl train PRESET --seed S``; the grounded arm adds
-``--agent.grounding W``), two runs at a time with one torch thread each, and is evaluated
-with ``lcrl eval`` (100 episodes per set: seen, held-out combinations, paraphrases).
-Finished runs (their ``final-eval.json``) are kept, so an interrupted benchmark goes on
-where it stopped.
+Arms (``--arms``): ``pooled`` (``--agent.net.slot-mode select``, no grounding loss),
+``attributes`` (``--agent.net.slot-mode attributes``) and ``grounded`` (attributes and
+``--agent.grounding W``). Each arm trains one run per seed (``lcrl train PRESET --seed
+S``), two runs at a time with one torch thread each, and is evaluated with ``lcrl eval``
+(100 episodes per set: seen, held-out combinations, paraphrases). Finished runs (their
+``final-eval.json``) are kept, so an interrupted benchmark goes on where it stopped.
 
-Writes ``benchmarks/results/compositional-<env>.{json,md,png}``. The headline is the
+Writes ``benchmarks/results/compositional-<env>.{json,md,png}`` (``compositional-<preset>``
+with another ``--preset``). The headline is the
 grounded arm's: ``seen`` (mean over seeds), ``heldout_ratio`` and ``paraphrase_ratio``
 (mean held-out or paraphrase success over mean seen success), with the spread over seeds;
 the pooled arm's figures stand beside them. Targets: lang2d seen >= 0.90, held-out ratio
@@ -39,15 +43,21 @@ TARGETS = {
     "robosuite": {"seen": 0.85, "heldout_ratio": 0.70},
 }
 SETS = ("train", "heldout", "paraphrase")
-ARMS = ("pooled", "grounded")
+ARMS = ("pooled", "attributes", "grounded")
 
 
 def arm_args(arm: str, grounding: float) -> list[str]:
     """The ``lcrl train`` options of an arm."""
+    from train.config import SLOT_ATTRIBUTES
+
+    attributes = ["--agent.net.slot-mode", "attributes", "--agent.net.slot-attributes"]
+    attributes += [str(v) for v in SLOT_ATTRIBUTES]
     if arm == "pooled":
-        return ["--agent.grounding", "0"]
+        return ["--agent.net.slot-mode", "select", "--agent.grounding", "0"]
+    if arm == "attributes":
+        return [*attributes, "--agent.grounding", "0"]
     if arm == "grounded":
-        return ["--agent.grounding", str(grounding)]
+        return [*attributes, "--agent.grounding", str(grounding)]
     raise SystemExit(f"unknown arm {arm!r}; choose from {ARMS}")
 
 
@@ -117,7 +127,7 @@ def run_all(args: argparse.Namespace) -> dict[str, float]:
             arm, seed = todo.pop(0)
             out = run_dir(args, arm, seed)
             out.parent.mkdir(parents=True, exist_ok=True)
-            train = [*LCRL, "train", PRESETS[args.env], "--out", str(out), "--seed", str(seed)]
+            train = [*LCRL, "train", args.preset, "--out", str(out), "--seed", str(seed)]
             train += ["--total-steps", str(args.steps), "--overwrite", "--no-progress"]
             train += arm_args(arm, args.grounding)
             ev = [*LCRL, "eval", str(out), "--episodes", str(args.episodes), "--num-envs", "1"]
@@ -156,7 +166,8 @@ def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--env", choices=tuple(PRESETS), default="lang2d")
     parser.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2])
-    parser.add_argument("--arms", nargs="+", choices=ARMS, default=list(ARMS))
+    parser.add_argument("--preset", default="", help="default: the env's (see PRESETS)")
+    parser.add_argument("--arms", nargs="+", choices=ARMS, default=["pooled", "grounded"])
     parser.add_argument("--steps", type=int, default=100_000)
     parser.add_argument("--grounding", type=float, default=1.0, help="the grounded arm's weight")
     parser.add_argument("--episodes", type=int, default=100, help="lcrl eval episodes per set")
@@ -165,7 +176,9 @@ def main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv)
     if args.steps <= 0 or args.episodes <= 0 or args.parallel <= 0:
         parser.error("--steps, --episodes and --parallel must be positive")
-    args.work = args.work or f"runs/bench/compositional-{args.env}"
+    args.preset = args.preset or PRESETS[args.env]
+    tag = args.env if args.preset == PRESETS[args.env] else args.preset
+    args.work = args.work or f"runs/bench/compositional-{tag}"
     info = machine()
     seconds = run_all(args)
     per_arm: dict[str, dict[int, dict[str, Any]]] = {}
@@ -178,7 +191,7 @@ def main(argv: list[str] | None = None) -> int:
     new = "grounded" if "grounded" in arms else args.arms[0]
     head = headline(args.env, arms, new)
     ok = reached(args.env, head)
-    name = f"compositional-{args.env}"
+    name = f"compositional-{tag}"
     per_seed = {
         arm: {
             str(s): {k: {"success": r[k]["success"], "ci": r[k]["ci"]} for k in SETS}
@@ -198,7 +211,8 @@ def main(argv: list[str] | None = None) -> int:
             "reached": ok,
             "command": command(),
             "machine": info,
-            "settings": {**vars(args), "preset": PRESETS[args.env]},
+            "settings": vars(args),
+            "arm_options": {arm: arm_args(arm, args.grounding) for arm in args.arms},
             "arms": arms,
             "per_seed": per_seed,
             "heldout_family_object": combos,
@@ -225,7 +239,7 @@ def main(argv: list[str] | None = None) -> int:
         for k, v in ok.items()
     )
     body = (
-        f"Preset `{PRESETS[args.env]}`, {args.steps:,} steps, seeds {args.seeds}; "
+        f"Preset `{args.preset}`, {args.steps:,} steps, seeds {args.seeds}; "
         f"`lcrl eval` with {args.episodes} episodes per set (95% Wilson intervals per run).\n\n"
         + "\n".join(lines)
         + f"\n\nHeadline ({new}): {verdict}.\n"
@@ -245,7 +259,7 @@ def main(argv: list[str] | None = None) -> int:
             ax.plot([x] * len(ys), ys, "k.", ms=4)
     ax.set_xticks(range(len(SETS)), ["seen", "held-out combinations", "paraphrases"])
     ax.set(ylim=(0, 1.02), ylabel="success (mean ± sd over seeds; dots: seeds)")
-    ax.set_title(f"{PRESETS[args.env]}, {args.steps:,} steps, {len(args.seeds)} seeds")
+    ax.set_title(f"{args.preset}, {args.steps:,} steps, {len(args.seeds)} seeds")
     ax.legend()
     fig.tight_layout(rect=(0, 0.08, 1, 1))
     save_figure(name, fig, info)
