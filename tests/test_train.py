@@ -382,6 +382,20 @@ def test_cli_errors_and_help(text_encoder, tmp_path, capsys, monkeypatch):
     assert err.startswith("lcrl: error:") and "dqn needs discrete actions" in err
     assert not out.exists()
 
+    # the grounding loss and attribute slots: one line each, nothing written
+    for extra, message in [
+        (("--agent.net.slot-mode", "attributes"), "slot_mode attributes needs slot_attributes"),
+        (("--agent.grounding", "1", "--algo", "td3"), "implemented for sac, not td3"),
+        (("--agent.grounding", "-1"), "grounding must be 0 (off) or positive"),
+    ]:
+        assert cli("train", "lang2d-quick", "--out", str(out), *extra, *TINY_CLI) == 2
+        err = error_line(capsys.readouterr().err)
+        assert err.startswith("lcrl: error:") and message in err, err
+        assert not out.exists()
+    state = tmp_path / "state"
+    assert cli("train", "state2d", "--out", str(state), "--agent.grounding", "1", *TINY_CLI) == 2
+    assert "read object slots" in error_line(capsys.readouterr().err)
+
 
 def test_act_saves_a_video_and_runs_state_goal_checkpoints(lang_run, state_full, tmp_path, capsys):
     import cv2
