@@ -28,7 +28,9 @@ def tiny(preset: str, out: Path, **overrides) -> TrainConfig:
         progress=False,
         tensorboard=False,
         buffer=dataclasses.replace(base.buffer, capacity=2000),
-        agent=dataclasses.replace(base.agent, net=NetConfig(hidden=(32, 32), text_dim=8)),
+        agent=dataclasses.replace(
+            base.agent, net=NetConfig(hidden=(32, 32), text_dim=8), grounding=0.0
+        ),
     )
     return dataclasses.replace(cfg, **overrides)
 

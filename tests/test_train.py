@@ -385,7 +385,6 @@ def test_cli_errors_and_help(text_encoder, tmp_path, capsys, monkeypatch):
     # the grounding loss and attribute slots: one line each, nothing written
     for extra, message in [
         (("--agent.net.slot-mode", "attributes"), "slot_mode attributes needs slot_attributes"),
-        (("--agent.grounding", "1", "--algo", "td3"), "implemented for sac, not td3"),
         (("--agent.grounding", "-1"), "grounding must be 0 (off) or positive"),
     ]:
         assert cli("train", "lang2d-quick", "--out", str(out), *extra, *TINY_CLI) == 2

@@ -47,7 +47,7 @@ from lcrl.bc import BC
 from lcrl.errors import LcrlError
 from train.config import PRESETS, TrainConfig
 from train.evaluate import build_agent, build_task
-from train.loop import checkpoint_meta
+from train.loop import attach_grounding, checkpoint_meta
 from train.run_meta import restoring, state_fields
 from train.tasks import make_env, make_task
 from train.trainer import BaseTrainer, open_run
@@ -185,6 +185,7 @@ class BCTrainer(BaseTrainer):
             _close(stream)
         if self.task.text_goals:
             self.agent.observe({}, self.task.embeddings[: self.task.num_train])
+        attach_grounding(self.agent, self.task, cfg)
 
     def _open_stream(self) -> Iterator[Any]:
         """The batch stream at the current step: its block's stream, with the batches

@@ -451,7 +451,15 @@ def _net2d(**fields: Any) -> AgentOptions:
     """Language goals pick object slots by position (``slot_mode="select"``) and read
     positions relative to the pusher: the critic learns the reach reward several times
     faster than from the plain concatenation (see docs/design.md)."""
-    return AgentOptions(net=NetConfig(slots=SLOTS_2D, slot_mode="select", **fields))
+    return AgentOptions(net=NetConfig(**{"slots": SLOTS_2D, "slot_mode": "select", **fields}))
+
+
+def _grounded2d(**fields: Any) -> AgentOptions:
+    """:func:`_net2d` with slots picked through their colour and shape and the grounding
+    loss: held-out word combinations reach their objects (docs/design.md)."""
+    agent = _net2d(slot_mode="attributes", slot_attributes=SLOT_ATTRIBUTES, **fields)
+    agent.grounding = 1.0
+    return agent
 
 
 def _lang2d(**overrides: Any) -> TrainConfig:
@@ -555,11 +563,12 @@ PRESETS: dict[str, tuple[str, TrainConfig]] = {
         _lang2d(out="runs/lang2d-rl", scripted_fraction=0.0),
     ),
     "lang2d-quick": (
-        "a small lang2d run (reach, 2 objects, 8k steps, small networks): a few minutes on a CPU",
+        "a small lang2d run (reach, 2 objects, 8k steps, small networks, slots picked through "
+        "their colour and shape with the grounding loss): a few minutes on a CPU",
         _lang2d(
             out="runs/lang2d-quick",
             env=_env2d(families=("reach",), min_objects=2, max_objects=2, max_episode_steps=30),
-            agent=_net2d(hidden=(128, 128), text_dim=32),
+            agent=_grounded2d(hidden=(128, 128), text_dim=32),
             total_steps=8_000,
             learning_starts=500,
             batch_size=128,

@@ -36,7 +36,7 @@ from lcrl.buffer import Batch
 from lcrl.errors import LcrlError
 from train.config import BCConfig, TrainConfig
 from train.evaluate import build_agent, build_task, load_policy, resolve_checkpoint
-from train.loop import checkpoint_meta
+from train.loop import attach_grounding, checkpoint_meta
 from train.tasks import make_env
 from train.trainer import BaseTrainer, open_run
 
@@ -163,6 +163,7 @@ class DistillTrainer(BaseTrainer):
             self.restore(ckpt)
         else:
             self.agent.observe({}, self.task.embeddings[: self.task.num_train])
+        attach_grounding(self.agent, self.task, cfg)
 
     # --- the loop --------------------------------------------------------------------
     def begin(self) -> None:

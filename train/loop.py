@@ -33,6 +33,22 @@ from train.trainer import BaseTrainer, eval_row, open_run
 __all__ = ["Trainer", "checkpoint_meta", "eval_row", "open_run"]
 
 
+def attach_grounding(agent: Any, task: Any, cfg: TrainConfig) -> None:
+    """Give the agent the slots each instruction names when ``cfg.agent.grounding`` is on.
+
+    Raises:
+        LcrlError: grounding on a task without language goals.
+    """
+    if not cfg.agent.grounding:
+        return
+    if not hasattr(task, "grounding_targets"):
+        raise LcrlError(
+            "agent.grounding needs language goals: the loss trains the networks to pick the "
+            "objects instructions name"
+        )
+    agent.set_grounding(task.grounding_targets())
+
+
 def checkpoint_meta(
     cfg: TrainConfig,
     algo: str,
@@ -161,13 +177,7 @@ class Trainer(BaseTrainer):
             self.restore(ckpt)
         elif self.task.text_goals:
             self.agent.observe({}, self.task.embeddings[: self.task.num_train])
-        if cfg.agent.grounding:
-            if not hasattr(self.task, "grounding_targets"):
-                raise LcrlError(
-                    "agent.grounding needs language goals: the loss trains the networks to "
-                    "pick the objects instructions name"
-                )
-            self.agent.set_grounding(self.task.grounding_targets())
+        attach_grounding(self.agent, self.task, cfg)
 
     # --- the loop ------------------------------------------------------------------
     def advance(self) -> None:

@@ -36,7 +36,7 @@ from lcrl.nets import (
 
 GoalEmbedder = Callable[[np.ndarray, torch.device], torch.Tensor]
 #: Learners with the auxiliary grounding loss (:attr:`AgentOptions.grounding`).
-GROUNDED_ALGOS = ("sac",)
+GROUNDED_ALGOS = ("sac", "td3", "bc")
 #: Normalisations of text goals (:attr:`AgentOptions.text_goal_norm`).
 TEXT_GOAL_NORMS = ("whiten", "standardize")
 #: Action spaces an algorithm can take (:attr:`AlgoSpec.actions`).

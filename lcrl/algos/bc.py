@@ -40,7 +40,7 @@ from torch import nn
 
 from lcrl.algos.base import Agent, AgentOptions, AlgoSpec, GoalEmbedder, Problem, check_fields
 from lcrl.errors import LcrlError
-from lcrl.nets import FlatAdam, gaussian_log_prob_tanh, random_shift
+from lcrl.nets import FlatAdam, gaussian_log_prob_tanh, grounding_loss, random_shift
 
 #: Losses of continuous-action behavioural cloning (:attr:`BCConfig.loss`).
 BC_LOSSES = ("mse", "gaussian")
@@ -203,6 +203,7 @@ class BC(Agent):
             action = action.float().reshape(action.shape[0], -1)
         mean, log_std = self._outputs(obs, goal)
         metrics: dict[str, float] = {}
+        named = self.grounding_rows(batch.goal)
         if self.problem.discrete:
             loss = F.cross_entropy(mean, action)
             metrics["accuracy"] = (mean.argmax(-1) == action).float().mean().item()
@@ -214,6 +215,10 @@ class BC(Agent):
                 loss = -tanh_gaussian_log_prob(mean, log_std, action).mean()
                 metrics["log_std"] = log_std.detach().mean().item()
             metrics["action_mse"] = err.item()
+        if named is not None:  # the auxiliary grounding loss (AgentOptions.grounding)
+            ground = grounding_loss(self.actor.selection_logits(obs, goal), named)
+            metrics["grounding_actor"] = ground.item()
+            loss = loss + self.options.grounding * ground
         self.opt.zero_grad()
         loss.backward()
         if self.cfg.weight_decay:

@@ -21,7 +21,7 @@ from lcrl.algos.base import (
     flat_target,
 )
 from lcrl.buffer import Batch
-from lcrl.nets import FlatAdam
+from lcrl.nets import FlatAdam, grounding_loss
 
 
 @dataclass
@@ -122,6 +122,12 @@ class TD3(Agent):
             y = rew + boot * target_q
         q = self.critic(obs, goal, act).squeeze(-1)
         critic_loss = 0.5 * (q - y).pow(2).mean(-1).sum()
+        named = self.grounding_rows(batch.goal)
+        grounding = {}
+        if named is not None:  # the auxiliary grounding loss (AgentOptions.grounding)
+            ground = grounding_loss(self.critic.selection_logits(obs, goal), named)
+            grounding["grounding_critic"] = ground.item()
+            critic_loss = critic_loss + self.options.grounding * ground
         self.critic_opt.zero_grad()
         critic_loss.backward()
         self.critic_opt.step()
@@ -130,6 +136,10 @@ class TD3(Agent):
             self.critic.requires_grad_(False)
             q_pi = self.critic(obs, goal, torch.tanh(self.actor(obs, goal)))[0]
             actor_loss = -q_pi.mean()
+            if named is not None:
+                ground = grounding_loss(self.actor.selection_logits(obs, goal), named)
+                grounding["grounding_actor"] = ground.item()
+                actor_loss = actor_loss + self.options.grounding * ground
             self.actor_opt.zero_grad()
             actor_loss.backward()
             self.actor_opt.step()
@@ -142,6 +152,7 @@ class TD3(Agent):
             "critic_loss": critic_loss.item(),
             "actor_loss": self._last_actor_loss,
             "q": q.detach().mean().item(),
+            **grounding,
         }
 
     def modules(self) -> dict[str, nn.Module]:
