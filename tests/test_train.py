@@ -384,7 +384,7 @@ def test_cli_errors_and_help(text_encoder, tmp_path, capsys, monkeypatch):
 
     # the grounding loss and attribute slots: one line each, nothing written
     for extra, message in [
-        (("--agent.net.slot-mode", "attributes"), "slot_mode attributes needs slot_attributes"),
+        (("--agent.net.slot-attributes", "0", "1", "2"), "needs slot_attributes: 8 values"),
         (("--agent.grounding", "-1"), "grounding must be 0 (off) or positive"),
     ]:
         assert cli("train", "lang2d-quick", "--out", str(out), *extra, *TINY_CLI) == 2

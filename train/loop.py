@@ -34,19 +34,11 @@ __all__ = ["Trainer", "checkpoint_meta", "eval_row", "open_run"]
 
 
 def attach_grounding(agent: Any, task: Any, cfg: TrainConfig) -> None:
-    """Give the agent the slots each instruction names when ``cfg.agent.grounding`` is on.
-
-    Raises:
-        LcrlError: grounding on a task without language goals.
-    """
-    if not cfg.agent.grounding:
-        return
-    if not hasattr(task, "grounding_targets"):
-        raise LcrlError(
-            "agent.grounding needs language goals: the loss trains the networks to pick the "
-            "objects instructions name"
-        )
-    agent.set_grounding(task.grounding_targets())
+    """Give the agent the slots each instruction names when ``cfg.agent.grounding`` is on
+    and the task has instructions; other goals (state, image, task ids) name no object, so
+    a preset's grounding loss stays off when its goal type is changed."""
+    if cfg.agent.grounding and hasattr(task, "grounding_targets"):
+        agent.set_grounding(task.grounding_targets())
 
 
 def checkpoint_meta(

@@ -205,7 +205,8 @@ class AgentOptions:
     the object each training instruction names (its first head; the second head picks the
     reference object of put and stack), as the grammar parses the instruction. The goal's
     choice of object then no longer has to be discovered through the reward, and it
-    carries over to word combinations never trained on. 0: off."""
+    carries over to word combinations never trained on. Off for goals that are not
+    instructions. 0: off."""
     device: str = "cpu"
     """``cpu``, ``cuda`` or ``cuda:N``."""
     seed: int = 0
