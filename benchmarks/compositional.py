@@ -25,7 +25,7 @@ from __future__ import annotations
 
 import argparse
 import json
-import math
+import shlex
 import subprocess
 import sys
 import time
@@ -36,6 +36,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
 from benchmarks.common import command, machine, save_figure, save_json, save_markdown
 from benchmarks.image_policy import LCRL, child_env
+from train.report import spread
 
 PRESETS = {"lang2d": "lang2d", "robosuite": "robosuite-reach"}
 TARGETS = {
@@ -59,14 +60,6 @@ def arm_args(arm: str, grounding: float) -> list[str]:
     if arm == "grounded":
         return [*attributes, "--agent.grounding", str(grounding)]
     raise SystemExit(f"unknown arm {arm!r}; choose from {ARMS}")
-
-
-def spread(values: list[float]) -> dict[str, float]:
-    """Mean, sample standard deviation, min and max over seeds."""
-    n = len(values)
-    mean = sum(values) / n
-    std = math.sqrt(sum((v - mean) ** 2 for v in values) / (n - 1)) if n > 1 else 0.0
-    return {"mean": mean, "std": std, "min": min(values), "max": max(values)}
 
 
 def summarise(per_seed: dict[int, dict[str, Any]]) -> dict[str, Any]:
@@ -132,7 +125,7 @@ def run_all(args: argparse.Namespace) -> dict[str, float]:
             train += arm_args(arm, args.grounding)
             ev = [*LCRL, "eval", str(out), "--episodes", str(args.episodes), "--num-envs", "1"]
             ev += ["--sets", *SETS, "--no-progress", "--json", str(out / "final-eval.json")]
-            script = " && ".join(" ".join(_quote(c) for c in cmd) for cmd in (train, ev))
+            script = " && ".join(shlex.join(cmd) for cmd in (train, ev))
             log = open(out.parent / f"{out.name}.log", "w")  # noqa: SIM115
             proc = subprocess.Popen(
                 ["bash", "-c", script], stdout=log, stderr=subprocess.STDOUT, env=child_env()
@@ -150,12 +143,6 @@ def run_all(args: argparse.Namespace) -> dict[str, float]:
             seconds[name] = round(time.perf_counter() - t0, 1)
             print(f"{name} done in {seconds[name]:.0f} s", flush=True)
     return seconds
-
-
-def _quote(s: str) -> str:
-    import shlex
-
-    return shlex.quote(s)
 
 
 def run_dir(args: argparse.Namespace, arm: str, seed: int) -> Path:
