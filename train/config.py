@@ -83,6 +83,33 @@ class RelabelConfig:
         return "learned" in (self.captioner, self.reward)
 
 
+COLLECT_BACKENDS = ("local",)
+
+
+@dataclass
+class CollectionConfig:
+    """How training episodes are collected."""
+
+    envs: int = 1
+    """Environments stepped at once in the training process. Each step, the policy acts
+    for all of them in one batched forward pass; each finished episode is captioned and
+    stored whole, in the order of its episode index, so a seed stores the same episodes
+    whatever the number (random, scripted and policy actions alike are drawn per episode;
+    only the policy's updates between steps differ). ``updates_per_step`` counts every
+    environment's steps. Collection is synchronous and deterministic."""
+    backend: str = "local"
+    """Where episodes are collected: ``local`` (this process)."""
+
+    def validate(self) -> None:
+        """Raise :class:`LcrlError` for settings that cannot collect."""
+        if self.envs < 1:
+            raise LcrlError(f"collect.envs must be at least 1, got {self.envs}")
+        if self.backend not in COLLECT_BACKENDS:
+            raise LcrlError(
+                f"collect.backend must be one of {COLLECT_BACKENDS}, got {self.backend!r}"
+            )
+
+
 @dataclass
 class DistillConfig:
     """Teacher -> student distillation with DAgger (``lcrl distill TEACHER_RUN``): a student
@@ -149,6 +176,13 @@ class TrainConfig:
     """Rule or learned captioner and reward model (language goals)."""
     text_encoder: TextEncoderConfig = field(default_factory=TextEncoderConfig)
     """Frozen text encoder for language goals."""
+    collect: CollectionConfig = field(default_factory=CollectionConfig)
+    """How training episodes are collected (environments stepped at once)."""
+    torch_threads: int = 0
+    """Torch threads of the training process; 0: the cores this process may use, divided
+    among the training processes lcrl runs at once (``LCRL_PROCESSES``, set by the
+    benchmark runners that train configurations side by side), never more busy threads
+    than cores."""
     total_steps: int = 100_000
     """Environment steps to train for."""
     learning_starts: int = 1_000
@@ -248,6 +282,9 @@ class TrainConfig:
             raise LcrlError(
                 "learned relabelling needs --relabel.checkpoint (train one with lcrl caption train)"
             )
+        self.collect.validate()
+        if self.torch_threads < 0:
+            raise LcrlError(f"torch_threads must be >= 0 (0: automatic), got {self.torch_threads}")
         if self.keep_checkpoints < 1:
             raise LcrlError("keep_checkpoints must be at least 1")
         self.distill.validate()

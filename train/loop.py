@@ -26,6 +26,7 @@ from lcrl.multitask import CONFLICT_KEYS, TaskSampler
 from train.config import TrainConfig, config_to_dict
 from train.environments import canonical_kind
 from train.evaluate import build_agent, build_task
+from train.machine import set_threads
 from train.run_meta import restoring, state_fields
 from train.tasks import ScriptedActor, is_language, make_env, reset_feasible, task_texts
 from train.trainer import BaseTrainer, eval_row, open_run
@@ -79,6 +80,32 @@ def checkpoint_meta(
     return meta, json_files
 
 
+@dataclasses.dataclass
+class _Episode:
+    """An episode being collected in one of the training environments."""
+
+    env: Any
+    slot: int
+    #: Random and scripted actions (and whether the scripted controller acts), drawn
+    #: from the episode's index alone.
+    rng: np.random.Generator
+    first: dict[str, Any]
+    goal: Any
+    stored: list[dict[str, np.ndarray]]
+    records: list[Any]
+    task_id: int | None
+    scripted: bool
+    info: dict[str, Any]
+    actions: list[Any] = dataclasses.field(default_factory=list)
+    rewards: list[float] = dataclasses.field(default_factory=list)
+    terms: list[bool] = dataclasses.field(default_factory=list)
+    succeeded: bool = False  # at any step (episodes may go on after success)
+    done: bool = False
+    t: int = 0
+    action: Any = None
+    random_action: Any = None
+
+
 class Trainer(BaseTrainer):
     """Builds everything a run needs from a :class:`TrainConfig` and runs it.
 
@@ -104,7 +131,10 @@ class Trainer(BaseTrainer):
             env_cfg = dataclasses.replace(
                 cfg.env, extra={**cfg.env.extra, "image": True, "image_size": size}
             )
-        self.env = make_env(env_cfg, "train", training=True)
+        set_threads(cfg.torch_threads)
+        #: The training environments, stepped together (``collect.envs``).
+        self.envs = [make_env(env_cfg, "train", training=True) for _ in range(cfg.collect.envs)]
+        self.env = self.envs[0]
         self.task = build_task(cfg, self.env, ckpt)
         if models is not None:
             from captioner.learned import LearnedLabeller
@@ -143,13 +173,11 @@ class Trainer(BaseTrainer):
             n_step=cfg.buffer.n_step,
             gamma=self.agent.cfg.gamma,
         )
-        self.rng = np.random.default_rng(cfg.seed)
-        self.scripted = (
+        #: One scripted controller per environment (none without scripted episodes).
+        self.scripted = [
             ScriptedActor(cfg.env, self.task, cfg.scripted_noise)
-            if cfg.scripted_fraction > 0
-            else None
-        )
-        self.scripted_rng = np.random.default_rng([cfg.seed, 1])
+            for _ in (self.envs if cfg.scripted_fraction > 0 else ())
+        ]
         # a fixed task set: each training episode's task is drawn by the sampler
         self.tasks = task_texts(cfg.env)
         self.sampler = (
@@ -177,78 +205,102 @@ class Trainer(BaseTrainer):
         self.collect_episode()
 
     def collect_episode(self) -> None:
-        """Run one episode (acting, stepping, updating) and store it in the buffer.
+        """Run one episode in each training environment (acting, stepping, updating) and
+        store them in the buffer in the order of their episode index.
 
-        The state at the episode's start is kept in memory (:meth:`snapshot`) until the
-        episode is stored: a run stopped in between goes back to it (:meth:`rollback`), so
-        its checkpoint, resumed, collects the same episode with the same updates."""
+        The environments step together; the policy acts for all of them in one batched
+        forward pass and ``updates_per_step`` updates follow every environment step. An
+        episode's reset seed, whether the scripted controller acts it, and its random and
+        scripted actions depend only on its index, so one environment and several store
+        the same episodes while the policy has not learned. The state at the start is kept
+        in memory (:meth:`snapshot`) until the episodes are stored: a run stopped in
+        between goes back to it (:meth:`rollback`), so its checkpoint, resumed, collects
+        the same episodes with the same updates."""
         self._start = self.snapshot()
-        cfg, task, env = self.cfg, self.task, self.env
-        seed = int(cfg.seed * 1_000_003 + self.episodes)
+        cfg = self.cfg
+        episodes = [self._begin(i, env) for i, env in enumerate(self.envs)]
+        active = list(episodes)
+        while active:
+            if self.step < cfg.learning_starts:
+                for ep in active:
+                    if not ep.scripted and ep.t % cfg.random_action_repeat == 0:
+                        ep.random_action = self.task.random_action(ep.rng)
+            acting = [ep for ep in active if not ep.scripted and self.step >= cfg.learning_starts]
+            if acting:
+                last = [ep.stored[-1] for ep in acting]
+                obs = {k: np.stack([o[k] for o in last]) for k in last[0]}
+                actions = self.agent.act(obs, np.asarray([ep.goal for ep in acting]))
+                for ep, a in zip(acting, actions, strict=True):
+                    ep.action = a
+            for ep in active:
+                if ep.scripted:
+                    ep.action = self.scripted[ep.slot].act(ep.env, ep.rng)
+                elif self.step < cfg.learning_starts:
+                    ep.action = ep.random_action
+                self._step(ep)
+            self.step += len(active)
+            self._update(self._updates_due(len(active)))
+            active = [ep for ep in active if not ep.done]
+            if active and self.step >= cfg.total_steps:
+                break  # the budget ends mid-episode: store what was collected
+        with self.holding_signals():  # the episodes are stored whole, or not at all
+            for ep in episodes:
+                self._store(ep)
+                self._finish_episode(ep.scripted, ep.succeeded, ep.task_id, ep.info)
+            self._start = None
+
+    def _begin(self, slot: int, env: Any) -> _Episode:
+        """Reset ``env`` for the next episode (index ``self.episodes + slot``): its seed,
+        its task when the run has a task set, and whether the scripted controller acts."""
+        cfg, task = self.cfg, self.task
+        index = self.episodes + slot
+        seed = int(cfg.seed * 1_000_003 + index)
+        rng = np.random.default_rng([cfg.seed, 7, index])
         task_id = None
         if self.sampler is not None:  # the sampled task, in a layout where it is feasible
             task_id = self.sampler.sample(self.task_rng)
             obs, info = reset_feasible(env, seed, self.tasks[task_id])
         else:
             obs, info = env.reset(seed=seed)
-        first = obs
-        goal = task.goal(obs, env)
-        goal_batch = np.asarray([goal])
-        stored = [task.training_obs(obs, first)]
-        records = [task.step_record(obs, env)]
-        actions, rewards, terms = [], [], []
-        succeeded = False  # at any step (episodes may go on after success)
-        start_step = self.step
-        scripted = self.scripted is not None and self.scripted_rng.random() < cfg.scripted_fraction
+        scripted = bool(self.scripted) and rng.random() < cfg.scripted_fraction
         if scripted:
-            self.scripted.reset()
-        while True:
-            if scripted:
-                a = self.scripted.act(env, self.scripted_rng)
-            elif self.step < cfg.learning_starts:
-                if (self.step - start_step) % cfg.random_action_repeat == 0:
-                    random_a = task.random_action(self.rng)
-                a = random_a
-            else:
-                batch_obs = {k: v[None] for k, v in stored[-1].items()}
-                a = self.agent.act(batch_obs, goal_batch)[0]
-            obs, reward, terminated, truncated, info = env.step(task.scale_action(a))
-            self.step += 1
-            stored.append(task.training_obs(obs, first))
-            records.append(task.step_record(obs, env))
-            actions.append(a)
-            rewards.append(reward)
-            terms.append(terminated)
-            succeeded = succeeded or bool(info.get("is_success", False))
-            self._update(self._updates_due())
-            if terminated or truncated:
-                break
-            if self.step >= cfg.total_steps and self.step - start_step >= 1:
-                break  # the budget ends mid-episode: store what was collected
-        with self.holding_signals():  # the episode is stored whole, or not at all
-            self._store(stored, records, actions, rewards, terms, goal, info)
-            self._finish_episode(scripted, succeeded, task_id, info)
-            self._start = None
+            self.scripted[slot].reset()
+        return _Episode(
+            env=env,
+            slot=slot,
+            rng=rng,
+            first=obs,
+            goal=task.goal(obs, env),
+            stored=[task.training_obs(obs, obs)],
+            records=[task.step_record(obs, env)],
+            task_id=task_id,
+            scripted=scripted,
+            info=info,
+        )
 
-    def _store(
-        self,
-        stored: list[dict[str, np.ndarray]],
-        records: list[Any],
-        actions: list[Any],
-        rewards: list[float],
-        terms: list[bool],
-        goal: Any,
-        info: dict[str, Any],
-    ) -> None:
+    def _step(self, ep: _Episode) -> None:
+        """Step an episode's env with its action and record what happened."""
+        task = self.task
+        obs, reward, terminated, truncated, info = ep.env.step(task.scale_action(ep.action))
+        ep.t += 1
+        ep.stored.append(task.training_obs(obs, ep.first))
+        ep.records.append(task.step_record(obs, ep.env))
+        ep.actions.append(ep.action)
+        ep.rewards.append(reward)
+        ep.terms.append(terminated)
+        ep.succeeded = ep.succeeded or bool(info.get("is_success", False))
+        ep.info = info
+        ep.done = bool(terminated or truncated)
+
+    def _store(self, ep: _Episode) -> None:
         """Label a finished episode and add it to the buffer."""
-        task, env = self.task, self.env
-        episode_obs = {k: np.stack([s[k] for s in stored]) for k in stored[0]}
+        episode_obs = {k: np.stack([s[k] for s in ep.stored]) for k in ep.stored[0]}
         episode = {
             "obs": episode_obs,
-            "action": np.asarray(actions),
-            "reward": np.asarray(rewards, np.float32),
-            "terminated": np.asarray(terms, bool),
-            **task.episode_fields(records, goal, env),
+            "action": np.asarray(ep.actions),
+            "reward": np.asarray(ep.rewards, np.float32),
+            "terminated": np.asarray(ep.terms, bool),
+            **self.task.episode_fields(ep.records, ep.goal, ep.env),
         }
         self.buffer.add_episode(episode)
         self.agent.observe(episode_obs, episode.get("achieved_goal"))
@@ -285,7 +337,7 @@ class Trainer(BaseTrainer):
         }
 
     def _generators(self) -> list[np.random.Generator]:
-        return [self.rng, self.scripted_rng, self.task_rng, self.buffer.rng]
+        return [self.task_rng, self.buffer.rng]
 
     def rollback(self) -> None:
         """Undo the episode in hand (nothing when the run is between episodes)."""
@@ -302,12 +354,12 @@ class Trainer(BaseTrainer):
         self._grad_metrics = start["grad"]
         self._start = None
 
-    def _updates_due(self) -> int:
-        """Gradient updates due after this env step."""
+    def _updates_due(self, steps: int = 1) -> int:
+        """Gradient updates due after ``steps`` environment steps."""
         cfg = self.cfg
         if self.step < cfg.learning_starts or self.buffer.size == 0:
             return 0
-        self._credit += cfg.updates_per_step
+        self._credit += cfg.updates_per_step * steps
         n = int(self._credit)
         self._credit -= n
         return n
@@ -321,6 +373,13 @@ class Trainer(BaseTrainer):
                     continue
                 self._metrics[k] = self._metrics.get(k, 0.0) + v
             self._metric_count += 1
+
+    def close(self) -> None:
+        """Close the training environments and the logs."""
+        for env in getattr(self, "envs", ()):
+            env.close()
+        self.envs = []
+        super().close()
 
     # --- logging --------------------------------------------------------------------
     def postfix(self) -> str:
@@ -390,8 +449,6 @@ class Trainer(BaseTrainer):
         states = {
             **self.agent.states(),
             "buffer_rng": self.buffer.rng.bit_generator.state,
-            "trainer_rng": self.rng.bit_generator.state,
-            "scripted_rng": self.scripted_rng.bit_generator.state,
             "trainer": {
                 "step": self.step,
                 "episodes": self.episodes,
@@ -399,6 +456,7 @@ class Trainer(BaseTrainer):
                 "scripted_episodes": self.scripted_episodes,
                 "recent": list(self.recent),
                 "credit": self._credit,
+                "train_s": self.train_seconds(),
             },
         }
         if self.sampler is not None:
@@ -415,24 +473,21 @@ class Trainer(BaseTrainer):
             ckpt,
             "trainer",
             {"step": int, "episodes": int, "recent": list, "credit": float},
-            optional={"sim_errors": int, "scripted_episodes": int},
+            optional={"sim_errors": int, "scripted_episodes": int, "train_s": float},
         )
         for name, module in self.agent.modules().items():
             ckpt.load_module(name, module)
         with restoring(ckpt, "the learner's states"):
             states = {name: ckpt.state(name) for name in self.agent.states()}
             self.agent.load_states(states)
-        for name, rng in (("buffer_rng", self.buffer.rng), ("trainer_rng", self.rng)):
-            with restoring(ckpt, f"the state {name!r}"):
-                rng.bit_generator.state = ckpt.state(name)
-        if ckpt.has_state("scripted_rng"):
-            with restoring(ckpt, "the state 'scripted_rng'"):
-                self.scripted_rng.bit_generator.state = ckpt.state("scripted_rng")
+        with restoring(ckpt, "the state 'buffer_rng'"):
+            self.buffer.rng.bit_generator.state = ckpt.state("buffer_rng")
         self.step, self.episodes = int(trainer["step"]), int(trainer["episodes"])
         self.sim_errors = int(trainer.get("sim_errors", 0))
         self.scripted_episodes = int(trainer.get("scripted_episodes", 0))
         self.recent.extend(float(x) for x in trainer["recent"])
         self._credit = float(trainer["credit"])
+        self.train_s_before = float(trainer.get("train_s", 0.0))
         if self.sampler is not None and ckpt.has_state("task_sampler"):
             with restoring(ckpt, "the states 'task_sampler' and 'task_rng'"):
                 self.sampler.load_state_dict(ckpt.state("task_sampler"))

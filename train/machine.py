@@ -10,6 +10,44 @@ from typing import Any
 import torch
 
 
+def available_cores() -> int:
+    """The cores this process may run on (its CPU affinity; all cores where that is
+    unknown)."""
+    try:
+        return max(1, len(os.sched_getaffinity(0)))
+    except (AttributeError, OSError):
+        return max(1, os.cpu_count() or 1)
+
+
+#: Set by runners that start several lcrl training processes at once (the benchmark
+#: runners that train configurations side by side): how many share the cores.
+PROCESSES_VARIABLE = "LCRL_PROCESSES"
+
+
+def default_threads() -> int:
+    """Torch threads for a training process that does not say: ``OMP_NUM_THREADS`` where it
+    is set, otherwise the available cores divided among the ``LCRL_PROCESSES`` training
+    processes running at once (at least 1): never more busy threads than cores, since two
+    2-thread processes on two cores run several times slower than two 1-thread ones."""
+    omp = os.environ.get("OMP_NUM_THREADS", "").strip()
+    if omp.isdigit() and int(omp) > 0:
+        return int(omp)
+    try:
+        processes = max(1, int(os.environ.get(PROCESSES_VARIABLE, "1")))
+    except ValueError:
+        processes = 1
+    return max(1, available_cores() // processes)
+
+
+def set_threads(threads: int = 0) -> int:
+    """Set torch's intra-op threads: ``threads``, or :func:`default_threads` for 0.
+    Returns the number set."""
+    n = threads if threads > 0 else default_threads()
+    if torch.get_num_threads() != n:
+        torch.set_num_threads(n)
+    return n
+
+
 def machine() -> dict[str, Any]:
     """CPU, cores, memory, Python and torch versions, GPU if any."""
     cpu = platform.processor() or platform.machine()

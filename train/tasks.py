@@ -706,12 +706,13 @@ class LanguageTask(Task):
     def step_record(self, obs: Mapping[str, Any], env: gym.Env) -> Any:
         """The scene after each step (captioned at the end of the episode), with the
         camera frame and the robot's state when a learned labeller reads them."""
-        scene = self.wrapper.env.unwrapped.scene()
+        wrapper = find_language_wrapper(env)  # the env that stepped (one of several)
+        scene = wrapper.env.unwrapped.scene()
         if self.labeller is None:
             return scene
         if "image" not in obs:
             raise LcrlError("learned relabelling needs camera frames: the env gives no image")
-        start = int(slot_layout_start(self.wrapper))
+        start = int(slot_layout_start(wrapper))
         return scene, np.asarray(obs["image"]), np.asarray(obs["observation"][:start], np.float32)
 
     def episode_fields(self, records: list[Any], goal: Any, env: gym.Env) -> dict[str, Any]:
@@ -819,7 +820,7 @@ class TaskIdTask(Task):
 
     def step_record(self, obs: Mapping[str, Any], env: gym.Env) -> Any:
         """The privileged scene after each step."""
-        return self.wrapper.env.unwrapped.scene()
+        return find_language_wrapper(env).env.unwrapped.scene()
 
     def episode_fields(self, records: list[Any], goal: Any, env: gym.Env) -> dict[str, Any]:
         """The task id and, per step, whether the episode achieved its own task."""

@@ -386,6 +386,10 @@ class BaseTrainer(ABC):
     eval_pending: bool = False
     #: A periodic evaluation is running (what :meth:`interrupted` saves as pending).
     _periodic_eval: bool = False
+    #: Seconds of training (evaluations excluded) before this process resumed the run.
+    train_s_before: float = 0.0
+    #: Seconds this process spent in evaluations.
+    _eval_s: float = 0.0
     tb: Any = None
 
     # --- what a trainer implements -----------------------------------------------------
@@ -576,13 +580,24 @@ class BaseTrainer(ABC):
         """Units per second since this process started the loop."""
         return (self.step - self._step0) / max(self.elapsed(), 1e-9)
 
+    def train_seconds(self) -> float:
+        """Wall-clock seconds of training so far, over every process of the run (resumed
+        ones too), evaluations excluded: the time a user waits for this policy (the
+        ``train_s`` column of eval.csv)."""
+        if not hasattr(self, "_t0"):
+            return self.train_s_before
+        return self.train_s_before + self.elapsed() - self._eval_s
+
     def evaluate(self) -> dict[str, Any]:
         """Evaluate on every set of the task (the engine of ``lcrl eval``, the run's
         seed); write the eval.csv row and return the results."""
         cfg = self.cfg
+        t0 = time.perf_counter()
         results = evaluate(self.agent, self.task, cfg, episodes=cfg.eval_episodes, seed=cfg.seed)
+        self._eval_s += time.perf_counter() - t0
         self.last_eval = results
         row = eval_row(results, self.task, self.step, self.episodes)
+        row["train_s"] = round(self.train_seconds(), 2)
         self.eval_log.write(row)
         if self.tb is not None:
             for k, v in row.items():

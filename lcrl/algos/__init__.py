@@ -192,4 +192,7 @@ def build_agent(
             f"{spec.name} takes a {spec.config.__name__}, not a {type(config).__name__}"
         )
     config.validate()
-    return spec.agent(problem, options, goal_embed, config)
+    agent = spec.agent(problem, options, goal_embed, config)
+    if options.compile:
+        agent.compile_networks()
+    return agent

@@ -209,6 +209,12 @@ class AgentOptions:
     instructions. 0: off."""
     device: str = "cpu"
     """``cpu``, ``cuda`` or ``cuda:N``."""
+    compile: bool = False
+    """``torch.compile`` the networks (their forward and backward passes; the weights,
+    checkpoints and optimisers are unchanged). The first updates then take a minute or two
+    to compile. On a 2-core CPU it gave no speed-up for the 2x256 networks of ``lang2d``
+    (``benchmarks/results/compiled_update.json``): their updates are matrix products
+    already; a GPU option."""
     seed: int = 0
     """Seed of the network initialisation and of the agent's noise."""
     multitask: MultiTaskOptions = field(default_factory=MultiTaskOptions)
@@ -505,6 +511,13 @@ class Agent:
         raise NotImplementedError
 
     # --- saving ----------------------------------------------------------------------
+    def compile_networks(self) -> None:
+        """``torch.compile`` every network in place (``nn.Module.compile``, so parameter
+        names and checkpoints stay as they are); the perception model is left alone."""
+        for name, module in self.modules().items():
+            if name != "perceiver":
+                module.compile(dynamic=False)
+
     def modules(self) -> dict[str, nn.Module]:
         """Weights to checkpoint, by name."""
         out: dict[str, nn.Module] = {"norms": self.norms}

@@ -1,0 +1,135 @@
+"""``--agent.compile`` on the CPU: the SAC update of ``lang2d``, eager against compiled.
+
+    python benchmarks/compiled_update.py
+
+Two agents with the same networks, seed and buffer (a ``lang2d`` trainer after its random
+steps): one eager, one whose networks went through ``torch.compile``
+(``Agent.compile_networks``). Their updates (``agent.update(buffer.sample(256))``) are
+timed alternately, ``--rounds`` times, at each thread count, alone on the machine; the
+compile time (the first updates) is reported apart.
+
+Writes ``benchmarks/results/compiled_update.{json,md,png}``; ``headline.speedup_<n>_threads``
+is eager ms / compiled ms.
+"""
+
+from __future__ import annotations
+
+import argparse
+import shutil
+import statistics
+import sys
+import time
+from pathlib import Path
+
+sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
+
+from benchmarks.common import command, machine, save_figure, save_json, save_markdown
+from benchmarks.loop_bound import trainer
+
+NAME = "compiled_update"
+
+
+def update_ms(t: object, agent: object, updates: int) -> float:
+    """Milliseconds per ``agent.update(buffer.sample(batch))``."""
+    batch = t.cfg.batch_size
+    t0 = time.perf_counter()
+    for _ in range(updates):
+        agent.update(t.buffer.sample(batch))
+    return (time.perf_counter() - t0) / updates * 1000
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--updates", type=int, default=200, help="timed updates per round")
+    parser.add_argument("--rounds", type=int, default=3)
+    parser.add_argument("--threads", type=int, nargs="+", default=[1, 2])
+    parser.add_argument("--seed", type=int, default=0)
+    args = parser.parse_args(argv)
+
+    import copy
+
+    import torch
+
+    t = trainer(1, 0, 2000, args.seed)
+    eager = t.agent
+    compiled = copy.deepcopy(eager)
+    t0 = time.perf_counter()
+    compiled.compile_networks()
+    for _ in range(3):
+        compiled.update(t.buffer.sample(t.cfg.batch_size))
+    compile_s = time.perf_counter() - t0
+    print(f"compiled in {compile_s:.1f} s", flush=True)
+
+    rows = []
+    for threads in args.threads:
+        torch.set_num_threads(threads)
+        for agent in (eager, compiled):  # warm up at this thread count
+            update_ms(t, agent, 10)
+        e_ms, c_ms = [], []
+        for _ in range(args.rounds):
+            e_ms.append(update_ms(t, eager, args.updates))
+            c_ms.append(update_ms(t, compiled, args.updates))
+        row = {
+            "threads": threads,
+            "eager_ms": statistics.median(e_ms),
+            "compiled_ms": statistics.median(c_ms),
+            "eager_rounds": e_ms,
+            "compiled_rounds": c_ms,
+        }
+        row["speedup"] = row["eager_ms"] / row["compiled_ms"]
+        rows.append(row)
+        print(
+            f"threads {threads}: eager {row['eager_ms']:.2f} ms, compiled "
+            f"{row['compiled_ms']:.2f} ms, speedup {row['speedup']:.2f}",
+            flush=True,
+        )
+    out = t.out
+    t.close()
+    shutil.rmtree(out, ignore_errors=True)
+
+    info = machine()
+    headline = {f"speedup_{r['threads']}_threads": r["speedup"] for r in rows}
+    headline.update({f"eager_ms_{r['threads']}_threads": r["eager_ms"] for r in rows})
+    headline.update({f"compiled_ms_{r['threads']}_threads": r["compiled_ms"] for r in rows})
+    headline["compile_s"] = compile_s
+    save_json(
+        NAME,
+        {
+            "headline": headline,
+            "command": command(),
+            "machine": info,
+            "settings": vars(args),
+            "rows": rows,
+        },
+    )
+    lines = ["| torch threads | eager ms | compiled ms | speed-up |", "|---:|---:|---:|---:|"]
+    for r in rows:
+        lines.append(
+            f"| {r['threads']} | {r['eager_ms']:.2f} | {r['compiled_ms']:.2f} | "
+            f"{r['speedup']:.2f}x |"
+        )
+    body = (
+        "SAC update of the `lang2d` networks (batch 256), eager against `--agent.compile`; "
+        f"compiling took {compile_s:.0f} s (the first updates).\n\n" + "\n".join(lines)
+    )
+    save_markdown(NAME, "torch.compile on the CPU (lang2d update)", body, info)
+
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(5, 3.5))
+    x = range(len(rows))
+    ax.bar([i - 0.2 for i in x], [r["eager_ms"] for r in rows], 0.4, label="eager")
+    ax.bar([i + 0.2 for i in x], [r["compiled_ms"] for r in rows], 0.4, label="compiled")
+    ax.set_xticks(list(x), [f"{r['threads']} thread(s)" for r in rows])
+    ax.set(ylabel="ms per update", title="lang2d SAC update, CPU")
+    ax.legend()
+    fig.tight_layout(rect=(0, 0.1, 1, 1))
+    save_figure(NAME, fig, info)
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -1,0 +1,78 @@
+"""Collection from several environments at once (``collect.envs``) and the thread default."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from helpers import cli, error_line, tiny
+
+from train.config import CollectionConfig
+from train.loop import Trainer
+from train.machine import default_threads
+
+
+def _buffer_after(tmp_path, envs: int, episodes: int, **overrides) -> dict[str, np.ndarray]:
+    cfg = tiny(
+        "lang2d",
+        tmp_path / f"envs{envs}",
+        collect=CollectionConfig(envs=envs),
+        **{"total_steps": 10_000, "learning_starts": 10_000, **overrides},
+    )
+    trainer = Trainer(cfg)
+    try:
+        while trainer.episodes < episodes:
+            trainer.advance()
+        assert trainer.episodes == episodes
+        assert trainer.step == trainer.buffer.size  # every step stored
+        return trainer.buffer.arrays()
+    finally:
+        trainer.close()
+
+
+def test_several_envs_store_the_episodes_of_one(tmp_path):
+    """Random and scripted episodes depend on their index alone: 3 environments stepped
+    together store exactly what one environment stores, in the same order."""
+    one = _buffer_after(tmp_path, 1, 6, scripted_fraction=0.5)
+    three = _buffer_after(tmp_path, 3, 6, scripted_fraction=0.5)
+    assert one.keys() == three.keys()
+    for key in one:
+        np.testing.assert_array_equal(one[key], three[key], err_msg=key)
+
+
+def test_several_envs_train_with_batched_acting(tmp_path):
+    """Past learning_starts the policy acts for all environments at once and updates
+    follow every environment's steps; the run ends at its budget with every episode
+    stored whole."""
+    cfg = tiny("lang2d", tmp_path / "run", collect=CollectionConfig(envs=4), total_steps=400)
+    trainer = Trainer(cfg)
+    try:
+        trainer.advance()  # the first 4 episodes: no updates before anything is stored
+        first, before = trainer.step, trainer.agent.updates
+        while trainer.step < cfg.total_steps:
+            trainer.advance()
+        assert trainer.step >= cfg.total_steps and trainer.episodes % 4 == 0
+        assert trainer.buffer.size == trainer.step
+        # updates_per_step 1: one update per environment step once learning has started
+        assert trainer.agent.updates - before == trainer.step - max(first, cfg.learning_starts)
+        assert trainer.agent.acts > 0
+    finally:
+        trainer.close()
+
+
+def test_bad_collect_settings_are_one_line_errors(tmp_path, capsys):
+    status = cli("train", "lang2d-quick", "--out", str(tmp_path / "r"), "--collect.envs", "0")
+    assert status != 0
+    assert error_line(capsys.readouterr().err) == (
+        "lcrl: error: collect.envs must be at least 1, got 0"
+    )
+
+
+@pytest.mark.parametrize(
+    ("omp", "processes", "cores", "expected"),
+    [("", "", 2, 2), ("", "2", 2, 1), ("", "3", 2, 1), ("1", "", 2, 1), ("", "2", 8, 4)],
+)
+def test_default_threads_never_oversubscribe(monkeypatch, omp, processes, cores, expected):
+    monkeypatch.setenv("OMP_NUM_THREADS", omp)
+    monkeypatch.setenv("LCRL_PROCESSES", processes)
+    monkeypatch.setattr("train.machine.available_cores", lambda: cores)
+    assert default_threads() == expected
