@@ -33,7 +33,14 @@ from typing import Any
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
-from benchmarks.common import RESULTS_DIR, machine, save_figure, save_json, save_markdown
+from benchmarks.common import (
+    RESULTS_DIR,
+    machine,
+    save_figure,
+    save_json,
+    save_markdown,
+    side_by_side_env,
+)
 
 ROOT = Path(__file__).resolve().parent.parent
 
@@ -48,7 +55,7 @@ LABELS = {"train": "seen", "heldout": "held-out combinations", "paraphrase": "pa
 
 def lcrl(*args: str, log: Path | None = None) -> None:
     """Run ``lcrl ARGS`` in a subprocess with one torch thread (two run side by side)."""
-    env = {**os.environ, "OMP_NUM_THREADS": "1", "MKL_NUM_THREADS": "1"}
+    env = side_by_side_env(2)
     cmd = [sys.executable, "-m", "train.cli", *args]
     print("== lcrl " + " ".join(args), flush=True)
     with open(log or os.devnull, "w") as f:

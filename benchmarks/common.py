@@ -3,12 +3,13 @@
 from __future__ import annotations
 
 import json
+import os
 import shlex
 import sys
 from pathlib import Path
 from typing import Any
 
-from train.machine import machine, machine_line
+from train.machine import PROCESSES_VARIABLE, available_cores, machine, machine_line
 
 __all__ = [
     "RESULTS_DIR",
@@ -19,10 +20,23 @@ __all__ = [
     "save_figure",
     "save_json",
     "save_markdown",
+    "side_by_side_env",
     "success_bars",
 ]
 
 RESULTS_DIR = Path(__file__).resolve().parent / "results"
+
+
+def side_by_side_env(processes: int = 2, **extra: str) -> dict[str, str]:
+    """The environment of a child lcrl process that trains beside ``processes - 1`` others:
+    ``LCRL_PROCESSES`` (so each takes its share of the cores as torch threads, see
+    :func:`train.machine.default_threads`) and the same share for OpenMP and MKL, so that
+    no more threads are busy than there are cores; plus ``extra`` variables."""
+    threads = str(max(1, available_cores() // max(1, processes)))
+    env = dict(os.environ)
+    env.update({PROCESSES_VARIABLE: str(processes), "OMP_NUM_THREADS": threads})
+    env.update(MKL_NUM_THREADS=threads, **extra)
+    return env
 
 
 def command() -> str:

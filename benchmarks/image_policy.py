@@ -24,7 +24,6 @@ from __future__ import annotations
 import argparse
 import csv
 import json
-import os
 import subprocess
 import sys
 import time
@@ -38,6 +37,7 @@ from benchmarks.common import (
     save_figure,
     save_json,
     save_markdown,
+    side_by_side_env,
     success_bars,
 )
 
@@ -48,10 +48,8 @@ LCRL = [sys.executable, "-m", "train.cli"]
 
 
 def child_env() -> dict[str, str]:
-    """One torch thread per run (two runs share the two cores), offscreen rendering."""
-    env = dict(os.environ)
-    env.update(OMP_NUM_THREADS="1", MKL_NUM_THREADS="1", MUJOCO_GL="egl")
-    return env
+    """Two runs share the cores (one torch thread each on two cores), offscreen rendering."""
+    return side_by_side_env(2, MUJOCO_GL="egl")
 
 
 def perception_stage(args: argparse.Namespace) -> tuple[Path, dict[str, float]]:

@@ -83,7 +83,7 @@ class RelabelConfig:
         return "learned" in (self.captioner, self.reward)
 
 
-COLLECT_BACKENDS = ("local",)
+COLLECT_BACKENDS = ("local", "ray")
 
 
 @dataclass
@@ -98,7 +98,17 @@ class CollectionConfig:
     only the policy's updates between steps differ). ``updates_per_step`` counts every
     environment's steps. Collection is synchronous and deterministic."""
     backend: str = "local"
-    """Where episodes are collected: ``local`` (this process)."""
+    """Where episodes are collected: ``local`` (this process, synchronous and
+    deterministic) or ``ray`` (``workers`` Ray actors, each with an environment, a policy
+    copy and the captioner, returning whole captioned episodes while the learner updates:
+    asynchronous, so a seed no longer fixes the run; see :mod:`train.ray_collect`)."""
+    workers: int = 2
+    """Ray rollout workers (``backend=ray``)."""
+    address: str = ""
+    """The Ray cluster to join (``HEAD:6379`` of ``ray start --head``); empty: start a
+    local Ray on this machine."""
+    sync_every: int = 100
+    """Updates between weight syncs to the Ray workers."""
 
     def validate(self) -> None:
         """Raise :class:`LcrlError` for settings that cannot collect."""
@@ -108,6 +118,16 @@ class CollectionConfig:
             raise LcrlError(
                 f"collect.backend must be one of {COLLECT_BACKENDS}, got {self.backend!r}"
             )
+        if self.backend == "ray":
+            if self.workers < 1:
+                raise LcrlError(f"collect.workers must be at least 1, got {self.workers}")
+            if self.sync_every < 1:
+                raise LcrlError(f"collect.sync_every must be at least 1, got {self.sync_every}")
+            if self.envs != 1:
+                raise LcrlError(
+                    "collect.envs steps several environments in this process; with "
+                    "collect.backend ray set collect.workers instead"
+                )
 
 
 @dataclass
@@ -283,6 +303,11 @@ class TrainConfig:
                 "learned relabelling needs --relabel.checkpoint (train one with lcrl caption train)"
             )
         self.collect.validate()
+        if self.collect.backend == "ray" and self.relabel.learned:
+            raise LcrlError(
+                "learned relabelling reads camera frames in the learner: use "
+                "collect.backend local with relabel.captioner/reward learned"
+            )
         if self.torch_threads < 0:
             raise LcrlError(f"torch_threads must be >= 0 (0: automatic), got {self.torch_threads}")
         if self.keep_checkpoints < 1:

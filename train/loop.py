@@ -106,6 +106,68 @@ class _Episode:
     random_action: Any = None
 
 
+def begin_episode(
+    cfg: TrainConfig,
+    task: Any,
+    env: Any,
+    index: int,
+    scripted: ScriptedActor | None,
+    task_id: int | None = None,
+) -> _Episode:
+    """Reset ``env`` for the training episode of number ``index``: the reset seed, the
+    random generator of its random and scripted actions and whether the scripted
+    controller acts it (when ``scripted`` is given) all follow from ``cfg.seed`` and
+    ``index`` alone; ``task_id`` picks a task of the run's task set (reset in a layout
+    where it is feasible)."""
+    seed = int(cfg.seed * 1_000_003 + index)
+    rng = np.random.default_rng([cfg.seed, 7, index])
+    if task_id is not None:
+        obs, info = reset_feasible(env, seed, task_texts(cfg.env)[task_id])
+    else:
+        obs, info = env.reset(seed=seed)
+    acted = scripted is not None and rng.random() < cfg.scripted_fraction
+    if acted:
+        scripted.reset()
+    return _Episode(
+        env=env,
+        slot=0,
+        rng=rng,
+        first=obs,
+        goal=task.goal(obs, env),
+        stored=[task.training_obs(obs, obs)],
+        records=[task.step_record(obs, env)],
+        task_id=task_id,
+        scripted=acted,
+        info=info,
+    )
+
+
+def step_episode(task: Any, ep: _Episode) -> None:
+    """Step an episode's env with its action (``ep.action``) and record what happened."""
+    obs, reward, terminated, truncated, info = ep.env.step(task.scale_action(ep.action))
+    ep.t += 1
+    ep.stored.append(task.training_obs(obs, ep.first))
+    ep.records.append(task.step_record(obs, ep.env))
+    ep.actions.append(ep.action)
+    ep.rewards.append(reward)
+    ep.terms.append(terminated)
+    ep.succeeded = ep.succeeded or bool(info.get("is_success", False))
+    ep.info = info
+    ep.done = bool(terminated or truncated)
+
+
+def episode_record(task: Any, ep: _Episode) -> dict[str, Any]:
+    """A finished episode as the buffer stores it, labelled by the task (captions,
+    achieved goals)."""
+    return {
+        "obs": {k: np.stack([s[k] for s in ep.stored]) for k in ep.stored[0]},
+        "action": np.asarray(ep.actions),
+        "reward": np.asarray(ep.rewards, np.float32),
+        "terminated": np.asarray(ep.terms, bool),
+        **task.episode_fields(ep.records, ep.goal, ep.env),
+    }
+
+
 class Trainer(BaseTrainer):
     """Builds everything a run needs from a :class:`TrainConfig` and runs it.
 
@@ -201,8 +263,58 @@ class Trainer(BaseTrainer):
 
     # --- the loop ------------------------------------------------------------------
     def advance(self) -> None:
-        """Collect one episode (acting, stepping, updating) and store it."""
-        self.collect_episode()
+        """Collect one episode per environment (acting, stepping, updating) and store
+        them; with Ray workers, store the next episode one returns and update."""
+        if self.cfg.collect.backend == "ray":
+            self.collect_remote()
+        else:
+            self.collect_episode()
+
+    # --- Ray rollout workers -----------------------------------------------------------
+    #: The Ray actors (``collect.backend ray``), started by the first :meth:`advance`.
+    remote: Any = None
+
+    def _weights(self) -> dict[str, Any]:
+        """The learner's weights for the workers' policy copies (CPU tensors)."""
+        return {
+            name: {k: v.detach().cpu() for k, v in module.state_dict().items()}
+            for name, module in self.agent.modules().items()
+        }
+
+    def collect_remote(self) -> None:
+        """Keep every Ray worker collecting; take the first episode one returns, run the
+        updates due for its steps, then store it (a stop during the updates drops it
+        whole), and sync the workers' weights every ``collect.sync_every`` updates."""
+        from train.ray_collect import RayCollector
+
+        cfg = self.cfg
+        if self.remote is None:
+            table = getattr(self.task, "table", None)
+            table = (list(table), self.task.num_train) if table is not None else None
+            self.remote = RayCollector(cfg, table, self._weights())
+            self._issued = self.episodes
+            self._synced = self.agent.updates
+        for slot in self.remote.idle():
+            task_id = self.sampler.sample(self.task_rng) if self.sampler is not None else None
+            self.remote.submit(slot, self._issued, self.step < cfg.learning_starts, task_id)
+            self._issued += 1
+        _, result = self.remote.next()
+        if result is None:  # a worker died: its episode is dropped, the worker replaced
+            return
+        self._start = self.snapshot()
+        episode = result["episode"]  # arrays from Ray's object store are read-only
+        episode["obs"] = {k: np.array(v) for k, v in episode["obs"].items()}
+        self.step += result["steps"]
+        self._update(self._updates_due(result["steps"]))
+        with self.holding_signals():  # the episode is stored whole, or not at all
+            self.buffer.add_episode(episode)
+            self.agent.observe(episode["obs"], episode.get("achieved_goal"))
+            info = {"sim_error": result["sim_error"]}
+            self._finish_episode(result["scripted"], result["succeeded"], result["task_id"], info)
+            self._start = None
+        if self.agent.updates - self._synced >= cfg.collect.sync_every:
+            self.remote.sync(self._weights())
+            self._synced = self.agent.updates
 
     def collect_episode(self) -> None:
         """Run one episode in each training environment (acting, stepping, updating) and
@@ -250,60 +362,24 @@ class Trainer(BaseTrainer):
             self._start = None
 
     def _begin(self, slot: int, env: Any) -> _Episode:
-        """Reset ``env`` for the next episode (index ``self.episodes + slot``): its seed,
-        its task when the run has a task set, and whether the scripted controller acts."""
-        cfg, task = self.cfg, self.task
-        index = self.episodes + slot
-        seed = int(cfg.seed * 1_000_003 + index)
-        rng = np.random.default_rng([cfg.seed, 7, index])
+        """Reset ``env`` for the next episode (index ``self.episodes + slot``), with the
+        task the sampler draws when the run has a task set."""
         task_id = None
-        if self.sampler is not None:  # the sampled task, in a layout where it is feasible
+        if self.sampler is not None:
             task_id = self.sampler.sample(self.task_rng)
-            obs, info = reset_feasible(env, seed, self.tasks[task_id])
-        else:
-            obs, info = env.reset(seed=seed)
-        scripted = bool(self.scripted) and rng.random() < cfg.scripted_fraction
-        if scripted:
-            self.scripted[slot].reset()
-        return _Episode(
-            env=env,
-            slot=slot,
-            rng=rng,
-            first=obs,
-            goal=task.goal(obs, env),
-            stored=[task.training_obs(obs, obs)],
-            records=[task.step_record(obs, env)],
-            task_id=task_id,
-            scripted=scripted,
-            info=info,
-        )
+        scripted = self.scripted[slot] if self.scripted else None
+        ep = begin_episode(self.cfg, self.task, env, self.episodes + slot, scripted, task_id)
+        ep.slot = slot
+        return ep
 
     def _step(self, ep: _Episode) -> None:
-        """Step an episode's env with its action and record what happened."""
-        task = self.task
-        obs, reward, terminated, truncated, info = ep.env.step(task.scale_action(ep.action))
-        ep.t += 1
-        ep.stored.append(task.training_obs(obs, ep.first))
-        ep.records.append(task.step_record(obs, ep.env))
-        ep.actions.append(ep.action)
-        ep.rewards.append(reward)
-        ep.terms.append(terminated)
-        ep.succeeded = ep.succeeded or bool(info.get("is_success", False))
-        ep.info = info
-        ep.done = bool(terminated or truncated)
+        step_episode(self.task, ep)
 
     def _store(self, ep: _Episode) -> None:
         """Label a finished episode and add it to the buffer."""
-        episode_obs = {k: np.stack([s[k] for s in ep.stored]) for k in ep.stored[0]}
-        episode = {
-            "obs": episode_obs,
-            "action": np.asarray(ep.actions),
-            "reward": np.asarray(ep.rewards, np.float32),
-            "terminated": np.asarray(ep.terms, bool),
-            **self.task.episode_fields(ep.records, ep.goal, ep.env),
-        }
+        episode = episode_record(self.task, ep)
         self.buffer.add_episode(episode)
-        self.agent.observe(episode_obs, episode.get("achieved_goal"))
+        self.agent.observe(episode["obs"], episode.get("achieved_goal"))
 
     def _finish_episode(
         self, scripted: bool, succeeded: bool, task_id: int | None, info: dict[str, Any]
@@ -375,10 +451,13 @@ class Trainer(BaseTrainer):
             self._metric_count += 1
 
     def close(self) -> None:
-        """Close the training environments and the logs."""
+        """Close the training environments, the Ray workers and the logs."""
         for env in getattr(self, "envs", ()):
             env.close()
         self.envs = []
+        if self.remote is not None:
+            self.remote.close()
+            self.remote = None
         super().close()
 
     # --- logging --------------------------------------------------------------------
@@ -399,6 +478,9 @@ class Trainer(BaseTrainer):
             "sim_errors": self.sim_errors,
             "scripted_episodes": self.scripted_episodes,
         }
+        if self.cfg.collect.backend == "ray":
+            # this process's Ray worker restarts (each dropped the episode in hand)
+            row["worker_restarts"] = self.remote.restarts if self.remote is not None else 0
         labeller = getattr(self.task, "labeller", None)
         if labeller is not None:  # learned relabelling, against the rule captioner
             row.update(labeller.agreement())

@@ -477,6 +477,7 @@ class BaseTrainer(ABC):
             (self.out / "config.json").write_text(
                 json.dumps({**config_to_dict(cfg), "resolved_algo": self.algo}, indent=1)
             )
+        self._t0, self._step0 = time.perf_counter(), self.step  # run() starts them again
         self.progress_log = CsvLog(self.out / "progress.csv")
         self.eval_log = CsvLog(self.out / "eval.csv")
         self.tb = tensorboard_writer(self.out / "tb") if cfg.tensorboard else None

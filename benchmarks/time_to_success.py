@@ -1,0 +1,183 @@
+"""Time to success on ``lang2d``: the wall-clock a user waits for 80% seen success, the
+previous loop against the new default, same machine, seed and step budget.
+
+    python benchmarks/time_to_success.py
+
+Two runs of ``lcrl train lang2d`` with the same seed: ``new`` is the preset as it is;
+``old`` adds :data:`OLD_OPTIONS`, the settings the preset had before (one environment, one
+update per step). They train one after the other, each alone on the machine with the
+default torch threads (all cores), and are evaluated every ``--eval-every`` steps on
+``--eval-episodes`` episodes per set. Time to success is the ``train_s`` of the first
+evaluation whose seen success reaches ``--threshold``: wall-clock training seconds, the
+evaluations themselves excluded. Finished runs are kept, so an interrupted benchmark goes
+on where it stopped (``--fresh`` trains both again).
+
+Writes ``benchmarks/results/time_to_success.{json,md,png}``. Headline: ``new_s`` (target
+<= 480), ``old_s``, and ``final_seen_new`` / ``final_seen_old`` at the same step budget
+(the new run's must not be below the old one's).
+"""
+
+from __future__ import annotations
+
+import argparse
+import csv
+import json
+import shlex
+import shutil
+import subprocess
+import sys
+from pathlib import Path
+
+sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
+
+from benchmarks.common import command, machine, save_figure, save_json, save_markdown
+
+NAME = "time_to_success"
+PRESET = "lang2d"
+#: What the lang2d preset trained with before the new default.
+OLD_OPTIONS = ["--collect.envs", "1", "--updates-per-step", "1.0", "--batch-size", "256"]
+TARGET_S = 480.0
+LCRL = [sys.executable, "-m", "train.cli"]
+
+
+def run_args(args: argparse.Namespace, arm: str) -> list[str]:
+    """The ``lcrl train`` command of an arm."""
+    cmd = [*LCRL, "train", PRESET, "--out", str(Path(args.work) / arm)]
+    cmd += ["--total-steps", str(args.steps), "--eval-every", str(args.eval_every)]
+    cmd += ["--eval-episodes", str(args.eval_episodes), "--seed", str(args.seed)]
+    cmd += ["--checkpoint-every", "0", "--overwrite", "--no-progress", "--no-tensorboard"]
+    return cmd + (OLD_OPTIONS if arm == "old" else [])
+
+
+def curve(run: Path) -> list[dict[str, float]]:
+    """The rows of a run's eval.csv."""
+    with open(run / "eval.csv") as f:
+        return [{k: float(v) for k, v in row.items() if v != ""} for row in csv.DictReader(f)]
+
+
+def first_success(rows: list[dict[str, float]], threshold: float) -> dict[str, float] | None:
+    """The first evaluation whose seen success reaches ``threshold``."""
+    return next((r for r in rows if r["train/success"] >= threshold), None)
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--steps", type=int, default=60_000, help="step budget of both runs")
+    parser.add_argument("--eval-every", type=int, default=2_500)
+    parser.add_argument("--eval-episodes", type=int, default=100)
+    parser.add_argument("--threshold", type=float, default=0.8)
+    parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--work", default="runs/bench/time-to-success")
+    parser.add_argument("--arms", nargs="+", default=["new", "old"], choices=["new", "old"])
+    parser.add_argument("--fresh", action="store_true", help="train finished runs again")
+    args = parser.parse_args(argv)
+
+    work = Path(args.work)
+    work.mkdir(parents=True, exist_ok=True)
+    for arm in args.arms:
+        run, cmd = work / arm, run_args(args, arm)
+        done = (run / "report.md").is_file() and (run / "command.txt").is_file()
+        if done and not args.fresh and (run / "command.txt").read_text() == shlex.join(cmd):
+            print(f"== {arm}: kept {run}", flush=True)
+            continue
+        shutil.rmtree(run, ignore_errors=True)
+        print("== " + shlex.join(cmd), flush=True)
+        with open(work / f"{arm}.log", "w") as log:
+            if subprocess.run(cmd, stdout=log, stderr=subprocess.STDOUT).returncode != 0:
+                raise SystemExit(f"the {arm} run failed: see {log.name}")
+        (run / "command.txt").write_text(shlex.join(cmd))
+
+    info = machine()
+    arms = {}
+    for arm in ("new", "old"):
+        rows = curve(work / arm)
+        hit = first_success(rows, args.threshold)
+        config = json.loads((work / arm / "config.json").read_text())
+        arms[arm] = {
+            "options": OLD_OPTIONS if arm == "old" else [],
+            "collect_envs": config["collect"]["envs"],
+            "updates_per_step": config["updates_per_step"],
+            "batch_size": config["batch_size"],
+            "time_to_success_s": None if hit is None else hit["train_s"],
+            "steps_to_success": None if hit is None else int(hit["step"]),
+            "final_seen": rows[-1]["train/success"],
+            "final_step": int(rows[-1]["step"]),
+            "train_s": rows[-1]["train_s"],
+            "curve": rows,
+        }
+        print(f"{arm}: {arms[arm]['time_to_success_s']} s to {args.threshold}", flush=True)
+    new, old = arms["new"], arms["old"]
+    headline = {
+        "new_s": new["time_to_success_s"],
+        "old_s": old["time_to_success_s"],
+        "final_seen_new": new["final_seen"],
+        "final_seen_old": old["final_seen"],
+        "steps": args.steps,
+    }
+    reached = {
+        "new_s": new["time_to_success_s"] is not None and new["time_to_success_s"] <= TARGET_S,
+        "final_seen_new": new["final_seen"] >= old["final_seen"],
+    }
+    save_json(
+        NAME,
+        {
+            "headline": headline,
+            "target": {"new_s": TARGET_S, "final_seen_new": "final_seen_old or above"},
+            "reached": reached,
+            "command": command(),
+            "machine": info,
+            "settings": {**vars(args), "old_options": OLD_OPTIONS, "preset": PRESET},
+            "arms": arms,
+        },
+    )
+
+    def fmt(s: float | None) -> str:
+        return "never" if s is None else f"{s:.0f} s ({s / 60:.1f} min)"
+
+    lines = [
+        f"| run | envs | updates/step | batch | time to {args.threshold:.0%} seen | steps "
+        f"| final seen ({args.steps} steps) | training time |",
+        "|---|---:|---:|---:|---:|---:|---:|---:|",
+    ]
+    for arm in ("old", "new"):
+        a = arms[arm]
+        lines.append(
+            f"| {arm} | {a['collect_envs']} | {a['updates_per_step']} | {a['batch_size']} | "
+            f"{fmt(a['time_to_success_s'])} | {a['steps_to_success'] or '-'} | "
+            f"{a['final_seen']:.2f} | {a['train_s']:.0f} s |"
+        )
+    verdicts = ", ".join(f"{k} {'reached' if v else 'NOT reached'}" for k, v in reached.items())
+    body = (
+        f"Targets: new_s <= {TARGET_S:.0f} s; final seen of the new run not below the old "
+        f"run's. **{verdicts}.**\n\nOld options: `{shlex.join(OLD_OPTIONS)}`.\n\n"
+        + "\n".join(lines)
+    )
+    save_markdown(NAME, "Time to 80% seen success on lang2d", body, info)
+
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(6.5, 4))
+    for arm, colour in (("old", "tab:gray"), ("new", "tab:blue")):
+        rows = arms[arm]["curve"]
+        ax.plot(
+            [r["train_s"] / 60 for r in rows],
+            [r["train/success"] for r in rows],
+            "o-",
+            c=colour,
+            label=f"{arm} ({fmt(arms[arm]['time_to_success_s'])})",
+        )
+    ax.axhline(args.threshold, c="k", lw=0.8, ls=":")
+    ax.axvline(TARGET_S / 60, c="tab:red", lw=0.8, ls="--", label="target 8 min")
+    ax.set(xlabel="training wall-clock (min)", ylabel="seen success", ylim=(0, 1.02))
+    ax.set_title("lang2d: time to success")
+    ax.legend(loc="lower right", fontsize=8)
+    fig.tight_layout(rect=(0, 0.08, 1, 1))
+    save_figure(NAME, fig, info)
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
