@@ -76,3 +76,11 @@ def test_default_threads_never_oversubscribe(monkeypatch, omp, processes, cores,
     monkeypatch.setenv("LCRL_PROCESSES", processes)
     monkeypatch.setattr("train.machine.available_cores", lambda: cores)
     assert default_threads() == expected
+
+
+def test_local_ray_workers_take_their_share_of_the_cores(monkeypatch):
+    monkeypatch.delenv("OMP_NUM_THREADS", raising=False)
+    monkeypatch.delenv("LCRL_PROCESSES", raising=False)
+    monkeypatch.setattr("train.machine.available_cores", lambda: 8)
+    assert default_threads(helpers=2) == 2
+    assert default_threads(helpers=7) == 1

@@ -193,7 +193,9 @@ class Trainer(BaseTrainer):
             env_cfg = dataclasses.replace(
                 cfg.env, extra={**cfg.env.extra, "image": True, "image_size": size}
             )
-        set_threads(cfg.torch_threads)
+        c = cfg.collect
+        local_workers = c.workers if c.backend == "ray" and not c.address else 0
+        set_threads(cfg.torch_threads, helpers=local_workers)
         #: The training environments, stepped together (``collect.envs``).
         self.envs = [make_env(env_cfg, "train", training=True) for _ in range(cfg.collect.envs)]
         self.env = self.envs[0]

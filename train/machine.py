@@ -24,10 +24,11 @@ def available_cores() -> int:
 PROCESSES_VARIABLE = "LCRL_PROCESSES"
 
 
-def default_threads() -> int:
+def default_threads(helpers: int = 0) -> int:
     """Torch threads for a training process that does not say: ``OMP_NUM_THREADS`` where it
     is set, otherwise the available cores divided among the ``LCRL_PROCESSES`` training
-    processes running at once (at least 1): never more busy threads than cores, since two
+    processes running at once and the ``helpers`` processes this one starts on the same
+    machine (local Ray workers), at least 1: never more busy threads than cores, since two
     2-thread processes on two cores run several times slower than two 1-thread ones."""
     omp = os.environ.get("OMP_NUM_THREADS", "").strip()
     if omp.isdigit() and int(omp) > 0:
@@ -36,13 +37,13 @@ def default_threads() -> int:
         processes = max(1, int(os.environ.get(PROCESSES_VARIABLE, "1")))
     except ValueError:
         processes = 1
-    return max(1, available_cores() // processes)
+    return max(1, available_cores() // (processes + max(0, helpers)))
 
 
-def set_threads(threads: int = 0) -> int:
+def set_threads(threads: int = 0, helpers: int = 0) -> int:
     """Set torch's intra-op threads: ``threads``, or :func:`default_threads` for 0.
     Returns the number set."""
-    n = threads if threads > 0 else default_threads()
+    n = threads if threads > 0 else default_threads(helpers)
     if torch.get_num_threads() != n:
         torch.set_num_threads(n)
     return n

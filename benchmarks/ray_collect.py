@@ -1,0 +1,195 @@
+"""Ray rollout workers on ``lang2d``: a run with 2 local workers against the local run at
+the same step budget, and the collection rate of 2 workers against one environment.
+
+    python benchmarks/ray_collect.py
+
+Learning: ``lcrl train lang2d`` twice, same seed and step budget, one after the other,
+each alone on the machine: ``local`` (one environment in the learner's process) and
+``ray`` (``--collect.backend ray --collect.workers 2``, a local Ray). Both are evaluated
+with ``lcrl eval`` (100 episodes per set).
+
+Collection rate: steps/s of collection alone (the policy acting, no updates), one local
+environment against 2 Ray workers kept busy, ``--collect-seconds`` each.
+
+Writes ``benchmarks/results/ray_collect.{json,md,png}``; headline ``ray_seen``,
+``local_seen`` and ``collect_speedup``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import copy
+import dataclasses
+import json
+import shlex
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
+
+from benchmarks.common import command, machine, save_figure, save_json, save_markdown
+
+NAME = "ray_collect"
+LCRL = [sys.executable, "-m", "train.cli"]
+SETS = ("train", "heldout", "paraphrase")
+
+
+def run_args(args: argparse.Namespace, arm: str) -> list[str]:
+    cmd = [*LCRL, "train", "lang2d", "--out", str(Path(args.work) / arm)]
+    cmd += ["--total-steps", str(args.steps), "--eval-every", str(args.eval_every)]
+    cmd += ["--seed", str(args.seed), "--checkpoint-every", "0"]
+    cmd += ["--overwrite", "--no-progress", "--no-tensorboard"]
+    if arm == "ray":
+        cmd += ["--collect.backend", "ray", "--collect.workers", str(args.workers)]
+    return cmd
+
+
+def evaluate(run: Path, episodes: int) -> dict:
+    path = run / "final-eval.json"
+    cmd = [*LCRL, "eval", str(run), "--episodes", str(episodes), "--json", str(path)]
+    subprocess.run([*cmd, "--sets", *SETS, "--no-progress"], check=True)
+    return json.loads(path.read_text())["sets"]
+
+
+def collection_rates(workers: int, seconds: float, seed: int) -> dict[str, float]:
+    """Steps/s of collection alone: one local environment, then ``workers`` Ray workers
+    kept busy (the policy acts; nothing is stored or updated)."""
+    from train.config import PRESETS, CollectionConfig
+    from train.loop import Trainer
+    from train.ray_collect import RayCollector
+
+    cfg = copy.deepcopy(PRESETS["lang2d"][1])
+    cfg = dataclasses.replace(
+        cfg,
+        out=tempfile.mkdtemp(prefix="lcrl-collect-"),
+        learning_starts=0,
+        updates_per_step=0.0,
+        progress=False,
+        tensorboard=False,
+        seed=seed,
+    )
+    t = Trainer(cfg)
+    t.advance()  # warm up
+    t0, s0 = time.perf_counter(), t.step
+    while time.perf_counter() - t0 < seconds:
+        t.advance()
+    local = (t.step - s0) / (time.perf_counter() - t0)
+    weights = t._weights()
+    table = (list(t.task.table), t.task.num_train)
+    t.close()
+
+    rcfg = dataclasses.replace(cfg, collect=CollectionConfig(backend="ray", workers=workers))
+    remote = RayCollector(rcfg, table, weights)
+    try:
+        index = 0
+        for slot in remote.slots:  # warm up: every worker built and acting
+            remote.submit(slot, index, False, None)
+            index += 1
+        for _ in remote.slots:
+            remote.next()
+        steps, t0 = 0, time.perf_counter()
+        while time.perf_counter() - t0 < seconds:
+            for slot in remote.idle():
+                remote.submit(slot, index, False, None)
+                index += 1
+            _, result = remote.next()
+            steps += result["steps"] if result else 0
+        rate = steps / (time.perf_counter() - t0)
+    finally:
+        remote.close()
+    return {"local_steps_per_s": local, "ray_steps_per_s": rate}
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--steps", type=int, default=30_000)
+    parser.add_argument("--eval-every", type=int, default=5_000)
+    parser.add_argument("--episodes", type=int, default=100, help="final evaluation")
+    parser.add_argument("--workers", type=int, default=2)
+    parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--collect-seconds", type=float, default=60.0)
+    parser.add_argument("--work", default="runs/bench/ray-collect")
+    parser.add_argument("--arms", nargs="*", default=["local", "ray"])
+    args = parser.parse_args(argv)
+
+    work = Path(args.work)
+    work.mkdir(parents=True, exist_ok=True)
+    rates = collection_rates(args.workers, args.collect_seconds, args.seed)
+    print(f"collection: {rates}", flush=True)
+    for arm in args.arms:
+        cmd = run_args(args, arm)
+        print("== " + shlex.join(cmd), flush=True)
+        t0 = time.perf_counter()
+        with open(work / f"{arm}.log", "w") as log:
+            if subprocess.run(cmd, stdout=log, stderr=subprocess.STDOUT).returncode != 0:
+                raise SystemExit(f"the {arm} run failed: see {log.name}")
+        (work / arm / "seconds.txt").write_text(f"{time.perf_counter() - t0:.1f}")
+    final = {arm: evaluate(work / arm, args.episodes) for arm in ("local", "ray")}
+    seconds = {arm: float((work / arm / "seconds.txt").read_text()) for arm in ("local", "ray")}
+    info = machine()
+    headline = {
+        "ray_seen": final["ray"]["train"]["success"],
+        "local_seen": final["local"]["train"]["success"],
+        "collect_speedup": rates["ray_steps_per_s"] / rates["local_steps_per_s"],
+        "workers": args.workers,
+        "steps": args.steps,
+    }
+    save_json(
+        NAME,
+        {
+            "headline": headline,
+            "command": command(),
+            "machine": info,
+            "settings": vars(args),
+            "collection": rates,
+            "final": final,
+            "seconds": seconds,
+        },
+    )
+    lines = ["| run | seen | held-out | paraphrase | wall-clock |", "|---|---:|---:|---:|---:|"]
+    for arm in ("local", "ray"):
+        f = final[arm]
+        lines.append(
+            f"| {arm} | {f['train']['success']:.2f} | {f['heldout']['success']:.2f} | "
+            f"{f['paraphrase']['success']:.2f} | {seconds[arm]:.0f} s |"
+        )
+    body = (
+        f"`lang2d`, {args.steps} steps, seed {args.seed}; `ray`: "
+        f"`--collect.backend ray --collect.workers {args.workers}` (a local Ray).\n\n"
+        + "\n".join(lines)
+        + f"\n\nCollection alone (policy acting, no updates): one local environment "
+        f"{rates['local_steps_per_s']:.0f} steps/s, {args.workers} Ray workers "
+        f"{rates['ray_steps_per_s']:.0f} steps/s: **{headline['collect_speedup']:.2f}x**."
+    )
+    save_markdown(NAME, "Ray rollout workers on lang2d", body, info)
+
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, axes = plt.subplots(1, 2, figsize=(9, 3.5))
+    x = range(len(SETS))
+    for k, arm in enumerate(("local", "ray")):
+        axes[0].bar(
+            [i + 0.4 * k - 0.2 for i in x], [final[arm][s]["success"] for s in SETS], 0.4, label=arm
+        )
+    axes[0].set_xticks(list(x), ["seen", "held-out", "paraphrase"])
+    axes[0].set(ylim=(0, 1.02), ylabel="success", title=f"lang2d, {args.steps} steps")
+    axes[0].legend()
+    axes[1].bar(
+        ["1 local env", f"{args.workers} Ray workers"],
+        [rates["local_steps_per_s"], rates["ray_steps_per_s"]],
+        color="tab:green",
+    )
+    axes[1].set(ylabel="collection steps/s", title="collection alone")
+    fig.tight_layout(rect=(0, 0.08, 1, 1))
+    save_figure(NAME, fig, info)
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
