@@ -38,6 +38,8 @@ from lcrl.nets import FlatAdam
 
 #: Strategies of :class:`TaskSampler`.
 SAMPLING_STRATEGIES = ("uniform", "success", "progress")
+#: Task loss weightings (:attr:`MultiTaskOptions.weighting`).
+WEIGHTINGS = ("fixed", "gradnorm")
 
 #: Names of the gradient-conflict statistics (:func:`conflict_stats`).
 CONFLICT_KEYS = ("cos_mean", "cos_min", "conflict_fraction")
@@ -73,6 +75,16 @@ class MultiTaskOptions:
     uniform_mix: float = 0.2
     """Share of the uniform distribution mixed into ``success`` and ``progress``
     sampling: no task is drawn with probability below ``uniform_mix / K``."""
+    weighting: str = "fixed"
+    """How task losses are weighted: ``fixed`` (``task_weights``, or all equal) or
+    ``gradnorm`` (SAC: weights learned so that the tasks' gradient norms balance, as in
+    GradNorm, Chen et al. 2018; every update then splits the batch by task, as PCGrad does,
+    and the weights are logged per task as ``task_weight/i``)."""
+    gradnorm_alpha: float = 1.5
+    """GradNorm's asymmetry: tasks whose loss fell least, relative to their first loss, get
+    larger target gradient norms (0: equal norms for every task)."""
+    gradnorm_lr: float = 0.025
+    """Learning rate of GradNorm's task weights."""
     fast_rate: float = 0.1
     """Rate of the fast moving average of a task's success (``progress``)."""
     slow_rate: float = 0.01
@@ -84,11 +96,16 @@ class MultiTaskOptions:
         return self.pcgrad or self.conflict_every > 0
 
     @property
+    def gradnorm(self) -> bool:
+        """Whether task weights are learned by GradNorm."""
+        return self.weighting == "gradnorm"
+
+    @property
     def active(self) -> bool:
         """Whether the learner's update differs from the single-task one."""
         weights = np.asarray(self.task_weights, np.float64)
         uneven = weights.size > 0 and not np.allclose(weights, weights[0])
-        return self.measures_conflict or uneven
+        return self.measures_conflict or uneven or self.gradnorm
 
     def validate(self, num_tasks: int) -> None:
         """Raise :class:`LcrlError` for inconsistent options, given the number of tasks
@@ -96,6 +113,19 @@ class MultiTaskOptions:
         if self.sampling not in SAMPLING_STRATEGIES:
             raise LcrlError(
                 f"unknown task sampling {self.sampling!r}; choose one of {SAMPLING_STRATEGIES}"
+            )
+        if self.weighting not in WEIGHTINGS:
+            raise LcrlError(
+                f"unknown task weighting {self.weighting!r}; choose one of {WEIGHTINGS}"
+            )
+        if self.gradnorm and self.task_weights:
+            raise LcrlError(
+                "multitask.task_weights are fixed weights; multitask.weighting gradnorm "
+                "learns them: give one or the other"
+            )
+        if self.gradnorm_alpha < 0 or self.gradnorm_lr <= 0:
+            raise LcrlError(
+                "multitask.gradnorm_alpha must be >= 0 and multitask.gradnorm_lr positive"
             )
         if self.conflict_every < 0:
             raise LcrlError(f"multitask.conflict_every must be >= 0, got {self.conflict_every}")
@@ -117,6 +147,7 @@ class MultiTaskOptions:
                     ("task_weights", bool(self.task_weights)),
                     ("conflict_every", self.conflict_every > 0),
                     ("sampling", self.sampling != "uniform"),
+                    ("weighting", self.gradnorm),
                 )
                 if on
             ]
@@ -149,6 +180,62 @@ def task_weights(weights: Sequence[float], num_tasks: int) -> np.ndarray:
             f"{tuple(weights)}"
         )
     return w / w.mean()
+
+
+class GradNorm:
+    """Task loss weights that balance the tasks' gradient norms (GradNorm, Chen et al. 2018).
+
+    With ``G_i = w_i ||grad L_i||`` the weighted gradient norm of task ``i``, ``r_i`` its
+    inverse training rate (``L_i / L_i(0)`` over the mean of that ratio) and ``alpha`` the
+    asymmetry, each update moves the weights down the gradient of
+    ``sum_i |G_i - mean(G) r_i^alpha|`` (the target treated as a constant, as in the paper),
+    then keeps them positive and renormalises them to sum to ``K``. Tasks whose gradients
+    are small, or whose loss has fallen least, gain weight.
+
+    Args:
+        num_tasks: ``K``.
+        alpha: the asymmetry (0: equal weighted norms are the target).
+        lr: the weights' learning rate.
+    """
+
+    def __init__(self, num_tasks: int, alpha: float = 1.5, lr: float = 0.025) -> None:
+        self.weights = np.ones(num_tasks, np.float64)
+        self.initial = np.full(num_tasks, np.nan)
+        self.alpha, self.lr = float(alpha), float(lr)
+
+    def update(self, norms: np.ndarray, losses: np.ndarray) -> np.ndarray:
+        """One step of the weights from the tasks' unweighted gradient norms and losses
+        (NaN for tasks absent from the batch, which keep their weight); returns them."""
+        norms = np.asarray(norms, np.float64)
+        losses = np.asarray(losses, np.float64)
+        seen = np.isfinite(norms) & np.isfinite(losses)
+        if seen.sum() < 2:
+            return self.weights
+        first = seen & ~np.isfinite(self.initial)
+        self.initial[first] = np.maximum(np.abs(losses[first]), 1e-8)
+        ratio = np.abs(losses[seen]) / self.initial[seen]
+        r = ratio / max(ratio.mean(), 1e-12)
+        g = self.weights[seen] * norms[seen]
+        target = g.mean() * r**self.alpha
+        w = self.weights.copy()
+        w[seen] -= self.lr * np.sign(g - target) * norms[seen] / max(norms[seen].mean(), 1e-12)
+        w = np.maximum(w, 1e-3)
+        self.weights = w * len(w) / w.sum()
+        return self.weights
+
+    def state_dict(self) -> dict[str, Any]:
+        """The weights and first losses (NaN: not seen yet, saved as None)."""
+        return {
+            "weights": self.weights.tolist(),
+            "initial": [None if not np.isfinite(x) else float(x) for x in self.initial],
+        }
+
+    def load_state_dict(self, state: Mapping[str, Any]) -> None:
+        """Restore :meth:`state_dict`."""
+        self.weights = np.asarray(state["weights"], np.float64)
+        self.initial = np.asarray(
+            [np.nan if x is None else x for x in state["initial"]], np.float64
+        )
 
 
 # --- task sampling ---------------------------------------------------------------------------
@@ -473,7 +560,11 @@ class TaskGradients:
             raise LcrlError(f"{len(losses)} losses but {len(coefs)} coefficients")
         grads = self.task_gradients(losses)
         gram = gram_matrix(grads)
-        stats = conflict_stats(grads, gram)
+        stats: dict[str, Any] = dict(conflict_stats(grads, gram))
+        # each task's gradient norm (NaN for a task without data), for GradNorm
+        stats["norms"] = np.where(
+            [loss is None for loss in losses], np.nan, np.sqrt(np.maximum(np.diag(gram), 0.0))
+        )
         c = np.asarray(coefs, np.float64)
         if self.pcgrad:  # sum_i c_i (g_i - sum_j C_ij g_j) = (c (I - C)) @ g
             c = c @ (np.eye(len(c)) - pcgrad_coefficients(gram, rng=rng))

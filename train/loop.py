@@ -507,6 +507,10 @@ class Trainer(BaseTrainer):
             for i in range(len(self.tasks)):
                 row[f"tasks/{i}/success"] = float(rates[i])
                 row[f"tasks/{i}/prob"] = float(probs[i])
+        learned = getattr(self.agent, "learned_task_weights", lambda: None)()
+        if learned is not None:  # GradNorm's weights, every column from the first row
+            for i, w in enumerate(learned):
+                row[f"tasks/{i}/weight"] = float(w)
         if self.tasks and self.cfg.agent.multitask.measures_conflict:
             for net in ("critic", "actor"):
                 for key in CONFLICT_KEYS:

@@ -21,7 +21,7 @@ from lcrl.algos.base import (
     flat_target,
 )
 from lcrl.buffer import Batch
-from lcrl.multitask import TaskGradients, rows_by_task, task_weights
+from lcrl.multitask import GradNorm, TaskGradients, rows_by_task, task_weights
 from lcrl.nets import FlatAdam, gaussian_log_prob_tanh, grounding_loss
 
 
@@ -127,6 +127,14 @@ class SAC(Agent):
                 self._task_w = torch.as_tensor(w, dtype=torch.float32, device=self.device)
             self._critic_tasks = TaskGradients(self.critic_opt, pcgrad=mt.pcgrad)
             self._actor_tasks = TaskGradients(self.actor_opt, pcgrad=mt.pcgrad)
+        #: GradNorm's weights, learned from the critic's task gradients (multitask.weighting
+        #: gradnorm); they weigh the critic and actor losses alike.
+        self._gradnorm = (
+            GradNorm(problem.num_tasks, mt.gradnorm_alpha, mt.gradnorm_lr)
+            if self.multitask is not None and mt.gradnorm
+            else None
+        )
+        self._task_norms: np.ndarray | None = None
 
     def _policy(
         self, obs: Mapping[str, torch.Tensor], goal: torch.Tensor, with_mean: bool = False
@@ -226,6 +234,10 @@ class SAC(Agent):
             qs.append(q.detach().reshape(-1))
         metrics = self._step("critic", measure, losses, coefs)
         critic_value = _weighted(coefs, losses)
+        if self._gradnorm is not None and self._task_norms is not None:
+            values = [np.nan if loss is None else float(loss.detach()) for loss in losses]
+            w = self._gradnorm.update(self._task_norms, np.asarray(values))
+            self._task_w = torch.as_tensor(w / w.mean(), dtype=torch.float32, device=self.device)
         actor_obs = obs
         if critic_perceives:
             self.perceiver_opt.step()
@@ -289,7 +301,8 @@ class SAC(Agent):
         mt = self.multitask
         if mt is None:
             return False
-        return mt.pcgrad or (mt.conflict_every > 0 and self.updates % mt.conflict_every == 0)
+        every = mt.conflict_every > 0 and self.updates % mt.conflict_every == 0
+        return mt.pcgrad or mt.gradnorm or every
 
     def _parts(
         self, batch: Batch, measure: bool
@@ -335,11 +348,18 @@ class SAC(Agent):
             return {}
         tasks = self._critic_tasks if net == "critic" else self._actor_tasks
         stats = tasks.step(losses, coefs, self.np_rng)
+        if net == "critic":
+            self._task_norms = stats["norms"]
         return {
             f"grad/{net}_cos_mean": stats["cos_mean"],
             f"grad/{net}_cos_min": stats["cos_min"],
             f"grad/{net}_conflict": stats["conflict_fraction"],
         }
+
+    def learned_task_weights(self) -> np.ndarray | None:
+        """GradNorm's current task weights (summing to the number of tasks); None when
+        task weights are not learned."""
+        return None if self._gradnorm is None else self._gradnorm.weights.copy()
 
     def modules(self) -> dict[str, nn.Module]:
         """Actor, critics, target critics and normalisers."""
@@ -358,11 +378,16 @@ class SAC(Agent):
             "critic_opt": self.critic_opt.state_dict(),
             "alpha_opt": self.alpha_opt.state_dict(),
             "log_alpha": self.log_alpha.detach().cpu(),
+            **({"gradnorm": self._gradnorm.state_dict()} if self._gradnorm is not None else {}),
         }
 
     def load_states(self, states: Mapping[str, Any]) -> None:
         """Restore :meth:`states`."""
         super().load_states(states)
+        if self._gradnorm is not None and "gradnorm" in states:
+            self._gradnorm.load_state_dict(states["gradnorm"])
+            w = self._gradnorm.weights
+            self._task_w = torch.as_tensor(w / w.mean(), dtype=torch.float32, device=self.device)
         self.actor_opt.load_state_dict(states["actor_opt"])
         self.critic_opt.load_state_dict(states["critic_opt"])
         self.alpha_opt.load_state_dict(states["alpha_opt"])
