@@ -131,6 +131,55 @@ class CollectionConfig:
 
 
 @dataclass
+class SequentialConfig:
+    """Task groups trained one after another, with forgetting measured (``stages``)."""
+
+    stages: tuple[str, ...] = ()
+    """The stages in order, each a family or families joined by ``+`` (``reach push put``,
+    ``reach+push put``); ``total_steps`` is shared equally among them. Training episodes of
+    a stage draw instructions of its families only; every family of ``env.families`` is
+    evaluated before the first stage and after each, and the success matrix (stage x
+    family), the forgetting and the backward and forward transfer are written to
+    ``sequential.json`` and ``sequential.png``. Empty: one stage of everything."""
+    replay: int = 0
+    """Experience replay of earlier stages: transitions kept from them (a fixed memory
+    budget, shared equally among the earlier stages, whole episodes drawn at random) and
+    put back in the replay buffer at the start of each stage. 0: none. Without replay the
+    buffer starts empty at every stage (naive sequential training)."""
+    ewc: float = 0.0
+    """Weight of the EWC penalty (Kirkpatrick et al. 2017): after each stage the diagonal
+    Fisher information of the critic and actor losses is estimated on that stage's data
+    and ``ewc / 2 * sum F (theta - theta_stage)^2`` pulls the weights back towards where
+    they ended the stage (Fisher summed over stages, anchored at the last). SAC. 0: off."""
+    ewc_batches: int = 20
+    """Batches of the Fisher estimate at the end of each stage."""
+
+    def families(self) -> list[tuple[str, ...]]:
+        """The families of each stage."""
+        return [tuple(f for f in stage.split("+") if f) for stage in self.stages]
+
+    def validate(self, families: tuple[str, ...], algo: str) -> None:
+        """Raise :class:`LcrlError` for stages the env cannot train."""
+        if not self.stages:
+            if self.replay or self.ewc:
+                raise LcrlError("sequential.replay and sequential.ewc need sequential.stages")
+            return
+        for stage in self.families():
+            bad = [f for f in stage if f not in families]
+            if not stage or bad:
+                raise LcrlError(
+                    f"sequential.stages: {'+'.join(stage) or 'an empty stage'} is not made of "
+                    f"env.families {tuple(families)}"
+                )
+        if self.replay < 0 or self.ewc < 0 or self.ewc_batches < 1:
+            raise LcrlError(
+                "sequential.replay and sequential.ewc must be >= 0, sequential.ewc_batches >= 1"
+            )
+        if self.ewc and algo not in ("sac", "auto"):
+            raise LcrlError(f"sequential.ewc is implemented for sac, not {algo}")
+
+
+@dataclass
 class DistillConfig:
     """Teacher -> student distillation with DAgger (``lcrl distill TEACHER_RUN``): a student
     that acts from what cameras show learns the actions of a privileged-state teacher in
@@ -196,6 +245,8 @@ class TrainConfig:
     """Rule or learned captioner and reward model (language goals)."""
     text_encoder: TextEncoderConfig = field(default_factory=TextEncoderConfig)
     """Frozen text encoder for language goals."""
+    sequential: SequentialConfig = field(default_factory=SequentialConfig)
+    """Task groups trained one after another (forgetting, replay, EWC)."""
     collect: CollectionConfig = field(default_factory=CollectionConfig)
     """How training episodes are collected (environments stepped at once)."""
     torch_threads: int = 0
@@ -303,6 +354,9 @@ class TrainConfig:
                 "learned relabelling needs --relabel.checkpoint (train one with lcrl caption train)"
             )
         self.collect.validate()
+        self.sequential.validate(tuple(self.env.families), self.algo)
+        if self.sequential.stages and self.collect.backend != "local":
+            raise LcrlError("sequential.stages train with collect.backend local")
         if self.collect.backend == "ray" and self.relabel.learned:
             raise LcrlError(
                 "learned relabelling reads camera frames in the learner: use "

@@ -196,9 +196,14 @@ class Trainer(BaseTrainer):
         c = cfg.collect
         local_workers = c.workers if c.backend == "ray" and not c.address else 0
         set_threads(cfg.torch_threads, helpers=local_workers)
+        #: The families of each sequential stage (empty: one stage of everything).
+        self.stages = cfg.sequential.families()
+        self.stage = 0
+        self._env_cfg = env_cfg
         #: The training environments, stepped together (``collect.envs``).
-        self.envs = [make_env(env_cfg, "train", training=True) for _ in range(cfg.collect.envs)]
-        self.env = self.envs[0]
+        self.envs = self._make_envs(0)
+        # the task (instruction table, checkpoints) spans every family of every stage
+        self.env = make_env(env_cfg, "train", training=True) if self.stages else self.envs[0]
         self.task = build_task(cfg, self.env, ckpt)
         if models is not None:
             from captioner.learned import LearnedLabeller
@@ -220,8 +225,30 @@ class Trainer(BaseTrainer):
         self.agent: Agent = build_agent(
             self.algo, self.problem, cfg, self.task.goal_space.embed, self.env
         )
-        p = self.problem
-        self.buffer = HindsightReplayBuffer(
+        self.buffer = self._new_buffer()
+        self.rng = np.random.default_rng([cfg.seed, 9])  # replay memory draws
+        #: Sequential stages: the success matrix so far, the replay memory of each
+        #: finished stage, the episodes of the current one (kept only for replay).
+        self.stage_rows: list[dict[str, Any]] = []
+        self.memory: list[list[dict[str, Any]]] = []
+        self._stage_episodes: list[dict[str, Any]] = []
+        if self.stages:
+            self._stage_labels()
+            if cfg.sequential.ewc:
+                from lcrl.continual import EWC
+
+                self.agent.ewc = EWC(cfg.sequential.ewc)
+        #: One scripted controller per environment (none without scripted episodes).
+        self.scripted = [
+            ScriptedActor(cfg.env, self.task, cfg.scripted_noise)
+            for _ in (self.envs if cfg.scripted_fraction > 0 else ())
+        ]
+        self._init_rest(cfg, ckpt)
+
+    def _new_buffer(self) -> HindsightReplayBuffer:
+        """An empty replay buffer of the run's settings."""
+        cfg, p = self.cfg, self.problem
+        return HindsightReplayBuffer(
             cfg.buffer.capacity,
             {
                 k: (shape, np.uint8 if len(shape) == 3 else np.float32)
@@ -237,11 +264,27 @@ class Trainer(BaseTrainer):
             n_step=cfg.buffer.n_step,
             gamma=self.agent.cfg.gamma,
         )
-        #: One scripted controller per environment (none without scripted episodes).
-        self.scripted = [
-            ScriptedActor(cfg.env, self.task, cfg.scripted_noise)
-            for _ in (self.envs if cfg.scripted_fraction > 0 else ())
-        ]
+
+    def _make_envs(self, stage: int) -> list[Any]:
+        """The training environments of a stage (its families only, with stages)."""
+        env_cfg = self._env_cfg
+        if self.stages:
+            env_cfg = dataclasses.replace(env_cfg, families=self.stages[stage])
+        return [make_env(env_cfg, "train", training=True) for _ in range(self.cfg.collect.envs)]
+
+    def _stage_labels(self) -> None:
+        """Hindsight relabelling names the current stage's instructions only."""
+        task = self.task
+        if not hasattr(task, "train_ids"):
+            raise LcrlError("sequential.stages need instructions (language goals or task ids)")
+        families = set(self.stages[self.stage])
+        parse = task.captioner.parse
+        task.label_ids = {
+            parse(t).text: i for t, i in task.train_ids.items() if parse(t).family in families
+        }
+
+    def _init_rest(self, cfg: TrainConfig, ckpt: Any) -> None:
+        """The task sampler, the counters, and what a checkpoint restores."""
         # a fixed task set: each training episode's task is drawn by the sampler
         self.tasks = task_texts(cfg.env)
         self.sampler = (
@@ -267,10 +310,133 @@ class Trainer(BaseTrainer):
     def advance(self) -> None:
         """Collect one episode per environment (acting, stepping, updating) and store
         them; with Ray workers, store the next episode one returns and update."""
+        if self.stages:
+            if not self.stage_rows:  # before the first stage: the forward-transfer base
+                self._stage_row("init")
+            if self.step >= self._stage_end(self.stage) and self.stage < len(self.stages) - 1:
+                self.next_stage()
         if self.cfg.collect.backend == "ray":
             self.collect_remote()
         else:
             self.collect_episode()
+        if self.stages and self.cfg.sequential.replay:
+            self._stage_episodes.extend(self._last_episodes)
+
+    # --- sequential stages -------------------------------------------------------------
+    def _stage_end(self, stage: int) -> int:
+        """The step at which a stage ends (``total_steps`` shared equally)."""
+        n = len(self.stages)
+        return int(np.ceil(self.cfg.total_steps * (stage + 1) / n))
+
+    def _stage_row(self, after: str) -> None:
+        """Evaluate every family (seen instructions) and add a row to the success matrix;
+        write sequential.json and sequential.png."""
+        from train.evaluate import evaluate
+        from train.sequential import transfer_metrics, write
+
+        cfg = self.cfg
+        results = evaluate(
+            self.agent, self.task, cfg, episodes=cfg.eval_episodes, seed=cfg.seed, sets=("train",)
+        )
+        fams = results["train"]["families"]
+        families = list(cfg.env.families)
+        row = {
+            "after": after,
+            "step": self.step,
+            "success": {f: fams.get(f, 0.0) for f in families},
+        }
+        self.stage_rows.append(row)
+        print(
+            f"[sequential, after {after}] "
+            + " ".join(f"{f} {row['success'][f]:.2f}" for f in families),
+            flush=True,
+        )
+        matrix = [r["success"] for r in self.stage_rows]
+        payload = {
+            "stages": [list(s) for s in self.stages],
+            "families": families,
+            "replay": cfg.sequential.replay,
+            "ewc": cfg.sequential.ewc,
+            "rows": self.stage_rows,
+            "metrics": transfer_metrics(matrix, self.stages),
+        }
+        self.out.mkdir(parents=True, exist_ok=True)
+        write(self.out, payload)
+
+    def next_stage(self) -> None:
+        """End the current stage (evaluate every family, consolidate EWC, keep the replay
+        memory) and start the next: an empty buffer (plus the replay memory), training
+        environments and relabelling restricted to its families."""
+        seq = self.cfg.sequential
+        self._stage_row("+".join(self.stages[self.stage]))
+        if self.agent.ewc is not None:
+            self._consolidate()
+        if seq.replay:
+            self.memory.append(self._stage_episodes)
+            self._stage_episodes = []
+            share = seq.replay // len(self.memory)
+            self.memory = [self._draw(eps, share) for eps in self.memory]
+        self.stage += 1
+        for env in self.envs:
+            env.close()
+        self.envs = self._make_envs(self.stage)
+        self._stage_labels()
+        self.buffer = self._new_buffer()
+        for episode in (e for eps in self.memory for e in eps):
+            self.buffer.add_episode(episode)
+        print(
+            f"[sequential] stage {self.stage + 1}/{len(self.stages)}: "
+            f"{'+'.join(self.stages[self.stage])} from step {self.step}"
+            + (f", {self.buffer.size} replayed transitions" if seq.replay else ""),
+            flush=True,
+        )
+
+    def _draw(self, episodes: list[dict[str, Any]], budget: int) -> list[dict[str, Any]]:
+        """Episodes drawn at random (in their order) while their steps fit ``budget``."""
+        kept, used = [], 0
+        for i in self.rng.permutation(len(episodes)):
+            n = len(episodes[i]["action"])
+            if used + n <= budget:
+                kept.append(int(i))
+                used += n
+        return [episodes[i] for i in sorted(kept)]
+
+    def _consolidate(self) -> None:
+        """EWC at the end of a stage: the diagonal Fisher information of the critic and
+        actor losses, from ``sequential.ewc_batches`` batches of the stage's data."""
+        import torch
+
+        sums: dict[str, torch.Tensor] = {}
+        n = self.cfg.sequential.ewc_batches
+        for _ in range(n):
+            for name, g in self.agent.loss_gradients(
+                self.buffer.sample(self.cfg.batch_size)
+            ).items():
+                sums[name] = sums.get(name, 0.0) + g * g
+        for name, params in self.agent.flat_parameters().items():
+            self.agent.ewc.consolidate(name, params, sums[name] / n)
+
+    def _restore_stage(self, ckpt: Any) -> None:
+        """The stage, the matrix so far and the EWC state of a checkpoint."""
+        with restoring(ckpt, "the state 'sequential'"):
+            state = ckpt.state("sequential")
+            self.stage, self.stage_rows = int(state["stage"]), list(state["rows"])
+        if self.stage > 0 and self.cfg.sequential.replay:
+            raise LcrlError(
+                "--resume of a sequential run with replay after its first stage is not "
+                "supported: the replay memory of earlier stages is not saved"
+            )
+        if self.agent.ewc is not None and ckpt.has_state("ewc"):
+            with restoring(ckpt, "the state 'ewc'"):
+                self.agent.ewc.load_state_dict(ckpt.state("ewc"))
+        for env in self.envs:
+            env.close()
+        self.envs = self._make_envs(self.stage)
+        self._stage_labels()
+
+    @property
+    def _last_episodes(self) -> list[dict[str, Any]]:
+        return getattr(self, "_just_stored", [])
 
     # --- Ray rollout workers -----------------------------------------------------------
     #: The Ray actors (``collect.backend ray``), started by the first :meth:`advance`.
@@ -331,6 +497,7 @@ class Trainer(BaseTrainer):
         between goes back to it (:meth:`rollback`), so its checkpoint, resumed, collects
         the same episodes with the same updates."""
         self._start = self.snapshot()
+        self._just_stored: list[dict[str, Any]] = []
         cfg = self.cfg
         episodes = [self._begin(i, env) for i, env in enumerate(self.envs)]
         active = list(episodes)
@@ -381,6 +548,8 @@ class Trainer(BaseTrainer):
         """Label a finished episode and add it to the buffer."""
         episode = episode_record(self.task, ep)
         self.buffer.add_episode(episode)
+        if self.stages and self.cfg.sequential.replay:
+            self._just_stored.append(episode)
         self.agent.observe(episode["obs"], episode.get("achieved_goal"))
 
     def _finish_episode(
@@ -451,6 +620,12 @@ class Trainer(BaseTrainer):
                     continue
                 self._metrics[k] = self._metrics.get(k, 0.0) + v
             self._metric_count += 1
+
+    def finish(self) -> dict[str, Any]:
+        """The end of the run; with sequential stages, the last stage's matrix row first."""
+        if self.stages and len(self.stage_rows) == self.stage + 1:
+            self._stage_row("+".join(self.stages[self.stage]))
+        return super().finish()
 
     def close(self) -> None:
         """Close the training environments, the Ray workers and the logs."""
@@ -547,6 +722,10 @@ class Trainer(BaseTrainer):
                 "train_s": self.train_seconds(),
             },
         }
+        if self.stages:
+            states["sequential"] = {"stage": self.stage, "rows": self.stage_rows}
+            if self.agent.ewc is not None:
+                states["ewc"] = self.agent.ewc.state_dict()
         if self.sampler is not None:
             states["task_sampler"] = self.sampler.state_dict()
             states["task_rng"] = self.task_rng.bit_generator.state
@@ -580,6 +759,8 @@ class Trainer(BaseTrainer):
             with restoring(ckpt, "the states 'task_sampler' and 'task_rng'"):
                 self.sampler.load_state_dict(ckpt.state("task_sampler"))
                 self.task_rng.bit_generator.state = ckpt.state("task_rng")
+        if self.stages and ckpt.has_state("sequential"):
+            self._restore_stage(ckpt)
         if ckpt.has_arrays():
             self.buffer.load_arrays(ckpt.arrays())
         print(f"resumed {self.out} at step {self.step} ({self.episodes} episodes)")

@@ -755,6 +755,11 @@ def write_report(
             else ""
         )
         lines += _tasks_section(final)
+    from train.sequential import markdown, read
+
+    stages = read(run)
+    if stages is not None:  # sequential stages: the success matrix and forgetting
+        lines += ["", markdown(stages), "![success matrix](sequential.png)", ""]
     if progress:
         last = progress[-1]
         speed = last.get("steps_per_s", float("nan"))

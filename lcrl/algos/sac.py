@@ -344,10 +344,13 @@ class SAC(Agent):
             assert loss is not None
             opt.zero_grad()
             loss.backward()
+            self._add_penalty(net, opt)
             opt.step()
             return {}
         tasks = self._critic_tasks if net == "critic" else self._actor_tasks
-        stats = tasks.step(losses, coefs, self.np_rng)
+        stats = tasks.backward(losses, coefs, self.np_rng)
+        self._add_penalty(net, opt)
+        opt.step()
         if net == "critic":
             self._task_norms = stats["norms"]
         return {
@@ -355,6 +358,48 @@ class SAC(Agent):
             f"grad/{net}_cos_min": stats["cos_min"],
             f"grad/{net}_conflict": stats["conflict_fraction"],
         }
+
+    #: The EWC penalty of sequential training (:class:`lcrl.continual.EWC`); None: off.
+    ewc: Any = None
+
+    def _add_penalty(self, net: str, opt: FlatAdam) -> None:
+        """Add the EWC penalty's gradient to a network's flat gradient (when EWC is on)."""
+        if self.ewc is not None:
+            g = self.ewc.grad(net, opt.flat)
+            if g is not None:
+                opt.grad.add_(g)
+
+    def flat_parameters(self) -> dict[str, torch.Tensor]:
+        """The critic's and the actor's flat parameter vectors (what EWC anchors)."""
+        return {"critic": self.critic_opt.flat, "actor": self.actor_opt.flat}
+
+    def loss_gradients(self, batch: Batch) -> dict[str, torch.Tensor]:
+        """The gradients of the critic loss and of the actor loss on ``batch`` (flat, the
+        layout of :meth:`flat_parameters`), without any step: what the Fisher information
+        of EWC is estimated from. Plain SAC losses (no task split, no grounding term)."""
+        obs, nobs, goal, act, rew, boot = self.batch_tensors(batch)
+        alpha = self.log_alpha.detach().exp()
+        with torch.no_grad():
+            next_a, next_logp = self._policy(nobs, goal)
+            target_q = self.critic_target(nobs, goal, next_a).min(0).values.squeeze(-1)
+            y = rew + boot * (target_q - alpha * next_logp)
+        out = {}
+        self.critic_opt.zero_grad()
+        q = self.critic(obs, goal, act).squeeze(-1)
+        (0.5 * (q - y).pow(2).mean(-1).sum()).backward()
+        out["critic"] = self.critic_opt.grad.clone()
+        self.critic_opt.zero_grad()
+        self.actor_opt.zero_grad()
+        self.critic.requires_grad_(False)
+        try:
+            a, logp = self._policy(obs, goal)
+            q_pi = self.critic(obs, goal, a).min(0).values.squeeze(-1)
+            (alpha * logp - q_pi).mean().backward()
+        finally:
+            self.critic.requires_grad_(True)
+        out["actor"] = self.actor_opt.grad.clone()
+        self.actor_opt.zero_grad()
+        return out
 
     def learned_task_weights(self) -> np.ndarray | None:
         """GradNorm's current task weights (summing to the number of tasks); None when

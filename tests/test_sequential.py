@@ -1,0 +1,115 @@
+"""Sequential stages, forgetting and EWC (``--sequential.*``)."""
+
+from __future__ import annotations
+
+import json
+import math
+
+import pytest
+import torch
+from helpers import cli, error_line, tiny
+
+from lcrl.continual import EWC
+from train.config import SequentialConfig
+from train.loop import Trainer
+from train.sequential import transfer_metrics
+
+
+def test_ewc_penalty_is_zero_at_the_anchor_and_grows_away_from_it():
+    ewc = EWC(weight=2.0)
+    params = torch.tensor([1.0, -2.0, 0.5])
+    assert ewc.penalty("critic", params) == 0.0 and ewc.grad("critic", params) is None
+    ewc.consolidate("critic", params, torch.tensor([1.0, 0.0, 4.0]))
+    assert ewc.penalty("critic", params) == 0.0
+    assert torch.equal(ewc.grad("critic", params), torch.zeros(3))
+    near, far = params + 0.1, params + 1.0
+    assert 0.0 < ewc.penalty("critic", near) < ewc.penalty("critic", far)
+    # quadratic: ten times further costs a hundred times more
+    assert ewc.penalty("critic", far) == pytest.approx(100 * ewc.penalty("critic", near))
+    # the gradient added to the optimiser's is the penalty's own
+    x = far.clone().requires_grad_(True)
+    ewc.penalty("critic", x).backward()
+    assert torch.allclose(x.grad, ewc.grad("critic", far))
+    # a weight with zero Fisher information is free to move
+    moved = params.clone()
+    moved[1] += 5.0
+    assert ewc.penalty("critic", moved) == 0.0
+    # a second stage adds its Fisher and moves the anchor
+    ewc.consolidate("critic", far, torch.ones(3))
+    assert ewc.penalty("critic", far) == 0.0
+    assert torch.equal(ewc.fisher["critic"], torch.tensor([2.0, 1.0, 5.0]))
+    again = EWC(2.0)
+    again.load_state_dict(ewc.state_dict())
+    assert again.penalty("critic", params) == ewc.penalty("critic", params)
+
+
+def test_transfer_metrics_by_hand():
+    stages = [("reach",), ("push",), ("put",)]
+    matrix = [
+        {"reach": 0.1, "push": 0.0, "put": 0.0},  # before training
+        {"reach": 0.9, "push": 0.2, "put": 0.0},  # after reach
+        {"reach": 0.5, "push": 0.8, "put": 0.1},  # after push
+        {"reach": 0.3, "push": 0.6, "put": 0.7},  # after put
+    ]
+    m = transfer_metrics(matrix, stages)
+    assert m["forgetting"] == pytest.approx(((0.9 - 0.3) + (0.8 - 0.6)) / 2)
+    assert m["backward_transfer"] == pytest.approx(((0.3 - 0.9) + (0.6 - 0.8)) / 2)
+    assert m["forward_transfer"] == pytest.approx(((0.2 - 0.0) + (0.1 - 0.0)) / 2)
+    assert m["final_mean"] == pytest.approx((0.3 + 0.6 + 0.7) / 3)
+    # after one stage nothing can have been forgotten yet
+    assert math.isnan(transfer_metrics(matrix[:2], stages)["forgetting"])
+
+
+@pytest.mark.parametrize(("replay", "ewc"), [(0, 0.0), (150, 10.0)])
+def test_sequential_run_writes_its_matrix(tmp_path, replay, ewc):
+    out = tmp_path / "run"
+    cfg = tiny(
+        "lang2d",
+        out,
+        total_steps=400,
+        learning_starts=100,
+        eval_episodes=6,
+        sequential=SequentialConfig(stages=("reach", "push"), replay=replay, ewc=ewc),
+    )
+    trainer = Trainer(cfg)
+    assert trainer.envs[0].unwrapped is not None
+    trainer.run()
+    payload = json.loads((out / "sequential.json").read_text())
+    assert [r["after"] for r in payload["rows"]] == ["init", "reach", "push"]
+    assert payload["families"] == ["reach", "push"]
+    assert set(payload["metrics"]) == {
+        "forgetting", "backward_transfer", "forward_transfer", "final_mean"
+    }  # fmt: skip
+    assert math.isfinite(payload["metrics"]["forgetting"])
+    assert (out / "sequential.png").is_file()
+    assert "## Sequential stages" in (out / "report.md").read_text()
+    if ewc:  # the Fisher of both networks, anchored at the end of the first stage
+        assert set(trainer.agent.ewc.fisher) == {"critic", "actor"}
+        assert trainer.agent.ewc.fisher["critic"].sum() > 0
+    if replay:
+        steps = sum(len(e["action"]) for e in trainer.memory[0])
+        assert 0 < steps <= replay
+
+
+def test_stages_train_only_their_families(tmp_path):
+    cfg = tiny("lang2d", tmp_path / "run", sequential=SequentialConfig(stages=("push", "reach")))
+    trainer = Trainer(cfg)
+    try:
+        from train.tasks import find_language_wrapper
+
+        assert find_language_wrapper(trainer.envs[0]).families == ("push",)
+        families = {trainer.task.captioner.parse(t).family for t in trainer.task.label_ids}
+        assert families == {"push"}
+        assert len(trainer.task.table) > len(trainer.task.label_ids)  # the table spans both
+    finally:
+        trainer.close()
+
+
+def test_bad_stages_are_one_line_errors(tmp_path, capsys):
+    status = cli(
+        "train", "lang2d", "--out", str(tmp_path / "r"), "--sequential.stages", "reach", "lift",
+    )  # fmt: skip
+    assert status != 0
+    assert error_line(capsys.readouterr().err) == (
+        "lcrl: error: sequential.stages: lift is not made of env.families ('reach', 'push')"
+    )
