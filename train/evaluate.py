@@ -57,13 +57,23 @@ def build_task(
     env: gym.Env,
     ckpt: Checkpoint | None = None,
     table: tuple[list[str], int] | None = None,
+    embeddings: np.ndarray | None = None,
 ) -> Task:
     """The task adapter; language tasks load the frozen text encoder and take the
     checkpoint's instruction table when given (or ``table``: the texts and how many of
-    them are training instructions, e.g. a teacher's)."""
+    them are training instructions, e.g. a teacher's). With ``table`` and its
+    ``embeddings`` (one row per text) no encoder is loaded: what a rollout worker does with
+    its learner's table."""
     check_slots(cfg, env)
     if not is_language(cfg.env):
         task = make_task(cfg.env, env)
+    elif embeddings is not None and table is not None:
+        rows = {t: np.asarray(e, np.float32) for t, e in zip(table[0], embeddings, strict=True)}
+
+        def lookup(texts: list[str]) -> np.ndarray:
+            return np.stack([rows[t] for t in texts])
+
+        task = make_task(cfg.env, env, lookup, table=list(table[0]), num_train=int(table[1]))
     else:
         from lcrl.text_encoder import FrozenTextEncoder
 

@@ -305,6 +305,8 @@ class Trainer(BaseTrainer):
         elif self.task.text_goals:
             self.agent.observe({}, self.task.embeddings[: self.task.num_train])
         attach_grounding(self.agent, self.task, cfg)
+        if cfg.collect.backend == "ray":
+            self.start_workers()
 
     # --- the loop ------------------------------------------------------------------
     def advance(self) -> None:
@@ -449,19 +451,26 @@ class Trainer(BaseTrainer):
             for name, module in self.agent.modules().items()
         }
 
+    def start_workers(self) -> None:
+        """Start the Ray rollout workers with the learner's weights and instruction table
+        (before the loop installs its SIGINT and SIGTERM handlers, which then take
+        precedence over those Ray installs)."""
+        from train.ray_collect import RayCollector
+
+        table = getattr(self.task, "table", None)
+        embeddings = getattr(self.task, "embeddings", None) if table is not None else None
+        table = (list(table), self.task.num_train) if table is not None else None
+        self.remote = RayCollector(self.cfg, table, self._weights(), embeddings)
+        self._issued = self.episodes
+        self._synced = self.agent.updates
+
     def collect_remote(self) -> None:
         """Keep every Ray worker collecting; take the first episode one returns, run the
         updates due for its steps, then store it (a stop during the updates drops it
         whole), and sync the workers' weights every ``collect.sync_every`` updates."""
-        from train.ray_collect import RayCollector
-
         cfg = self.cfg
         if self.remote is None:
-            table = getattr(self.task, "table", None)
-            table = (list(table), self.task.num_train) if table is not None else None
-            self.remote = RayCollector(cfg, table, self._weights())
-            self._issued = self.episodes
-            self._synced = self.agent.updates
+            self.start_workers()
         for slot in self.remote.idle():
             task_id = self.sampler.sample(self.task_rng) if self.sampler is not None else None
             self.remote.submit(slot, self._issued, self.step < cfg.learning_starts, task_id)

@@ -59,9 +59,15 @@ class RolloutWorker:
         config: the run's config (:func:`train.config.config_to_dict`).
         table: the learner's instruction table and how many are training instructions
             (None for goals that are not instructions), so that ids agree.
+        embeddings: the table's text embeddings, so that no worker loads the encoder.
     """
 
-    def __init__(self, config: dict[str, Any], table: tuple[list[str], int] | None) -> None:
+    def __init__(
+        self,
+        config: dict[str, Any],
+        table: tuple[list[str], int] | None,
+        embeddings: np.ndarray | None = None,
+    ) -> None:
         from train.config import config_from_dict
         from train.evaluate import build_agent, build_task
         from train.machine import set_threads
@@ -71,7 +77,7 @@ class RolloutWorker:
         cfg = config_from_dict(config)
         self.cfg = cfg
         self.env = make_env(cfg.env, "train", training=True)
-        self.task = build_task(cfg, self.env, table=table)
+        self.task = build_task(cfg, self.env, table=table, embeddings=embeddings)
         problem = self.task.problem()
         algo = cfg.resolved_algo(problem.discrete)
         self.agent = build_agent(algo, problem, cfg, self.task.goal_space.embed, self.env)
@@ -152,10 +158,15 @@ class RayCollector:
         cfg: the run's config (``collect.workers``, ``collect.address``).
         table: the learner's instruction table (see :class:`RolloutWorker`).
         weights: the learner's initial weights.
+        embeddings: the table's text embeddings.
     """
 
     def __init__(
-        self, cfg: Any, table: tuple[list[str], int] | None, weights: dict[str, Any]
+        self,
+        cfg: Any,
+        table: tuple[list[str], int] | None,
+        weights: dict[str, Any],
+        embeddings: np.ndarray | None = None,
     ) -> None:
         from train.config import config_to_dict
 
@@ -183,6 +194,7 @@ class RayCollector:
         self._remote = ray.remote(num_cpus=1, max_restarts=0)(RolloutWorker)
         self._config = config_to_dict(cfg)
         self._table = table
+        self._embeddings = None if embeddings is None else ray.put(np.asarray(embeddings))
         self.version = 0
         self._weights = ray.put(weights)
         self.slots = [self._new_slot() for _ in range(cfg.collect.workers)]
@@ -190,7 +202,7 @@ class RayCollector:
         self.dropped = 0
 
     def _new_slot(self) -> _Slot:
-        actor = self._remote.remote(self._config, self._table)
+        actor = self._remote.remote(self._config, self._table, self._embeddings)
         actor.set_weights.remote(self._weights, self.version)
         return _Slot(actor)
 
