@@ -2,7 +2,8 @@
 
 Run from the repository root::
 
-    python benchmarks/multitask.py --parallel   # the 4 runs side by side, 30k steps each
+    python benchmarks/multitask.py --parallel   # the 4 runs, 2 side by side, 30k steps each
+    python benchmarks/multitask.py --runs ids ids-pcgrad ids-gradnorm --seeds 0 1 2 --parallel
     python benchmarks/multitask.py --steps 1000 --eval-episodes 16   # a quick check
     python benchmarks/multitask.py --report-only   # rebuild the results from runs/bench/
 
@@ -19,6 +20,12 @@ split's training set) are learned four ways, same seed and budget:
     embeddings), relabelled in hindsight among the 8 instructions (language HER).
 ``lang-pcgrad``
     the same with PCGrad.
+``ids-gradnorm``
+    task ids with GradNorm task weights (``--agent.multitask.weighting gradnorm``).
+
+With ``--runs ids ids-pcgrad ids-gradnorm --seeds 0 1 2`` the ``headline`` holds
+``uniform_mean``, ``pcgrad_mean`` and ``gradnorm_mean``: the final mean success over the
+seeds of the three task-balancing arms.
 
 Every run measures gradient conflict between the tasks every 10 updates (the presets'
 ``conflict_every``; PCGrad runs measure it at every update, before projecting), so all
@@ -56,7 +63,14 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
-from benchmarks.common import RESULTS_DIR, machine, save_figure, save_json, save_markdown
+from benchmarks.common import (
+    RESULTS_DIR,
+    command,
+    machine,
+    save_figure,
+    save_json,
+    save_markdown,
+)
 from benchmarks.learning_curves import reusable
 from train.config import PRESETS, TrainConfig
 from train.eval_suite import wilson_interval
@@ -65,12 +79,18 @@ from train.tasks import task_texts
 
 NAME = "multitask"
 TITLE = "Multi-task RL on the 2D tabletop: 8 tasks as task ids or language goals, PCGrad"
-RUNS: dict[str, tuple[str, bool]] = {
-    "ids": ("lang2d-tasks", False),
-    "ids-pcgrad": ("lang2d-tasks", True),
-    "lang": ("lang2d-tasks-lang", False),
-    "lang-pcgrad": ("lang2d-tasks-lang", True),
+#: Run name -> (preset, PCGrad, task weighting).
+RUNS: dict[str, tuple[str, bool, str]] = {
+    "ids": ("lang2d-tasks", False, "fixed"),
+    "ids-pcgrad": ("lang2d-tasks", True, "fixed"),
+    "ids-gradnorm": ("lang2d-tasks", False, "gradnorm"),
+    "lang": ("lang2d-tasks-lang", False, "fixed"),
+    "lang-pcgrad": ("lang2d-tasks-lang", True, "fixed"),
 }
+#: The runs of the first version of this benchmark (``--runs`` default).
+DEFAULT_RUNS = ["ids", "ids-pcgrad", "lang", "lang-pcgrad"]
+#: The headline's three task-balancing arms over task ids: key -> run.
+BALANCING = {"uniform_mean": "ids", "pcgrad_mean": "ids-pcgrad", "gradnorm_mean": "ids-gradnorm"}
 #: Gradient-conflict columns of progress.csv, as (network, statistic, column).
 CONFLICT = [
     (net, stat, f"grad/{net}_{stat}")
@@ -79,9 +99,9 @@ CONFLICT = [
 ]
 
 
-def run_folder(name: str) -> Path:
-    """Where run ``name`` trains."""
-    return Path("runs/bench") / f"{NAME}-{name}"
+def run_folder(name: str, seed: int = 0) -> Path:
+    """Where run ``name`` trains (seed 0 in the folder of the first version)."""
+    return Path("runs/bench") / f"{NAME}-{name}{f'-s{seed}' if seed else ''}"
 
 
 def run_config(
@@ -89,14 +109,14 @@ def run_config(
 ) -> TrainConfig:
     """The training config of one run. A ``steps`` budget below the presets' learning
     start and evaluation interval shrinks them to fit (a quick check of the script)."""
-    preset, pcgrad = RUNS[name]
+    preset, pcgrad, weighting = RUNS[name]
     cfg: TrainConfig = PRESETS[preset][1]
     total = steps or cfg.total_steps
     learning_starts = min(cfg.learning_starts, total // 4)
     eval_every = cfg.eval_every if total >= 2 * cfg.eval_every else max(total // 2, 1)
     cfg = dataclasses.replace(
         cfg,
-        out=str(run_folder(name)),
+        out=str(run_folder(name, seed)),
         total_steps=total,
         learning_starts=learning_starts,
         eval_every=eval_every,
@@ -110,7 +130,7 @@ def run_config(
         cfg.agent,
         seed=seed,
         device=device,
-        multitask=dataclasses.replace(cfg.agent.multitask, pcgrad=pcgrad),
+        multitask=dataclasses.replace(cfg.agent.multitask, pcgrad=pcgrad, weighting=weighting),
     )
     return cfg
 
@@ -182,6 +202,8 @@ def summarise(name: str, cfg: TrainConfig, seconds: float | None) -> dict[str, A
         "preset": RUNS[name][0],
         "goal_type": cfg.env.goal_type,
         "pcgrad": cfg.agent.multitask.pcgrad,
+        "weighting": cfg.agent.multitask.weighting,
+        "seed": cfg.seed,
         "total_steps": int(final["step"]),
         "seconds": seconds,
         "final": {"mean": _interval(total, sum(counts)), "tasks": per_task},
@@ -209,6 +231,13 @@ def _keep_timings(results: dict[str, Any]) -> None:
             res["seconds"] = prev["seconds"]
 
 
+def balance(r: dict[str, Any]) -> str:
+    """How a run balanced its tasks."""
+    if r.get("weighting") == "gradnorm":
+        return "GradNorm"
+    return "PCGrad" if r["pcgrad"] else "uniform"
+
+
 def _cell(st: dict[str, Any]) -> str:
     return f"{st['success']:.2f} [{st['low']:.2f}, {st['high']:.2f}]"
 
@@ -220,7 +249,7 @@ def _num(x: float | None) -> str:
 def markdown(results: dict[str, Any], tasks: tuple[str, ...], episodes: int) -> str:
     """The two tables: runs (mean success, conflict, time) and success per task."""
     lines = [
-        "| run | goals | PCGrad | steps | mean success [95% CI] | critic cos | critic conflict "
+        "| run | goals | balancing | steps | mean success [95% CI] | critic cos | critic conflict "
         "| actor cos | actor conflict | time |",
         "|---|---|---|---:|---|---:|---:|---:|---:|---:|",
     ]
@@ -229,7 +258,7 @@ def markdown(results: dict[str, Any], tasks: tuple[str, ...], episodes: int) -> 
         goals = "task ids" if r["goal_type"] == "task" else "language (HER)"
         secs = f"{r['seconds']:.0f} s" if r.get("seconds") else "n/a"
         lines.append(
-            f"| {name} | {goals} | {'yes' if r['pcgrad'] else 'no'} | {r['total_steps']:,} | "
+            f"| {name} | {goals} | {balance(r)} | {r['total_steps']:,} | "
             f"{_cell(r['final']['mean'])} | {_num(c['critic_cos_mean'])} | "
             f"{_num(c['critic_conflict'])} | {_num(c['actor_cos_mean'])} | "
             f"{_num(c['actor_conflict'])} | {secs} |"
@@ -299,19 +328,39 @@ def figure(results: dict[str, Any], tasks: tuple[str, ...], info: dict[str, Any]
     return save_figure(NAME, fig, info)
 
 
+def balancing_headline(results: dict[str, Any]) -> dict[str, Any]:
+    """``uniform_mean``, ``pcgrad_mean`` and ``gradnorm_mean``: the final mean success of
+    the task-id runs of each balancing, averaged over the seeds that ran (with its
+    spread)."""
+    from train.report import spread
+
+    out: dict[str, Any] = {}
+    for key, run in BALANCING.items():
+        values = [r["final"]["mean"]["success"] for r in results.values() if r["run"] == run]
+        if values:
+            sp = spread(values)
+            out[key] = round(sp["mean"], 3)
+            out[key.replace("_mean", "_std")] = round(sp["std"], 3)
+            out[key.replace("_mean", "_seeds")] = sp["runs"]
+    return out
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--steps", type=int, default=None, help="override the step budget")
-    parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--seeds", type=int, nargs="+", default=[0])
     parser.add_argument("--eval-episodes", type=int, default=160, help="per evaluation")
     parser.add_argument("--device", default="cpu", help="cpu, cuda or cuda:N")
     parser.add_argument(
-        "--runs", nargs="+", choices=sorted(RUNS), default=list(RUNS), help="a subset of runs"
+        "--runs", nargs="+", choices=sorted(RUNS), default=DEFAULT_RUNS, help="a subset of runs"
     )
     parser.add_argument(
         "--parallel",
-        action="store_true",
-        help="train the runs side by side, one process and one thread each",
+        type=int,
+        nargs="?",
+        const=2,
+        default=1,
+        help="runs trained side by side, one process and one thread each (2 without a value)",
     )
     parser.add_argument(
         "--reuse",
@@ -326,36 +375,64 @@ def main(argv: list[str] | None = None) -> int:
     )
     args = parser.parse_args(argv)
     info = machine()
-    configs = {
-        name: run_config(name, args.steps, args.seed, args.eval_episodes, args.device)
+    keys = {
+        (name, seed): name if len(args.seeds) == 1 else f"{name}-s{seed}"
+        for seed in args.seeds
         for name in args.runs
+    }
+    configs = {
+        key: run_config(name, args.steps, seed, args.eval_episodes, args.device)
+        for (name, seed), key in keys.items()
     }
     seconds: dict[str, float | None] = {}
     todo = {}
-    for name, cfg in configs.items():
+    for key, cfg in configs.items():
         if args.report_only:
-            seconds[name] = None
-        elif args.reuse and reusable(cfg, run_folder(name)) is not None:
-            print(f"== {name}: reusing {run_folder(name)}")
-            seconds[name] = None
+            seconds[key] = None
+        elif args.reuse and reusable(cfg, Path(cfg.out)) is not None:
+            print(f"== {key}: reusing {cfg.out}")
+            seconds[key] = None
         else:
-            todo[name] = cfg
-    if args.parallel and len(todo) > 1:
+            todo[key] = cfg
+    if args.parallel > 1 and len(todo) > 1:
         info["torch_threads"] = 1
         ctx = multiprocessing.get_context("spawn")
-        with ProcessPoolExecutor(len(todo), mp_context=ctx, initializer=_one_thread) as pool:
-            futures = {name: pool.submit(train_one, cfg) for name, cfg in todo.items()}
-            seconds.update({name: f.result() for name, f in futures.items()})
+        workers = min(args.parallel, len(todo))
+        with ProcessPoolExecutor(workers, mp_context=ctx, initializer=_one_thread) as pool:
+            futures = {key: pool.submit(train_one, cfg) for key, cfg in todo.items()}
+            seconds.update({key: f.result() for key, f in futures.items()})
     else:
-        for name, cfg in todo.items():
-            print(f"== {name}: {RUNS[name][0]}{' + PCGrad' if RUNS[name][1] else ''}", flush=True)
-            seconds[name] = train_one(cfg)
-    results = {name: summarise(name, configs[name], seconds[name]) for name in args.runs}
+        for key, cfg in todo.items():
+            print(f"== {key}: {cfg.out}", flush=True)
+            seconds[key] = train_one(cfg)
+    results = {}
+    for (name, _), key in keys.items():
+        results[key] = {"run": name, **summarise(name, configs[key], seconds[key])}
     _keep_timings(results)
     any_cfg = next(iter(configs.values()))
     tasks = task_texts(any_cfg.env)
-    save_json(NAME, {"suite": NAME, "machine": info, "tasks": list(tasks), "runs": results})
+    payload: dict[str, Any] = {"suite": NAME}
+    headline = balancing_headline(results)
+    if headline:
+        payload["headline"] = headline
+    payload.update(
+        command=command(), machine=info, seeds=args.seeds, tasks=list(tasks), runs=results
+    )
+    save_json(NAME, payload)
     table = markdown(results, tasks, any_cfg.eval_episodes)
+    if headline:
+        table = (
+            "Task balancing over task ids, final mean success over seeds: "
+            + ", ".join(
+                f"{k.removesuffix('_mean')} {headline[k]:.3f} ± "
+                f"{headline[k.replace('_mean', '_std')]:.3f} "
+                f"({headline[k.replace('_mean', '_seeds')]} seeds)"
+                for k in BALANCING
+                if k in headline
+            )
+            + ".\n\n"
+            + table
+        )
     print(table)
     save_markdown(NAME, TITLE, table, info)
     figure(results, tasks, info)

@@ -687,10 +687,11 @@ def test_benchmark_configs():
     from benchmarks.multitask import RUNS, per_task_counts, run_config
 
     assert per_task_counts(20, 8) == [3, 3, 3, 3, 2, 2, 2, 2]
-    for name, (preset, pcgrad) in RUNS.items():
+    for name, (preset, pcgrad, weighting) in RUNS.items():
         cfg = run_config(name, 1000, 0, 16, "cpu")
         cfg.validate()
         assert cfg.agent.multitask.pcgrad is pcgrad and cfg.env.tasks == TASKS_2D
+        assert cfg.agent.multitask.weighting == weighting
         assert cfg.learning_starts == 250 and cfg.eval_every == 500
         assert (cfg.env.goal_type == "task") is (preset == "lang2d-tasks")
         assert cfg.buffer.k == (0 if preset == "lang2d-tasks" else 4)

@@ -316,7 +316,8 @@ class Trainer(BaseTrainer):
             if not self.stage_rows:  # before the first stage: the forward-transfer base
                 self._stage_row("init")
             if self.step >= self._stage_end(self.stage) and self.stage < len(self.stages) - 1:
-                self.next_stage()
+                with self.holding_signals():  # a stage ends whole: a stop waits for it
+                    self.next_stage()
         if self.cfg.collect.backend == "ray":
             self.collect_remote()
         else:

@@ -1,0 +1,208 @@
+"""Forgetting in sequential training on the 2D tabletop: naive, experience replay and EWC,
+same stages, seeds and budget.
+
+    python benchmarks/forgetting.py                      # reach then push, 3 seeds
+    python benchmarks/forgetting.py --steps 4000 --seeds 0 --eval-episodes 20   # a check
+
+Arms (``--arms``): ``naive`` (``--sequential.stages reach push``: the buffer starts empty
+at each stage), ``replay`` (``--sequential.replay R``) and ``ewc``
+(``--sequential.ewc W``). Each trains ``lcrl train lang2d`` with those stages, one run
+per seed, two at a time with one torch thread each; finished runs (their
+``sequential.json`` and ``report.md``) are kept, so an interrupted benchmark goes on where
+it stopped.
+
+Writes ``benchmarks/results/forgetting.{json,md,png}``: ``headline.forgetting_naive``,
+``forgetting_replay`` and ``forgetting_ewc``, each the mean over seeds of the mean drop of
+the earlier stage's success from its best (target: replay and EWC below naive), with the
+spread over seeds, the success matrices and the backward and forward transfer.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import shlex
+import subprocess
+import sys
+import time
+from pathlib import Path
+from typing import Any
+
+sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
+
+from benchmarks.common import (
+    command,
+    machine,
+    save_figure,
+    save_json,
+    save_markdown,
+    side_by_side_env,
+)
+from train.report import spread
+
+NAME = "forgetting"
+ARMS = ("naive", "replay", "ewc")
+LCRL = [sys.executable, "-m", "train.cli"]
+
+
+def arm_args(arm: str, args: argparse.Namespace) -> list[str]:
+    """The ``lcrl train`` options of an arm."""
+    out = ["--sequential.stages", *args.stages]
+    if arm == "replay":
+        out += ["--sequential.replay", str(args.replay)]
+    elif arm == "ewc":
+        out += ["--sequential.ewc", str(args.ewc)]
+    return out
+
+
+def run_dir(args: argparse.Namespace, arm: str, seed: int) -> Path:
+    return Path(args.work) / f"{arm}-s{seed}"
+
+
+def run_all(args: argparse.Namespace) -> None:
+    """Train every (arm, seed) without a finished run, ``--parallel`` at a time."""
+    todo = [(a, s) for s in args.seeds for a in args.arms]
+    todo = [(a, s) for a, s in todo if not (run_dir(args, a, s) / "report.md").is_file()]
+    running: list[tuple[str, subprocess.Popen, Any]] = []
+    while todo or running:
+        while todo and len(running) < args.parallel:
+            arm, seed = todo.pop(0)
+            out = run_dir(args, arm, seed)
+            out.parent.mkdir(parents=True, exist_ok=True)
+            cmd = [*LCRL, "train", "lang2d", "--out", str(out), "--seed", str(seed)]
+            cmd += ["--total-steps", str(args.steps), "--eval-every", "0"]
+            cmd += ["--eval-episodes", str(args.eval_episodes), "--checkpoint-every", "0"]
+            cmd += ["--overwrite", "--no-progress", "--no-tensorboard", *arm_args(arm, args)]
+            log = open(out.parent / f"{out.name}.log", "w")  # noqa: SIM115
+            print("== " + shlex.join(cmd), flush=True)
+            proc = subprocess.Popen(
+                cmd, stdout=log, stderr=subprocess.STDOUT, env=side_by_side_env(args.parallel)
+            )
+            running.append((f"{arm}-s{seed}", proc, log))
+        time.sleep(5)
+        for item in list(running):
+            name, proc, log = item
+            if proc.poll() is None:
+                continue
+            running.remove(item)
+            log.close()
+            if proc.returncode != 0:
+                raise SystemExit(f"{name} failed: see {log.name}")
+            print(f"{name} done", flush=True)
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--stages", nargs="+", default=["reach", "push"])
+    parser.add_argument("--arms", nargs="+", choices=ARMS, default=list(ARMS))
+    parser.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2])
+    parser.add_argument("--steps", type=int, default=60_000, help="all stages together")
+    parser.add_argument("--replay", type=int, default=10_000, help="replay arm's memory")
+    parser.add_argument("--ewc", type=float, default=100.0, help="EWC arm's weight")
+    parser.add_argument("--eval-episodes", type=int, default=100)
+    parser.add_argument("--parallel", type=int, default=2)
+    parser.add_argument("--work", default="runs/bench/forgetting")
+    args = parser.parse_args(argv)
+
+    run_all(args)
+    info = machine()
+    arms: dict[str, Any] = {}
+    for arm in args.arms:
+        runs = {
+            s: json.loads((run_dir(args, arm, s) / "sequential.json").read_text())
+            for s in args.seeds
+        }
+        metrics = {
+            k: spread([r["metrics"][k] for r in runs.values()])
+            for k in ("forgetting", "backward_transfer", "forward_transfer", "final_mean")
+        }
+        arms[arm] = {"metrics": metrics, "per_seed": {str(s): r for s, r in runs.items()}}
+    headline = {
+        f"forgetting_{arm}": round(arms[arm]["metrics"]["forgetting"]["mean"], 3)
+        for arm in args.arms
+    }
+    headline["seeds"] = len(args.seeds)
+    reached = {
+        f"forgetting_{arm}": headline[f"forgetting_{arm}"] < headline["forgetting_naive"]
+        for arm in args.arms
+        if arm != "naive" and "naive" in args.arms
+    }
+    save_json(
+        NAME,
+        {
+            "headline": headline,
+            "target": "forgetting_replay and forgetting_ewc below forgetting_naive",
+            "reached": reached,
+            "command": command(),
+            "machine": info,
+            "settings": vars(args),
+            "arms": arms,
+        },
+    )
+    fams = next(iter(next(iter(arms.values()))["per_seed"].values()))["families"]
+    lines = [
+        "| arm | forgetting | backward transfer | forward transfer | final mean success |",
+        "|---|---:|---:|---:|---:|",
+    ]
+    for arm, a in arms.items():
+        m = a["metrics"]
+        lines.append(
+            f"| {arm} | "
+            + " | ".join(
+                f"{m[k]['mean']:.3f} ± {m[k]['std']:.3f}"
+                for k in ("forgetting", "backward_transfer", "forward_transfer", "final_mean")
+            )
+            + " |"
+        )
+    lines += [
+        "",
+        "Success matrices (mean over seeds; rows: before training, after each stage):",
+        "",
+    ]
+    for arm, a in arms.items():
+        rows = list(a["per_seed"].values())
+        lines += [
+            f"**{arm}**",
+            "",
+            "| after | " + " | ".join(fams) + " |",
+            "|---|" + "---:|" * len(fams),
+        ]
+        for i, row in enumerate(rows[0]["rows"]):
+            cells = [sum(r["rows"][i]["success"][f] for r in rows) / len(rows) for f in fams]
+            lines.append(f"| {row['after']} | " + " | ".join(f"{c:.2f}" for c in cells) + " |")
+        lines.append("")
+    verdict = ", ".join(f"{k} {'reached' if v else 'NOT reached'}" for k, v in reached.items())
+    body = (
+        f"Stages {' -> '.join(args.stages)} on `lang2d`, {args.steps} steps in all, seeds "
+        f"{args.seeds}; replay memory {args.replay} transitions, EWC weight {args.ewc}. "
+        f"Target: replay and EWC forget less than naive: **{verdict}**.\n\n" + "\n".join(lines)
+    )
+    save_markdown(NAME, "Forgetting in sequential training (lang2d)", body, info)
+
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(6, 3.5))
+    names = list(arms)
+    means = [arms[a]["metrics"]["forgetting"]["mean"] for a in names]
+    stds = [arms[a]["metrics"]["forgetting"]["std"] for a in names]
+    ax.bar(
+        names,
+        means,
+        yerr=stds,
+        capsize=4,
+        color=["tab:gray", "tab:blue", "tab:green"][: len(names)],
+    )
+    for a_i, a in enumerate(names):
+        for r in arms[a]["per_seed"].values():
+            ax.plot(a_i, r["metrics"]["forgetting"], "k.", ms=4)
+    ax.set(ylabel="forgetting (drop from best)", title="lang2d: " + " -> ".join(args.stages))
+    fig.tight_layout(rect=(0, 0.08, 1, 1))
+    save_figure(NAME, fig, info)
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
