@@ -639,7 +639,10 @@ class Trainer(BaseTrainer):
 
     def close(self) -> None:
         """Close the training environments, the Ray workers and the logs."""
-        for env in getattr(self, "envs", ()):
+        envs = list(getattr(self, "envs", ()))
+        if envs and getattr(self, "stages", None):
+            envs.append(self.env)  # the table's env of a sequential run
+        for env in envs:
             env.close()
         self.envs = []
         if self.remote is not None:
