@@ -92,11 +92,11 @@ class CollectionConfig:
 
     envs: int = 1
     """Environments stepped at once in the training process. Each step, the policy acts
-    for all of them in one batched forward pass; each finished episode is captioned and
-    stored whole, in the order of its episode index, so a seed stores the same episodes
-    whatever the number (random, scripted and policy actions alike are drawn per episode;
-    only the policy's updates between steps differ). ``updates_per_step`` counts every
-    environment's steps. Collection is synchronous and deterministic."""
+    for all of them in one batched forward pass; ``updates_per_step`` counts every
+    environment's steps. Each finished episode is captioned and stored whole, in the
+    order of its episode number, which also fixes its reset seed. Collection is
+    synchronous and deterministic: a seed and a number of environments fix the run (the
+    random draws interleave across environments, so 1 and 8 differ in them)."""
     backend: str = "local"
     """Where episodes are collected: ``local`` (this process, synchronous and
     deterministic) or ``ray`` (``workers`` Ray actors, each with an environment, a policy

@@ -86,9 +86,10 @@ class _Episode:
 
     env: Any
     slot: int
-    #: Random and scripted actions (and whether the scripted controller acts), drawn
-    #: from the episode's index alone.
+    #: Random actions are drawn from ``rng``, the scripted controller's noise from
+    #: ``scripted_rng``.
     rng: np.random.Generator
+    scripted_rng: np.random.Generator
     first: dict[str, Any]
     goal: Any
     stored: list[dict[str, np.ndarray]]
@@ -113,25 +114,30 @@ def begin_episode(
     index: int,
     scripted: ScriptedActor | None,
     task_id: int | None = None,
+    rng: np.random.Generator | None = None,
+    scripted_rng: np.random.Generator | None = None,
 ) -> _Episode:
-    """Reset ``env`` for the training episode of number ``index``: the reset seed, the
-    random generator of its random and scripted actions and whether the scripted
-    controller acts it (when ``scripted`` is given) all follow from ``cfg.seed`` and
-    ``index`` alone; ``task_id`` picks a task of the run's task set (reset in a layout
-    where it is feasible)."""
+    """Reset ``env`` for the training episode of number ``index`` (its reset seed follows
+    from ``cfg.seed`` and ``index``); ``task_id`` picks a task of the run's task set (reset
+    in a layout where it is feasible). Random actions are drawn from ``rng`` and the
+    scripted controller's choice and noise from ``scripted_rng`` (the trainer's streams);
+    without them, from a generator of the episode's index alone (a rollout worker's)."""
     seed = int(cfg.seed * 1_000_003 + index)
-    rng = np.random.default_rng([cfg.seed, 7, index])
+    if rng is None:
+        rng = np.random.default_rng([cfg.seed, 7, index])
+    scripted_rng = rng if scripted_rng is None else scripted_rng
     if task_id is not None:
         obs, info = reset_feasible(env, seed, task_texts(cfg.env)[task_id])
     else:
         obs, info = env.reset(seed=seed)
-    acted = scripted is not None and rng.random() < cfg.scripted_fraction
+    acted = scripted is not None and scripted_rng.random() < cfg.scripted_fraction
     if acted:
         scripted.reset()
     return _Episode(
         env=env,
         slot=0,
         rng=rng,
+        scripted_rng=scripted_rng,
         first=obs,
         goal=task.goal(obs, env),
         stored=[task.training_obs(obs, obs)],
@@ -226,7 +232,9 @@ class Trainer(BaseTrainer):
             self.algo, self.problem, cfg, self.task.goal_space.embed, self.env
         )
         self.buffer = self._new_buffer()
-        self.rng = np.random.default_rng([cfg.seed, 9])  # replay memory draws
+        self.rng = np.random.default_rng(cfg.seed)  # random actions
+        self.scripted_rng = np.random.default_rng([cfg.seed, 1])  # scripted choice, noise
+        self.memory_rng = np.random.default_rng([cfg.seed, 9])  # replay memory draws
         #: Sequential stages: the success matrix so far, the replay memory of each
         #: finished stage, the episodes of the current one (kept only for replay).
         self.stage_rows: list[dict[str, Any]] = []
@@ -397,7 +405,7 @@ class Trainer(BaseTrainer):
     def _draw(self, episodes: list[dict[str, Any]], budget: int) -> list[dict[str, Any]]:
         """Episodes drawn at random (in their order) while their steps fit ``budget``."""
         kept, used = [], 0
-        for i in self.rng.permutation(len(episodes)):
+        for i in self.memory_rng.permutation(len(episodes)):
             n = len(episodes[i]["action"])
             if used + n <= budget:
                 kept.append(int(i))
@@ -525,7 +533,7 @@ class Trainer(BaseTrainer):
                     ep.action = a
             for ep in active:
                 if ep.scripted:
-                    ep.action = self.scripted[ep.slot].act(ep.env, ep.rng)
+                    ep.action = self.scripted[ep.slot].act(ep.env, ep.scripted_rng)
                 elif self.step < cfg.learning_starts:
                     ep.action = ep.random_action
                 self._step(ep)
@@ -547,7 +555,16 @@ class Trainer(BaseTrainer):
         if self.sampler is not None:
             task_id = self.sampler.sample(self.task_rng)
         scripted = self.scripted[slot] if self.scripted else None
-        ep = begin_episode(self.cfg, self.task, env, self.episodes + slot, scripted, task_id)
+        ep = begin_episode(
+            self.cfg,
+            self.task,
+            env,
+            self.episodes + slot,
+            scripted,
+            task_id,
+            rng=self.rng,
+            scripted_rng=self.scripted_rng,
+        )
         ep.slot = slot
         return ep
 
@@ -594,7 +611,7 @@ class Trainer(BaseTrainer):
         }
 
     def _generators(self) -> list[np.random.Generator]:
-        return [self.task_rng, self.buffer.rng]
+        return [self.rng, self.scripted_rng, self.task_rng, self.buffer.rng]
 
     def rollback(self) -> None:
         """Undo the episode in hand (nothing when the run is between episodes)."""
@@ -725,6 +742,8 @@ class Trainer(BaseTrainer):
         states = {
             **self.agent.states(),
             "buffer_rng": self.buffer.rng.bit_generator.state,
+            "trainer_rng": self.rng.bit_generator.state,
+            "scripted_rng": self.scripted_rng.bit_generator.state,
             "trainer": {
                 "step": self.step,
                 "episodes": self.episodes,
@@ -760,8 +779,12 @@ class Trainer(BaseTrainer):
         with restoring(ckpt, "the learner's states"):
             states = {name: ckpt.state(name) for name in self.agent.states()}
             self.agent.load_states(states)
-        with restoring(ckpt, "the state 'buffer_rng'"):
-            self.buffer.rng.bit_generator.state = ckpt.state("buffer_rng")
+        for name, rng in (("buffer_rng", self.buffer.rng), ("trainer_rng", self.rng)):
+            with restoring(ckpt, f"the state {name!r}"):
+                rng.bit_generator.state = ckpt.state(name)
+        if ckpt.has_state("scripted_rng"):
+            with restoring(ckpt, "the state 'scripted_rng'"):
+                self.scripted_rng.bit_generator.state = ckpt.state("scripted_rng")
         self.step, self.episodes = int(trainer["step"]), int(trainer["episodes"])
         self.sim_errors = int(trainer.get("sim_errors", 0))
         self.scripted_episodes = int(trainer.get("scripted_episodes", 0))

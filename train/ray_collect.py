@@ -116,7 +116,7 @@ class RolloutWorker:
         ep = begin_episode(cfg, task, self.env, index, self.scripted, task_id)
         while not ep.done and ep.t < cfg.total_steps:
             if ep.scripted:
-                ep.action = self.scripted.act(self.env, ep.rng)
+                ep.action = self.scripted.act(self.env, ep.scripted_rng)
             elif random:
                 if ep.t % cfg.random_action_repeat == 0:
                     ep.random_action = task.random_action(ep.rng)
