@@ -408,16 +408,36 @@ def parse_train_args(argv: Sequence[str]) -> Any:
     return cfg
 
 
+def _saved_offline(cfg: Any) -> bool:
+    """``--resume`` of a run that was trained offline (its saved config says so): its
+    dataset and learner are taken into ``cfg`` (the saved config is used from then on)."""
+    path = Path(cfg.out) / "config.json"
+    if not cfg.resume or not path.is_file():
+        return False
+    try:
+        saved = json.loads(path.read_text())
+    except (OSError, ValueError):
+        return False
+    if not saved.get("offline"):
+        return False
+    cfg.offline, cfg.algo = saved["offline"], saved.get("algo", cfg.algo)
+    return True
+
+
 def _train(argv: Sequence[str]) -> None:
     from lcrl.algos import ALGOS
     from train.loop import Trainer
 
     cfg = parse_train_args(argv)
     spec = ALGOS.get(cfg.algo)
-    if spec is not None and spec.learns_from == "demos":  # behavioural cloning from --demos
+    if cfg.offline or _saved_offline(cfg):  # offline RL / GCBC through the replay buffer
+        from train.offline import OfflineTrainer
+
+        trainer: Trainer | BCTrainer = OfflineTrainer(cfg)
+    elif spec is not None and spec.learns_from == "demos":  # behavioural cloning from --demos
         from train.bc import BCTrainer
 
-        trainer: Trainer | BCTrainer = BCTrainer(cfg)
+        trainer = BCTrainer(cfg)
     else:
         trainer = Trainer(cfg)
     results = trainer.run()

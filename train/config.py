@@ -237,6 +237,12 @@ class TrainConfig:
     """Demonstration file (``lcrl demos record``) that ``algo=bc`` learns from. With
     ``bc``, ``total_steps``, ``eval_every``, ``checkpoint_every`` and ``log_every`` count
     gradient updates instead of environment steps."""
+    offline: str = ""
+    """Learn offline from this HDF5 dataset (``lcrl demos record``, random play with
+    ``--actor random``, an import) through the replay buffer and its hindsight
+    relabelling, stepping no environment except to evaluate (``--algo td3``: TD3+BC,
+    ``--algo bc``: goal-conditioned BC). ``total_steps`` and the ``*_every`` settings then
+    count gradient updates."""
     agent: AgentOptions = field(default_factory=AgentOptions)
     """Networks, normalisation, device and seed of the learner."""
     buffer: BufferConfig = field(default_factory=BufferConfig)
@@ -309,6 +315,12 @@ class TrainConfig:
         # the chosen algorithm's config (for auto: both algorithms it may resolve to)
         for name in dict.fromkeys(resolve_algo(self.algo, d) for d in (False, True)):
             getattr(self, name).validate()
+        if self.offline and self.demos:
+            raise LcrlError("--offline and --demos are two data sources: give one")
+        if self.offline and self.algo not in ("td3", "bc"):
+            raise LcrlError(
+                "--offline trains with --algo td3 (TD3+BC) or --algo bc (goal-conditioned BC)"
+            )
         if self.demos and (self.algo == "auto" or ALGOS[self.algo].learns_from != "demos"):
             learners = [name for name, spec in ALGOS.items() if spec.learns_from == "demos"]
             raise LcrlError(

@@ -157,8 +157,8 @@ def family_of(text: str) -> str:
 
 @dataclass
 class RecordConfig:
-    """Record scripted-controller episodes on a language-goal preset's env
-    (``lcrl demos record --preset lang2d --episodes 500``)."""
+    """Record scripted-controller (or random-play) episodes on a language-goal preset's
+    env (``lcrl demos record --preset lang2d --episodes 500``)."""
 
     out: str = ""
     """The dataset file to write (default: ``data/demos-PRESET.h5``)."""
@@ -170,6 +170,10 @@ class RecordConfig:
     """Instruction families to record (default: the preset's)."""
     episodes: int = 200
     """Episodes to run (with --no-keep-failures only the successful ones are stored)."""
+    actor: str = "scripted"
+    """Who acts: ``scripted`` (the scripted controllers, with ``--noise``) or ``random``
+    (uniformly random actions: random-play data, which offline training with hindsight
+    relabelling learns from; ``lcrl train --offline FILE``)."""
     noise: float = 0.3
     """Standard deviation of the Gaussian noise on the scripted actions (policy units):
     varied demonstrations, and near misses that hindsight relabelling turns into
@@ -230,6 +234,8 @@ class RecordConfig:
             raise LcrlError(f"--episodes must be positive, got {self.episodes}")
         if self.noise < 0:
             raise LcrlError(f"--noise must be >= 0, got {self.noise}")
+        if self.actor not in ACTORS:
+            raise LcrlError(f"unknown --actor {self.actor!r}; choose one of {', '.join(ACTORS)}")
         if self.image_size < 0 or self.max_episode_steps < 0:
             raise LcrlError("--image-size and --max-episode-steps must be >= 0 (0: the preset's)")
         out = self.resolved_out()
@@ -242,6 +248,23 @@ class RecordConfig:
     def run(self) -> None:
         """``lcrl demos record``."""
         record(self)
+
+
+#: Who acts in recorded episodes (:attr:`RecordConfig.actor`).
+ACTORS = ("scripted", "random")
+
+
+class RandomActor:
+    """Uniformly random actions (random play), with the scripted actor's interface."""
+
+    def __init__(self, task: Any) -> None:
+        self.task = task
+
+    def reset(self) -> None:
+        return None
+
+    def act(self, env: Any, rng: np.random.Generator) -> np.ndarray:
+        return self.task.random_action(rng)
 
 
 def _language_presets() -> list[str]:
@@ -279,7 +302,7 @@ def record(cfg: RecordConfig) -> Path:
     images = bool(cfg.images or env_cfg.image_obs)
     env = _recording_env(env_cfg, images, cfg.image_size)
     task = Task(env)
-    actor = ScriptedActor(env_cfg, task, cfg.noise)
+    actor = ScriptedActor(env_cfg, task, cfg.noise) if cfg.actor == "scripted" else RandomActor(task)
     wrapper = find_language_wrapper(env)
     base = env.unwrapped
     proprio_dim = int(getattr(base, "proprio_dim", 0))
@@ -291,11 +314,12 @@ def record(cfg: RecordConfig) -> Path:
         "split_fingerprint": wrapper.split.fingerprint(),
         "split_families": list(wrapper.split.families),
         "families": list(env_cfg.families),
-        "source": "scripted",
+        "source": cfg.actor,
         "scene_kinds": [object_name(c, s) for c, s in OBJECT_KINDS],
         "recording": {
             "episodes": cfg.episodes,
-            "noise": cfg.noise,
+            "actor": cfg.actor,
+            "noise": cfg.noise if cfg.actor == "scripted" else None,
             "seed": cfg.seed,
             "images": images,
             "image_size": int(env.observation_space["image"].shape[0]) if images else None,
@@ -335,7 +359,7 @@ def record(cfg: RecordConfig) -> Path:
                 stats["dropped_failures"] += 1
                 continue
             stats["steps"] += len(ep["actions"])
-            writer.add_episode(**ep, source="scripted")
+            writer.add_episode(**ep, source=cfg.actor)
             bar.set_postfix(success=f"{sum(won.values()) / max(1, sum(tried.values())):.2f}")
     except KeyboardInterrupt:
         bar.close()
@@ -363,7 +387,7 @@ def record(cfg: RecordConfig) -> Path:
     writer.update_meta({"per_family": _rates(tried, won), **stats})
     stored = writer.num_episodes
     path = writer.close()
-    print(_format_rates(tried, won))
+    print(_format_rates(tried, won, cfg.actor))
     extra = []
     if stats["dropped_failures"]:
         extra.append(f"{stats['dropped_failures']} failed episodes dropped")
@@ -381,8 +405,8 @@ def _rates(tried: Mapping[str, int], won: Mapping[str, int]) -> dict[str, dict[s
     }
 
 
-def _format_rates(tried: Mapping[str, int], won: Mapping[str, int]) -> str:
-    lines = ["scripted success per family:"]
+def _format_rates(tried: Mapping[str, int], won: Mapping[str, int], actor: str = "scripted") -> str:
+    lines = [f"{actor} success per family:"]
     for f, n in tried.items():
         rate = f"{won.get(f, 0) / n:.2f}" if n else "  - "
         lines.append(f"  {f:<6} {rate}  ({won.get(f, 0)}/{n})")

@@ -184,11 +184,7 @@ class Trainer(BaseTrainer):
 
     def __init__(self, cfg: TrainConfig) -> None:
         cfg.validate()
-        if cfg.algo in ALGOS and ALGOS[cfg.algo].learns_from != "env":
-            raise LcrlError(
-                f"{cfg.algo} learns from demonstrations, not in this loop: run it with lcrl "
-                "train (train.bc.BCTrainer)"
-            )
+        self.check_algo(cfg)
         self.out = Path(cfg.out)
         cfg, ckpt = open_run(cfg)
         self.cfg = cfg
@@ -253,6 +249,18 @@ class Trainer(BaseTrainer):
         ]
         self._init_rest(cfg, ckpt)
 
+    #: The replay buffer is filled again from its source on resume (offline runs), so
+    #: checkpoints do not carry it.
+    refills_buffer = False
+
+    def check_algo(self, cfg: TrainConfig) -> None:
+        """Refuse a learner that does not learn in this loop."""
+        if cfg.algo in ALGOS and ALGOS[cfg.algo].learns_from != "env":
+            raise LcrlError(
+                f"{cfg.algo} learns from demonstrations, not in this loop: run it with lcrl "
+                "train (train.bc.BCTrainer), or from any dataset with --offline FILE"
+            )
+
     def _new_buffer(self) -> HindsightReplayBuffer:
         """An empty replay buffer of the run's settings."""
         cfg, p = self.cfg, self.problem
@@ -270,7 +278,7 @@ class Trainer(BaseTrainer):
             seed=cfg.seed,
             random_fraction=cfg.buffer.random_fraction,
             n_step=cfg.buffer.n_step,
-            gamma=self.agent.cfg.gamma,
+            gamma=getattr(self.agent.cfg, "gamma", 0.99),  # bc has none (n_step 1)
         )
 
     def _make_envs(self, stage: int) -> list[Any]:
@@ -761,7 +769,7 @@ class Trainer(BaseTrainer):
         if self.sampler is not None:
             states["task_sampler"] = self.sampler.state_dict()
             states["task_rng"] = self.task_rng.bit_generator.state
-        arrays = self.buffer.arrays() if cfg.save_buffer else None
+        arrays = self.buffer.arrays() if cfg.save_buffer and not self.refills_buffer else None
         return self.write_checkpoint(meta, json_files, states, arrays)
 
     def restore(self, ckpt: Any) -> None:
@@ -800,7 +808,7 @@ class Trainer(BaseTrainer):
         if ckpt.has_arrays():
             self.buffer.load_arrays(ckpt.arrays())
         print(f"resumed {self.out} at step {self.step} ({self.episodes} episodes)")
-        if not ckpt.has_arrays():
+        if not ckpt.has_arrays() and not self.refills_buffer:
             print(
                 "note: this checkpoint holds no replay buffer (the run had save_buffer off): "
                 "training goes on from an empty buffer, so it does not continue the run exactly"

@@ -46,6 +46,11 @@ class TD3Config:
     """Std of the Gaussian noise added to actions while collecting data."""
     max_grad_norm: float | None = None
     """Clip gradient norms to this (``None``: no clipping)."""
+    bc_alpha: float = 2.5
+    """Offline training only (``lcrl train --offline FILE``): TD3+BC (Fujimoto & Gu 2021).
+    The actor minimises ``-alpha / mean|Q| * Q(s, pi(s)) + (pi(s) - a)^2`` with ``a`` the
+    dataset's action, so it stays near the data where the critic is trusted; larger alpha
+    is more RL, 0 is plain behavioural cloning of the relabelled data. Online runs ignore it."""
 
     def validate(self) -> None:
         """Raise :class:`LcrlError` for settings that cannot train."""
@@ -54,7 +59,7 @@ class TD3Config:
             "td3",
             unit=("gamma", "tau"),
             positive=("actor_lr", "critic_lr", "policy_delay"),
-            non_negative=("policy_noise", "noise_clip", "exploration_noise"),
+            non_negative=("policy_noise", "noise_clip", "exploration_noise", "bc_alpha"),
             positive_or_none=("max_grad_norm",),
         )
 
@@ -92,6 +97,8 @@ class TD3(Agent):
             self.critic.parameters(), cfg.critic_lr, max_grad_norm=cfg.max_grad_norm
         )
         self._last_actor_loss = 0.0
+        #: Learning from a fixed dataset (TD3+BC's actor loss, :attr:`TD3Config.bc_alpha`).
+        self.offline = False
 
     def act(
         self,
@@ -134,8 +141,13 @@ class TD3(Agent):
         self.updates += 1
         if self.updates % cfg.policy_delay == 0:
             self.critic.requires_grad_(False)
-            q_pi = self.critic(obs, goal, torch.tanh(self.actor(obs, goal)))[0]
-            actor_loss = -q_pi.mean()
+            pi = torch.tanh(self.actor(obs, goal))
+            q_pi = self.critic(obs, goal, pi)[0]
+            if self.offline:  # TD3+BC: stay near the dataset's actions
+                lam = cfg.bc_alpha / q_pi.abs().mean().detach().clamp_min(1e-6)
+                actor_loss = -lam * q_pi.mean() + (pi - act).pow(2).mean()
+            else:
+                actor_loss = -q_pi.mean()
             if named is not None:
                 ground = grounding_loss(self.actor.selection_logits(obs, goal), named)
                 grounding["grounding_actor"] = ground.item()

@@ -1,0 +1,302 @@
+"""Offline goal-conditioned RL (``lcrl train PRESET --offline FILE``): random-play episodes
+recorded with ``lcrl demos record --actor random`` go through the run's own replay buffer
+and its hindsight relabelling; TD3+BC and GCBC learn from them without stepping an
+environment; the file streams through a buffer smaller than itself; a stopped run resumes
+exactly; the checkpoint acts through ``lcrl.load``; bad files and options are one-line
+errors.
+
+The runs are tiny (200-300 updates, 32-unit networks, one torch thread, a few evaluation
+episodes) on 40 random-play lang2d episodes.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+import safetensors.torch
+import torch
+from helpers import cli, error_line, tiny
+
+from lcrl.checkpoint import find_latest, load_checkpoint
+from lcrl.demos import DemoDataset, DemoWriter
+from lcrl.errors import LcrlError
+from train.demos import RecordConfig, record
+from train.offline import OfflineTrainer
+
+TINY_CLI = [
+    "--eval-episodes", "3",
+    "--checkpoint-every", "0",
+    "--log-every", "100",
+    "--batch-size", "32",
+    "--agent.net.hidden", "32", "32",
+    "--agent.net.text-dim", "8",
+    "--no-progress",
+    "--no-tensorboard",
+]  # fmt: skip
+
+
+@pytest.fixture(scope="module", autouse=True)
+def _single_thread(one_thread):
+    """Every test of this module runs on one torch thread (``one_thread`` in conftest)."""
+
+
+@pytest.fixture(scope="module")
+def play(tmp_path_factory) -> Path:
+    """40 random-play lang2d episodes (reach and push), as ``lcrl demos record --actor
+    random`` writes them."""
+    out = tmp_path_factory.mktemp("play") / "play.h5"
+    record(
+        RecordConfig(out=str(out), preset="lang2d", episodes=40, actor="random", progress=False)
+    )
+    return out
+
+
+def offline(out: Path, data: Path, algo: str = "td3", **overrides) -> OfflineTrainer:
+    """A tiny offline trainer of the lang2d preset on ``data``."""
+    overrides.setdefault("total_steps", 200)
+    return OfflineTrainer(tiny("lang2d", out, offline=str(data), algo=algo, **overrides))
+
+
+def test_random_actor_records_actions_and_scenes(play):
+    with DemoDataset(play) as data:
+        assert data.num_episodes == 40 and data.meta["source"] == "random"
+        assert data.meta["recording"]["actor"] == "random"
+        assert data.meta["recording"]["noise"] is None
+        assert set(data.episode_source) == {"random"}
+        ep = data.episode(0)
+        assert ep["action"].shape == (ep["length"], 2)
+        assert np.abs(ep["action"]).max() <= 1.0
+        # uniform random actions: spread over the whole box, not a scripted path
+        actions = np.concatenate([data.episode(e)["action"] for e in range(5)])
+        assert actions.std(axis=0).min() > 0.4
+        assert "observation" in ep["obs"] and ep["scene"]
+
+
+def test_td3_bc_learns_offline_and_acts_through_load(play, tmp_path, capsys):
+    import lcrl
+
+    trainer = offline(tmp_path / "run", play, eval_every=100)
+    env_steps = {"n": 0}
+    for env in trainer.envs:  # no training environment is stepped
+        step = env.step
+
+        def counting(action, step=step):
+            env_steps["n"] += 1
+            return step(action)
+
+        env.step = counting
+    results = trainer.run()
+    assert env_steps["n"] == 0
+    out = capsys.readouterr().out
+    assert f"offline td3 on {play}: 40 episodes" in out and "loaded into the buffer" in out
+    with DemoDataset(play) as data:
+        assert trainer.buffer.size == data.num_steps  # every transition, once
+    assert trainer.agent.offline and trainer.step == 200
+    assert set(results) >= {"train", "heldout", "paraphrase"}
+    rows = (tmp_path / "run" / "eval.csv").read_text().splitlines()
+    assert len(rows) == 3  # header + updates 100 and 200
+    config = json.loads((tmp_path / "run" / "config.json").read_text())
+    assert config["offline"] == str(play) and config["algo"] == "td3"
+
+    policy = lcrl.load(tmp_path / "run", device="cpu")
+    env = policy.make_env()
+    obs, _ = env.reset(seed=3)
+    action = policy.act(obs, policy.instructions[0])
+    assert action.shape == env.action_space.shape and np.abs(action).max() <= 1.0
+    env.close()
+
+
+def test_td3_bc_actor_loss_pulls_towards_the_dataset_action(play, tmp_path):
+    trainer = offline(tmp_path / "run", play, total_steps=100)
+    try:
+        trainer.begin()
+        agent = trainer.agent
+        batch = trainer.buffer.sample(32)
+        grads = {}
+        for alpha in (0.0, 1e6):  # pure BC, then (almost) pure RL
+            agent.cfg.bc_alpha = alpha
+            agent.updates = agent.cfg.policy_delay - 1  # the next update moves the actor
+            before = {k: v.clone() for k, v in agent.actor.state_dict().items()}
+            agent.update(batch)
+            after = agent.actor.state_dict()
+            grads[alpha] = torch.cat([(after[k] - before[k]).flatten() for k in before])
+            agent.actor.load_state_dict(before)
+        # the two losses move the actor in different directions
+        cos = torch.nn.functional.cosine_similarity(grads[0.0], grads[1e6], dim=0)
+        assert cos < 0.9
+        # with alpha 0 the actor is plain regression onto the batch's actions
+        agent.cfg.bc_alpha = 0.0
+        target = np.tile(np.float32([0.6, -0.6]), (len(batch.action), 1))
+        batch = batch._replace(action=target)
+        obs, goal = batch.obs, batch.goal
+        first = np.mean((agent.act(obs, goal, deterministic=True) - batch.action) ** 2)
+        for _ in range(100):
+            agent.updates = agent.cfg.policy_delay - 1
+            agent.update(batch)
+        last = np.mean((agent.act(obs, goal, deterministic=True) - batch.action) ** 2)
+        assert last < 0.7 * first
+    finally:
+        trainer.close()
+
+
+def test_gcbc_clones_only_rows_relabelled_in_hindsight(play, tmp_path):
+    trainer = offline(tmp_path / "run", play, algo="bc", total_steps=100)
+    seen = []
+    update = trainer.agent.update
+
+    def spy(rows):
+        seen.append(rows)
+        return update(rows)
+
+    trainer.agent.update = spy
+    trainer.run()
+    assert len(seen) >= 90  # a batch with no relabelled row is skipped, rarely
+    buffer = trainer.buffer
+    for rows in seen:
+        assert rows.action.shape[0] == rows.goal.shape[0] < 32
+    batch = buffer.sample(256)
+    keep = batch.relabelled
+    assert keep.any() and (batch.reward[keep] >= 0).all()
+
+
+def test_no_relabelling_keeps_the_recorded_goals(play, tmp_path):
+    trainer = offline(
+        tmp_path / "run",
+        play,
+        buffer=dataclasses.replace(tiny("lang2d", tmp_path).buffer, k=0, random_fraction=0.0),
+    )
+    try:
+        trainer.begin()
+        batch = trainer.buffer.sample(256)
+        assert not batch.relabelled.any()
+        with DemoDataset(play) as data:  # each row's goal is its episode's instruction
+            texts = {data.episode(e)["instruction"] for e in range(data.num_episodes)}
+        assert {trainer.task.table[g] for g in np.unique(batch.goal)} <= texts
+    finally:
+        trainer.close()
+
+
+def test_a_file_larger_than_the_buffer_streams_through_it(play, tmp_path, capsys):
+    base = tiny("lang2d", tmp_path).buffer
+    trainer = offline(
+        tmp_path / "run", play, total_steps=300, buffer=dataclasses.replace(base, capacity=600)
+    )
+    sizes = []
+    update = trainer._update
+
+    def spy(n):
+        sizes.append(trainer.buffer.size)
+        update(n)
+
+    trainer._update = spy
+    trainer.run()
+    assert "streamed through the buffer" in capsys.readouterr().out
+    with DemoDataset(play) as data:
+        assert data.num_observations > 600
+        assert trainer.cursor >= data.num_episodes  # the whole file went through once
+    assert max(sizes) <= 600
+
+
+def test_stopped_run_resumes_exactly(play, tmp_path, monkeypatch, capsys):
+    buffer = dataclasses.replace(tiny("lang2d", tmp_path).buffer, capacity=800)
+    full = offline(tmp_path / "full", play, total_steps=300, checkpoint_every=100, buffer=buffer)
+    full.run()
+
+    out = tmp_path / "part"
+    trainer = offline(out, play, total_steps=300, checkpoint_every=100, buffer=buffer)
+    update, calls = trainer.agent.update, {"n": 0}
+
+    def interrupted(batch):
+        calls["n"] += 1
+        if calls["n"] == 151:
+            raise KeyboardInterrupt
+        return update(batch)
+
+    monkeypatch.setattr(trainer.agent, "update", interrupted)
+    with pytest.raises(KeyboardInterrupt):
+        trainer.run()
+    assert "interrupted at update 100" in capsys.readouterr().out
+    ckpt = load_checkpoint(find_latest(out))
+    assert ckpt.meta["step"] == 100 and not ckpt.has_arrays()  # the file refills the buffer
+
+    resumed = OfflineTrainer(
+        dataclasses.replace(
+            tiny("lang2d", out, buffer=buffer), algo="td3", offline=str(play), resume=True
+        )
+    )
+    assert resumed.step == 100
+    resumed.run()
+    assert resumed.step == 300
+    for name in ("weights.safetensors", "state.safetensors"):
+        a = safetensors.torch.load_file(str(out / "checkpoints" / "step_000000300" / name))
+        b = safetensors.torch.load_file(str(full.out / "checkpoints" / "step_000000300" / name))
+        assert a.keys() == b.keys()
+        assert [k for k in a if not torch.equal(a[k], b[k])] == [], name
+
+
+def test_cli_offline_train_then_eval(play, tmp_path, capsys):
+    out = tmp_path / "run"
+    args = ["train", "lang2d", "--offline", str(play), "--algo", "bc", "--out", str(out)]
+    assert cli(*args, "--total-steps", "100", "--eval-every", "0", *TINY_CLI) == 0
+    assert "offline bc on" in capsys.readouterr().out
+    assert cli("eval", str(out), "--episodes", "3", "--num-envs", "1", "--no-progress") == 0
+    assert "(step 100)" in capsys.readouterr().out
+    # --resume of an offline run needs no --offline: the saved config names the file
+    more = ["train", "lang2d", "--out", str(out), "--resume", "--total-steps", "200"]
+    assert cli(*more, *TINY_CLI) == 0
+    assert find_latest(out) == out / "checkpoints" / "step_000000200"
+
+
+def test_cli_errors_name_the_fix(play, tmp_path, capsys):
+    out = str(tmp_path / "run")
+    base = ["train", "lang2d", "--out", out, *TINY_CLI]
+
+    def error(*args: str) -> str:
+        assert cli(*base, *args) == 2
+        return error_line(capsys.readouterr().err)
+
+    assert "--offline trains with --algo td3 (TD3+BC) or --algo bc" in error(
+        "--offline", str(play), "--algo", "sac"
+    )
+    missing = str(tmp_path / "missing.h5")
+    assert missing in error("--offline", missing, "--algo", "td3")
+    assert "it needs --buffer.k above 0" in error(
+        "--offline", str(play), "--algo", "bc", "--buffer.k", "0"
+    )
+    assert "two data sources" in error(
+        "--offline", str(play), "--algo", "td3", "--demos", str(play)
+    )
+    assert "steps no environment" in error(
+        "--offline", str(play), "--algo", "td3", "--collect.envs", "2"
+    )
+    assert not Path(out).exists()
+
+
+def test_files_that_do_not_fit_name_what_is_missing(tmp_path):
+    rng = np.random.default_rng(0)
+
+    def write(path: Path, obs: dict, actions: np.ndarray) -> Path:
+        with DemoWriter(path, {}) as w:
+            w.add_episode(obs, actions, instruction=None, success=None)
+        return path
+
+    acts = rng.uniform(-1, 1, (4, 2)).astype(np.float32)
+    # another observation key than the run reads
+    other = write(tmp_path / "o.h5", {"state": np.zeros((5, 58), np.float32)}, acts)
+    with pytest.raises(LcrlError, match="no observation key 'observation'"):
+        offline(tmp_path / "r1", other)
+    # actions of another shape
+    three = rng.uniform(-1, 1, (4, 3)).astype(np.float32)
+    wide = write(tmp_path / "a.h5", {"observation": np.zeros((5, 58), np.float32)}, three)
+    with pytest.raises(LcrlError, match=r"actions of shape \(3,\)"):
+        offline(tmp_path / "r2", wide)
+    # no privileged scene: nothing to relabel language goals from
+    bare = write(tmp_path / "s.h5", {"observation": np.zeros((5, 58), np.float32)}, acts)
+    with pytest.raises(LcrlError, match="scene"):
+        offline(tmp_path / "r3", bare)
+    for name in ("r1", "r2", "r3"):
+        assert not (tmp_path / name / "checkpoints").exists()
