@@ -49,9 +49,7 @@ def play(tmp_path_factory) -> Path:
     """40 random-play lang2d episodes (reach and push), as ``lcrl demos record --actor
     random`` writes them."""
     out = tmp_path_factory.mktemp("play") / "play.h5"
-    record(
-        RecordConfig(out=str(out), preset="lang2d", episodes=40, actor="random", progress=False)
-    )
+    record(RecordConfig(out=str(out), preset="lang2d", episodes=40, actor="random", progress=False))
     return out
 
 

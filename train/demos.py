@@ -302,7 +302,10 @@ def record(cfg: RecordConfig) -> Path:
     images = bool(cfg.images or env_cfg.image_obs)
     env = _recording_env(env_cfg, images, cfg.image_size)
     task = Task(env)
-    actor = ScriptedActor(env_cfg, task, cfg.noise) if cfg.actor == "scripted" else RandomActor(task)
+    if cfg.actor == "scripted":
+        actor: ScriptedActor | RandomActor = ScriptedActor(env_cfg, task, cfg.noise)
+    else:
+        actor = RandomActor(task)
     wrapper = find_language_wrapper(env)
     base = env.unwrapped
     proprio_dim = int(getattr(base, "proprio_dim", 0))

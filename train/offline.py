@@ -141,11 +141,9 @@ class OfflineTrainer(Trainer):
         obs = {k: np.stack([s[k] for s in stored]) for k in stored[0]}
         text = ep["instruction"]
         task = self.task
-        if text is None or text not in task.ids:
-            # an episode without a (known) instruction: learn only what it achieved
-            goal = 0
-        else:
-            goal = task.ids[text]
+        # an episode without a (known) instruction keeps goal 0: its recorded-goal rows are
+        # scored against that instruction like any other, the relabelled ones by what it did
+        goal = task.ids[text] if text is not None and text in task.ids else 0
         scenes = scenes_from_arrays(ep["scene"])
         # successes end episodes through the goal space (terminate_on_success), from labels
         terminated = np.zeros(t, bool)
