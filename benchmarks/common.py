@@ -5,7 +5,10 @@ from __future__ import annotations
 import json
 import os
 import shlex
+import subprocess
 import sys
+import time
+from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
@@ -17,6 +20,7 @@ __all__ = [
     "command",
     "machine",
     "machine_line",
+    "run_jobs",
     "save_figure",
     "save_json",
     "save_markdown",
@@ -37,6 +41,40 @@ def side_by_side_env(processes: int = 2, **extra: str) -> dict[str, str]:
     env.update({PROCESSES_VARIABLE: str(processes), "OMP_NUM_THREADS": threads})
     env.update(MKL_NUM_THREADS=threads, **extra)
     return env
+
+
+def run_jobs(jobs: Sequence[tuple[str, list[str], Path]], parallel: int = 2) -> None:
+    """Run commands ``parallel`` at a time, each with its share of the cores
+    (:func:`side_by_side_env`): ``jobs`` are ``(name, argv, log file)``. A failed job stops
+    the benchmark with its log named; the others finish first."""
+    todo = list(jobs)
+    running: list[tuple[str, subprocess.Popen, Any]] = []
+    failed: list[str] = []
+    while todo or running:
+        while todo and len(running) < parallel and not failed:
+            name, argv, log_path = todo.pop(0)
+            log_path.parent.mkdir(parents=True, exist_ok=True)
+            log = open(log_path, "w")  # noqa: SIM115
+            print("== " + shlex.join(argv), flush=True)
+            proc = subprocess.Popen(
+                argv, stdout=log, stderr=subprocess.STDOUT, env=side_by_side_env(parallel)
+            )
+            running.append((name, proc, log))
+        if failed and not running:
+            break
+        time.sleep(2)
+        for item in list(running):
+            name, proc, log = item
+            if proc.poll() is None:
+                continue
+            running.remove(item)
+            log.close()
+            if proc.returncode != 0:
+                failed.append(f"{name} failed: see {log.name}")
+            else:
+                print(f"{name} done", flush=True)
+    if failed:
+        raise SystemExit("; ".join(failed))
 
 
 def command() -> str:

@@ -21,10 +21,7 @@ from __future__ import annotations
 
 import argparse
 import json
-import shlex
-import subprocess
 import sys
-import time
 from pathlib import Path
 from typing import Any
 
@@ -33,10 +30,10 @@ sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 from benchmarks.common import (
     command,
     machine,
+    run_jobs,
     save_figure,
     save_json,
     save_markdown,
-    side_by_side_env,
 )
 from train.report import spread
 
@@ -61,34 +58,18 @@ def run_dir(args: argparse.Namespace, arm: str, seed: int) -> Path:
 
 def run_all(args: argparse.Namespace) -> None:
     """Train every (arm, seed) without a finished run, ``--parallel`` at a time."""
-    todo = [(a, s) for s in args.seeds for a in args.arms]
-    todo = [(a, s) for a, s in todo if not (run_dir(args, a, s) / "report.md").is_file()]
-    running: list[tuple[str, subprocess.Popen, Any]] = []
-    while todo or running:
-        while todo and len(running) < args.parallel:
-            arm, seed = todo.pop(0)
+    jobs = []
+    for seed in args.seeds:
+        for arm in args.arms:
             out = run_dir(args, arm, seed)
-            out.parent.mkdir(parents=True, exist_ok=True)
+            if (out / "report.md").is_file():
+                continue
             cmd = [*LCRL, "train", "lang2d", "--out", str(out), "--seed", str(seed)]
             cmd += ["--total-steps", str(args.steps), "--eval-every", "0"]
             cmd += ["--eval-episodes", str(args.eval_episodes), "--checkpoint-every", "0"]
             cmd += ["--overwrite", "--no-progress", "--no-tensorboard", *arm_args(arm, args)]
-            log = open(out.parent / f"{out.name}.log", "w")  # noqa: SIM115
-            print("== " + shlex.join(cmd), flush=True)
-            proc = subprocess.Popen(
-                cmd, stdout=log, stderr=subprocess.STDOUT, env=side_by_side_env(args.parallel)
-            )
-            running.append((f"{arm}-s{seed}", proc, log))
-        time.sleep(5)
-        for item in list(running):
-            name, proc, log = item
-            if proc.poll() is None:
-                continue
-            running.remove(item)
-            log.close()
-            if proc.returncode != 0:
-                raise SystemExit(f"{name} failed: see {log.name}")
-            print(f"{name} done", flush=True)
+            jobs.append((f"{arm}-s{seed}", cmd, out.parent / f"{out.name}.log"))
+    run_jobs(jobs, args.parallel)
 
 
 def main(argv: list[str] | None = None) -> int:

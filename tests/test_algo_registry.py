@@ -19,6 +19,7 @@ from lcrl import algos
 from lcrl.algos import (
     ALGOS,
     BC,
+    CRL,
     DQN,
     SAC,
     TD3,
@@ -26,6 +27,7 @@ from lcrl.algos import (
     AgentOptions,
     AlgoSpec,
     BCConfig,
+    CRLConfig,
     DQNConfig,
     Problem,
     SACConfig,
@@ -116,10 +118,11 @@ def toy(monkeypatch) -> AlgoSpec:
 
 # --- the registry ----------------------------------------------------------------------------
 def test_registry_lists_every_algorithm_once_with_its_classes():
-    assert list(ALGOS) == ["sac", "td3", "dqn", "bc"]
+    assert list(ALGOS) == ["sac", "td3", "crl", "dqn", "bc"]
     expected = {
         "sac": (SAC, SACConfig, "continuous", True, "env"),
         "td3": (TD3, TD3Config, "continuous", False, "env"),
+        "crl": (CRL, CRLConfig, "continuous", False, "env"),
         "dqn": (DQN, DQNConfig, "discrete", False, "env"),
         "bc": (BC, BCConfig, "any", False, "demos"),
     }
@@ -130,7 +133,7 @@ def test_registry_lists_every_algorithm_once_with_its_classes():
         )
         assert spec.summary
         spec.config().validate()  # the defaults are valid
-    assert algo_choices() == ("auto", "sac", "td3", "dqn", "bc")
+    assert algo_choices() == ("auto", "sac", "td3", "crl", "dqn", "bc")
 
 
 def test_every_algorithm_has_a_train_config_field_holding_its_config():
@@ -149,7 +152,8 @@ def test_resolve_algo():
 
 
 def test_check_algo_errors():
-    with pytest.raises(LcrlError, match=r"unknown algo 'ppo'; choose auto, sac, td3, dqn or bc$"):
+    choices = r"unknown algo 'ppo'; choose auto, sac, td3, crl, dqn or bc$"
+    with pytest.raises(LcrlError, match=choices):
         check_algo("ppo")
     with pytest.raises(
         LcrlError, match=r"^sac needs continuous actions; this env has discrete actions: use dqn$"
@@ -213,7 +217,7 @@ def test_agents_check_their_spec_when_built_directly():
 
 
 def test_a_toy_algorithm_registered_in_algos_builds_through_the_registry(toy):
-    assert algo_choices() == ("auto", "sac", "td3", "dqn", "bc", "toy")
+    assert algo_choices() == ("auto", "sac", "td3", "crl", "dqn", "bc", "toy")
     agent = build_agent("toy", DISCRETE, small(), embed)
     assert isinstance(agent, Toy) and agent.cfg == ToyConfig()
     agent = build_agent("toy", DISCRETE, small(), embed, ToyConfig(lr=0.5))
@@ -301,7 +305,8 @@ def test_config_validate_accepts_edge_values():
 def test_train_config_validates_the_chosen_algorithm_and_its_config():
     base = TrainConfig()
     base.validate()
-    with pytest.raises(LcrlError, match="unknown algo 'ppo'; choose auto, sac, td3, dqn or bc"):
+    choices = "unknown algo 'ppo'; choose auto, sac, td3, crl, dqn or bc"
+    with pytest.raises(LcrlError, match=choices):
         dataclasses.replace(base, algo="ppo").validate()
     with pytest.raises(LcrlError, match=r"td3\.policy_delay"):
         dataclasses.replace(base, algo="td3", td3=TD3Config(policy_delay=0)).validate()
@@ -321,7 +326,7 @@ def test_train_config_validates_the_chosen_algorithm_and_its_config():
 def test_cli_refuses_an_unknown_algorithm(capsys):
     assert cli("train", "lang2d-quick", "--algo", "ppo", "--no-progress") == 2
     err = error_line(capsys.readouterr().err)
-    assert "unknown algo 'ppo'; choose auto, sac, td3, dqn or bc" in err
+    assert "unknown algo 'ppo'; choose auto, sac, td3, crl, dqn or bc" in err
 
 
 # --- rebuilding nested configs ---------------------------------------------------------------

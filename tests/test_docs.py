@@ -245,6 +245,8 @@ def shrink(argv: list[str]) -> list[str]:
             for before, a in itertools.pairwise(argv)
         ]
     sub = family(argv)
+    if sub == "demos record" and "random" in argv:  # random play: enough to relabel
+        return [*argv, "--episodes", "40", "--no-progress"]
     if sub == "train":
         extra = list(TINY_TRAIN)
         if "--resume" in argv:  # continue past the tiny run it resumes

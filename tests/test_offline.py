@@ -257,7 +257,7 @@ def test_cli_errors_name_the_fix(play, tmp_path, capsys):
         assert cli(*base, *args) == 2
         return error_line(capsys.readouterr().err)
 
-    assert "--offline trains with --algo td3 (TD3+BC) or --algo bc" in error(
+    assert "--offline trains with --algo td3 (TD3+BC), crl (contrastive RL) or bc" in error(
         "--offline", str(play), "--algo", "sac"
     )
     missing = str(tmp_path / "missing.h5")
@@ -298,3 +298,85 @@ def test_files_that_do_not_fit_name_what_is_missing(tmp_path):
         offline(tmp_path / "r3", bare)
     for name in ("r1", "r2", "r3"):
         assert not (tmp_path / name / "checkpoints").exists()
+
+
+# --- contrastive RL ----------------------------------------------------------------------
+def _crl(negatives: int = 7):
+    from lcrl.algos import CRL, AgentOptions, CRLConfig, Problem
+    from lcrl.nets import NetConfig
+
+    problem = Problem({"state": (2,)}, "vector", (2,), 2)
+
+    def embed(goals, device):
+        return torch.as_tensor(np.asarray(goals, np.float32), device=device)
+
+    options = AgentOptions(net=NetConfig(hidden=(64, 64)), normalize_goal=False, seed=0)
+    return CRL(problem, options, embed, CRLConfig(negatives=negatives, critic_lr=1e-3))
+
+
+def _batch(rng: np.random.Generator, n: int = 64, relabelled: bool = True):
+    from lcrl.buffer import Batch
+
+    obs = rng.uniform(-1, 1, (n, 2)).astype(np.float32)
+    action = rng.uniform(-1, 1, (n, 2)).astype(np.float32)
+    goal = np.clip(obs + 0.5 * action, -1, 1).astype(np.float32)  # where (s, a) leads
+    return Batch(
+        obs={"state": obs},
+        action=action,
+        reward=np.zeros(n, np.float32),
+        next_obs={"state": obs},
+        terminated=np.zeros(n, np.float32),
+        goal=goal,
+        relabelled=np.full(n, relabelled),
+        index=np.arange(n),
+    )
+
+
+def test_crl_critic_learns_which_goal_a_state_action_reaches():
+    torch.manual_seed(0)
+    agent = _crl()
+    rng = np.random.default_rng(0)
+    first = agent.update(_batch(rng))
+    for _ in range(400):
+        last = agent.update(_batch(rng))
+    assert last["critic_loss"] < 0.5 * first["critic_loss"]
+    assert last["contrastive_accuracy"] > 0.8 > first["contrastive_accuracy"]
+    # the actor heads for the goal: its action moves the state towards it
+    test = _batch(np.random.default_rng(1), n=256)
+    acted = agent.act(test.obs, test.goal, deterministic=True)
+    dist_acted = np.linalg.norm(test.obs["state"] + 0.5 * acted - test.goal, axis=1).mean()
+    dist_random = np.linalg.norm(test.obs["state"] - test.goal, axis=1).mean()
+    assert dist_acted < dist_random
+
+
+def test_crl_learns_only_from_relabelled_rows_and_masks_equal_goal_ids():
+    agent = _crl()
+    before = {k: v.clone() for k, v in agent.critic.state_dict().items()}
+    assert agent.update(_batch(np.random.default_rng(0), relabelled=False)) == {}
+    after = agent.critic.state_dict()
+    assert all(torch.equal(before[k], after[k]) for k in before)
+    assert agent.updates == 0
+
+    # instruction ids: a negative with the positive's id is masked, not contrasted
+    from lcrl.algos import CRL, AgentOptions, CRLConfig, Problem
+    from lcrl.nets import NetConfig
+
+    table = torch.eye(3)
+
+    def embed(ids, device):
+        return table[torch.as_tensor(np.asarray(ids), dtype=torch.long)].to(device)
+
+    problem = Problem({"state": (2,)}, "text", (3,), 2)
+    options = AgentOptions(net=NetConfig(hidden=(16, 16)), normalize_goal=False)
+    agent = CRL(problem, options, embed, CRLConfig(negatives=3))
+    batch = _batch(np.random.default_rng(0), n=8)._replace(goal=np.zeros(8, np.int64))
+    metrics = agent.update(batch)  # every negative has the same id: nothing to contrast
+    assert metrics["critic_loss"] == pytest.approx(0.0, abs=1e-5)
+
+
+def test_offline_crl_run_trains_and_logs(play, tmp_path):
+    trainer = offline(tmp_path / "run", play, algo="crl", total_steps=100)
+    trainer.run()
+    assert trainer.agent.updates == 100
+    header = (tmp_path / "run" / "progress.csv").read_text().splitlines()[0]
+    assert "contrastive_accuracy" in header

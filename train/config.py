@@ -16,6 +16,7 @@ from lcrl.algos import (
     ALGOS,
     AgentOptions,
     BCConfig,
+    CRLConfig,
     DQNConfig,
     SACConfig,
     TD3Config,
@@ -210,6 +211,14 @@ class DistillConfig:
                 raise LcrlError(f"distill.{name} must be in [0, 1], got {value}")
 
 
+#: Learners of ``lcrl train --offline FILE``, with what each does there.
+OFFLINE_ALGOS = {
+    "td3": "TD3+BC",
+    "crl": "contrastive RL",
+    "bc": "goal-conditioned BC",
+}
+
+
 @dataclass
 class TrainConfig:
     """One training run: environment, learner, schedule, evaluation and outputs."""
@@ -219,12 +228,14 @@ class TrainConfig:
     env: EnvConfig = field(default_factory=EnvConfig)
     """The environment."""
     algo: str = "auto"
-    """``sac``, ``td3``, ``dqn``, ``bc`` (behavioural cloning from ``--demos``), or ``auto``
-    (SAC for continuous, DQN for discrete actions)."""
+    """``sac``, ``td3``, ``crl`` (contrastive RL), ``dqn``, ``bc`` (behavioural cloning
+    from ``--demos``), or ``auto`` (SAC for continuous, DQN for discrete actions)."""
     sac: SACConfig = field(default_factory=SACConfig)
     """SAC hyper-parameters."""
     td3: TD3Config = field(default_factory=TD3Config)
     """TD3 hyper-parameters."""
+    crl: CRLConfig = field(default_factory=CRLConfig)
+    """Contrastive-RL hyper-parameters."""
     dqn: DQNConfig = field(default_factory=DQNConfig)
     """Double-DQN hyper-parameters."""
     bc: BCConfig = field(default_factory=BCConfig)
@@ -241,8 +252,8 @@ class TrainConfig:
     """Learn offline from this HDF5 dataset (``lcrl demos record``, random play with
     ``--actor random``, an import) through the replay buffer and its hindsight
     relabelling, stepping no environment except to evaluate (``--algo td3``: TD3+BC,
-    ``--algo bc``: goal-conditioned BC). ``total_steps`` and the ``*_every`` settings then
-    count gradient updates."""
+    ``--algo crl``: contrastive RL, ``--algo bc``: goal-conditioned BC). ``total_steps``
+    and the ``*_every`` settings then count gradient updates."""
     agent: AgentOptions = field(default_factory=AgentOptions)
     """Networks, normalisation, device and seed of the learner."""
     buffer: BufferConfig = field(default_factory=BufferConfig)
@@ -317,10 +328,9 @@ class TrainConfig:
             getattr(self, name).validate()
         if self.offline and self.demos:
             raise LcrlError("--offline and --demos are two data sources: give one")
-        if self.offline and self.algo not in ("td3", "bc"):
-            raise LcrlError(
-                "--offline trains with --algo td3 (TD3+BC) or --algo bc (goal-conditioned BC)"
-            )
+        if self.offline and self.algo not in OFFLINE_ALGOS:
+            names = [f"{k} ({v})" for k, v in OFFLINE_ALGOS.items()]
+            raise LcrlError(f"--offline trains with --algo {', '.join(names[:-1])} or {names[-1]}")
         if self.demos and (self.algo == "auto" or ALGOS[self.algo].learns_from != "demos"):
             learners = [name for name, spec in ALGOS.items() if spec.learns_from == "demos"]
             raise LcrlError(

@@ -12,6 +12,9 @@ Learners (``--algo``):
 
 * ``td3``: TD3+BC (:attr:`lcrl.algos.td3.TD3Config.bc_alpha`), the critic learning the
   relabelled sparse rewards and the actor kept near the dataset's actions;
+* ``crl``: contrastive RL (:mod:`lcrl.algos.crl`), the critic classifying which
+  relabelled goal a state-action pair goes on to achieve, the actor climbing it with a BC
+  term (:attr:`lcrl.algos.crl.CRLConfig.bc_alpha`);
 * ``bc``: goal-conditioned behavioural cloning (GCBC): the actor regresses the dataset's
   action on the rows whose goal was relabelled in hindsight (a goal the episode went on to
   achieve). Rows keeping the recorded instruction are not cloned: random play rarely did
@@ -33,14 +36,9 @@ from typing import Any
 import numpy as np
 
 from lcrl.errors import LcrlError
-from train.config import TrainConfig
+from train.config import OFFLINE_ALGOS, TrainConfig
 from train.loop import Trainer
 
-#: Learners that train offline, with what they do there.
-OFFLINE_ALGOS = {
-    "td3": "TD3+BC: critic on relabelled rewards, actor kept near the data",
-    "bc": "goal-conditioned behavioural cloning of the relabelled rows (GCBC)",
-}
 #: Gradient updates per :meth:`OfflineTrainer.advance` (one unit of rollback).
 CHUNK = 100
 
@@ -53,9 +51,8 @@ class OfflineTrainer(Trainer):
 
     def check_algo(self, cfg: TrainConfig) -> None:
         """Only the learners of :data:`OFFLINE_ALGOS` train offline."""
-        if cfg.algo not in OFFLINE_ALGOS:
-            names = ", ".join(f"{k} ({v})" for k, v in OFFLINE_ALGOS.items())
-            raise LcrlError(f"--offline trains with --algo {' or '.join(OFFLINE_ALGOS)}: {names}")
+        if cfg.algo not in OFFLINE_ALGOS:  # (TrainConfig.validate refuses the others first)
+            raise LcrlError(f"--offline trains with --algo {' or '.join(OFFLINE_ALGOS)}")
         if cfg.algo == "bc" and cfg.buffer.k == 0:
             raise LcrlError(
                 "--offline --algo bc (GCBC) clones the rows relabelled in hindsight: it needs "

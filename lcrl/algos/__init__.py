@@ -6,6 +6,7 @@ acts with :meth:`Agent.act`, and learns with ``update(batch) -> dict[str, float]
 ========  ==================================================================
 ``sac``   soft actor-critic (:mod:`lcrl.algos.sac`), multi-task options
 ``td3``   twin delayed DDPG (:mod:`lcrl.algos.td3`)
+``crl``   contrastive RL (:mod:`lcrl.algos.crl`)
 ``dqn``   double DQN, discrete actions (:mod:`lcrl.algos.dqn`)
 ``bc``    behavioural cloning from demonstrations (:mod:`lcrl.algos.bc`)
 ========  ==================================================================
@@ -22,7 +23,7 @@ from __future__ import annotations
 
 from typing import Any
 
-from lcrl.algos import bc, dqn, sac, td3
+from lcrl.algos import bc, crl, dqn, sac, td3
 from lcrl.algos.base import (
     ACTION_KINDS,
     DATA_SOURCES,
@@ -39,6 +40,7 @@ from lcrl.algos.base import (
     resolve_device,
 )
 from lcrl.algos.bc import ACTION_CLIP, BC, BC_LOSSES, BCConfig, tanh_gaussian_log_prob
+from lcrl.algos.crl import CRL, CRLConfig
 from lcrl.algos.dqn import DQN, DQNConfig
 from lcrl.algos.sac import SAC, SACConfig
 from lcrl.algos.td3 import TD3, TD3Config
@@ -46,7 +48,13 @@ from lcrl.errors import LcrlError
 from lcrl.multitask import MultiTaskOptions
 
 #: Every algorithm, by name: the single list of them.
-ALGOS: dict[str, AlgoSpec] = {"sac": sac.SPEC, "td3": td3.SPEC, "dqn": dqn.SPEC, "bc": bc.SPEC}
+ALGOS: dict[str, AlgoSpec] = {
+    "sac": sac.SPEC,
+    "td3": td3.SPEC,
+    "crl": crl.SPEC,
+    "dqn": dqn.SPEC,
+    "bc": bc.SPEC,
+}
 
 #: What ``auto`` stands for, by action space.
 AUTO_ALGOS = {"continuous": "sac", "discrete": "dqn"}
@@ -58,6 +66,7 @@ __all__ = [
     "AUTO_ALGOS",
     "BC",
     "BC_LOSSES",
+    "CRL",
     "DATA_SOURCES",
     "DQN",
     "GOAL_NORMALISERS",
@@ -69,6 +78,7 @@ __all__ = [
     "AlgoConfig",
     "AlgoSpec",
     "BCConfig",
+    "CRLConfig",
     "DQNConfig",
     "GoalEmbedder",
     "Problem",
