@@ -48,7 +48,7 @@ LCRL = [sys.executable, "-m", "train.cli"]
 #: Each arm's ``lcrl train`` options.
 ARMS: dict[str, list[str]] = {
     "her": ["--algo", "td3"],
-    "crl": ["--algo", "crl"],
+    "crl": ["--algo", "crl", "--crl.negatives", "7"],
     "gcbc": ["--algo", "bc"],
     "norelabel": ["--algo", "td3", "--buffer.k", "0", "--buffer.random-fraction", "0"],
 }

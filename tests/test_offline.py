@@ -380,3 +380,117 @@ def test_offline_crl_run_trains_and_logs(play, tmp_path):
     assert trainer.agent.updates == 100
     header = (tmp_path / "run" / "progress.csv").read_text().splitlines()[0]
     assert "contrastive_accuracy" in header
+
+
+# --- BC -> RL fine-tuning ----------------------------------------------------------------
+@pytest.fixture(scope="module")
+def push_demos(tmp_path_factory) -> Path:
+    """30 scripted push demonstrations of the lang2d preset's env."""
+    out = tmp_path_factory.mktemp("push") / "push.h5"
+    record(
+        RecordConfig(out=str(out), preset="lang2d", families=("push",), episodes=30, progress=False)
+    )
+    return out
+
+
+def finetuner(out: Path, demos: Path, **finetune):
+    from train.config import FinetuneConfig
+    from train.loop import Trainer
+
+    base = tiny("lang2d", out)
+    ft = FinetuneConfig(demos=str(demos), **{"pretrain_updates": 600, **finetune})
+    env = dataclasses.replace(base.env, families=("push",))
+    return Trainer(dataclasses.replace(base, env=env, finetune=ft, scripted_fraction=0.0))
+
+
+def test_finetuning_pretrains_a_cloning_actor_before_the_first_episode(push_demos, tmp_path):
+    trainer = finetuner(tmp_path / "run", push_demos)
+    try:
+        with DemoDataset(push_demos) as data:
+            steps = data.num_steps
+            ep = data.episode(0)
+        trainer.advance()  # loads the file, then the first block of offline updates
+        assert trainer.buffer.size == steps and trainer.step == 0 and trainer.episodes == 0
+        assert trainer.pretrained == 500 and trainer.agent.q_weight == 0.0
+        obs = trainer.task.training_obs
+        rows = [{k: v[i] for k, v in ep["obs"].items()} for i in range(ep["length"])]
+        stored = [obs(r, rows[0]) for r in rows]
+        batch_obs = {k: np.stack([s[k] for s in stored]) for k in stored[0]}
+        goal = np.full(len(rows), trainer.task.ids[ep["instruction"]])
+
+        def clone_error() -> float:
+            acted = trainer.agent.act(batch_obs, goal, deterministic=True)
+            return float(np.mean((acted - ep["action"]) ** 2))
+
+        before = clone_error()
+        trainer.advance()  # the last 100 offline updates
+        assert trainer.pretrained == 600 and trainer.step == 0
+        for _ in range(8):  # more cloning on the same data brings the actor closer
+            trainer._pretrain()
+        assert clone_error() < before
+        trainer.advance()  # now online: an episode with the BC weight at its start
+        assert trainer.step > 0 and trainer.episodes == 1
+        assert trainer.agent.q_weight == 1.0 and 0 < trainer.agent.extra_bc <= 1.0
+    finally:
+        trainer.close()
+
+
+def test_finetuning_bc_weight_decays_to_zero():
+    from train.config import FinetuneConfig
+
+    ft = FinetuneConfig(demos="x.h5", bc_weight=2.0, decay_steps=100)
+    assert [ft.weight(s) for s in (0, 50, 100, 500)] == [2.0, 1.0, 0.0, 0.0]
+    assert FinetuneConfig(demos="x.h5", decay_steps=0).weight(0) == 0.0
+
+
+def test_finetuning_stopped_while_pretraining_resumes_there(push_demos, tmp_path, monkeypatch):
+    out = tmp_path / "run"
+    trainer = finetuner(out, push_demos)
+    update, calls = trainer.agent.update, {"n": 0}
+
+    def interrupted(batch):
+        calls["n"] += 1
+        if calls["n"] == 550:
+            raise KeyboardInterrupt
+        return update(batch)
+
+    monkeypatch.setattr(trainer.agent, "update", interrupted)
+    with pytest.raises(KeyboardInterrupt):
+        trainer.run()
+    ckpt = load_checkpoint(find_latest(out))
+    state = ckpt.state("trainer")
+    assert state["step"] == 0 and state["pretrained"] == 500 and state["demos_loaded"]
+
+    from train.loop import Trainer
+
+    resumed = Trainer(dataclasses.replace(trainer.cfg, resume=True))
+    size = resumed.buffer.size
+    assert resumed.pretrained == 500 and resumed._demos_loaded
+    resumed.run()
+    assert resumed.pretrained == 600 and resumed.step == 300
+    with DemoDataset(push_demos) as data:  # the demonstrations were not stored again
+        assert size == data.num_steps
+        assert resumed.buffer.size == data.num_steps + resumed.step
+
+
+def test_finetuning_errors(push_demos, tmp_path, capsys):
+    out = str(tmp_path / "run")
+    base = ["train", "lang2d", "--out", out, *TINY_CLI]
+
+    def error(*args: str) -> str:
+        assert cli(*base, *args) == 2
+        return error_line(capsys.readouterr().err)
+
+    assert "fine-tunes SAC, not td3" in error("--finetune.demos", str(push_demos), "--algo", "td3")
+    missing = str(tmp_path / "none.h5")
+    assert f"no demonstration file at {missing}" in error("--finetune.demos", missing)
+    assert "has shape" in error(
+        "--finetune.demos",
+        str(push_demos),
+        "--env.no-displacements",
+        "--agent.net.slots",
+        "2",
+        "8",
+        "5",
+    )
+    assert not Path(out).exists()

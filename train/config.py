@@ -10,6 +10,7 @@ import dataclasses
 import types
 import typing
 from dataclasses import dataclass, field
+from pathlib import Path
 from typing import Any
 
 from lcrl.algos import (
@@ -181,6 +182,47 @@ class SequentialConfig:
 
 
 @dataclass
+class FinetuneConfig:
+    """BC -> RL fine-tuning (SAC): a run that starts from a behavioural-cloning actor and a
+    critic pretrained offline on a demonstration file, then trains online with language
+    HER and a behavioural-cloning term that decays (``demos``)."""
+
+    demos: str = ""
+    """Demonstration file (``lcrl demos record``) put into the replay buffer before the
+    first episode, labelled and relabelled like the run's own episodes. Empty: off."""
+    pretrain_updates: int = 2000
+    """Offline updates on the file before the first episode: the critic learns the
+    relabelled rewards as online, the actor clones (the hindsight BC term of weight
+    ``bc_weight`` plus the entropy term, no Q term)."""
+    bc_weight: float = 1.0
+    """Weight of the hindsight BC term (squared distance of the policy's mean action to the
+    action taken, on rows whose goal was achieved later: demonstrations and the run's own
+    episodes) when online training starts; it falls linearly to 0 over ``decay_steps``."""
+    decay_steps: int = 20_000
+    """Environment steps over which the BC weight falls to 0."""
+
+    def validate(self, algo: str) -> None:
+        """Raise :class:`LcrlError` for settings that cannot train."""
+        if not self.demos:
+            return
+        if algo not in ("sac", "auto"):
+            raise LcrlError(f"--finetune.demos fine-tunes SAC, not {algo}")
+        if self.pretrain_updates < 0 or self.bc_weight < 0 or self.decay_steps < 0:
+            raise LcrlError(
+                "finetune.pretrain_updates, finetune.bc_weight and finetune.decay_steps must "
+                "be >= 0"
+            )
+        if not Path(self.demos).is_file():
+            raise LcrlError(f"no demonstration file at {self.demos} (--finetune.demos)")
+
+    def weight(self, step: int) -> float:
+        """The BC weight at environment step ``step``."""
+        if not self.decay_steps:
+            return 0.0
+        return self.bc_weight * max(0.0, 1.0 - step / self.decay_steps)
+
+
+@dataclass
 class DistillConfig:
     """Teacher -> student distillation with DAgger (``lcrl distill TEACHER_RUN``): a student
     that acts from what cameras show learns the actions of a privileged-state teacher in
@@ -264,6 +306,8 @@ class TrainConfig:
     """Frozen text encoder for language goals."""
     sequential: SequentialConfig = field(default_factory=SequentialConfig)
     """Task groups trained one after another (forgetting, replay, EWC)."""
+    finetune: FinetuneConfig = field(default_factory=FinetuneConfig)
+    """BC -> RL fine-tuning from a demonstration file (SAC)."""
     collect: CollectionConfig = field(default_factory=CollectionConfig)
     """How training episodes are collected (environments stepped at once)."""
     torch_threads: int = 0
@@ -377,6 +421,9 @@ class TrainConfig:
             )
         self.collect.validate()
         self.sequential.validate(tuple(self.env.families), self.algo)
+        self.finetune.validate(self.algo)
+        if self.finetune.demos and (self.offline or self.demos):
+            raise LcrlError("--finetune.demos trains online: not with --offline or --demos")
         if self.sequential.stages and self.collect.backend != "local":
             raise LcrlError("sequential.stages train with collect.backend local")
         if self.collect.backend == "ray" and self.relabel.learned:

@@ -108,6 +108,64 @@ def scene_arrays(scenes: Sequence[SceneState]) -> dict[str, np.ndarray]:
     return out
 
 
+def check_dataset(data: DemoDataset, path: str, problem: Any, task: Any, env: Any) -> None:
+    """Raise :class:`LcrlError` naming what a dataset lacks for a run that fills its
+    replay buffer from it (``lcrl train --offline``, ``--finetune.demos``): episodes, the
+    run's action space, a language-goal task, the observation keys and shapes, the scene."""
+    if data.num_episodes == 0:
+        raise LcrlError(f"{path} holds no episode")
+    want = () if problem.discrete else (problem.action_dim,)
+    if tuple(data.action_shape) != want or data.discrete != problem.discrete:
+        raise LcrlError(
+            f"{path} has {'discrete' if data.discrete else 'continuous'} actions of shape "
+            f"{data.action_shape}; this run acts with {want or 'discrete'} actions"
+        )
+    if getattr(task, "table", None) is None:
+        raise LcrlError(
+            f"{path}: goals are relabelled from the stored scene as instructions: use a "
+            "language-goal preset (lang2d, robosuite)"
+        )
+    episode = buffer_episode(data, 0, path, task, env)  # names a missing key
+    for key, shape in problem.obs_shapes.items():
+        got = tuple(episode["obs"][key].shape[1:])
+        if got != tuple(shape):
+            raise LcrlError(
+                f"{path}: observation {key!r} has shape {got}, this run's policy reads "
+                f"{tuple(shape)}: record the file with this run's preset"
+            )
+
+
+def buffer_episode(data: DemoDataset, e: int, path: str, task: Any, env: Any) -> dict[str, Any]:
+    """Episode ``e`` of a dataset as the replay buffer stores it, labelled like a training
+    episode: the task's observations, and what the rule captioner says each step achieved
+    on the stored scene. An episode without a (known) instruction keeps goal 0: its
+    recorded-goal rows are scored against that instruction like any other, the relabelled
+    ones by what it did."""
+    ep = data.episode(e)
+    t = int(ep["length"])
+    rows = [{k: v[i] for k, v in ep["obs"].items()} for i in range(t + 1)]
+    try:
+        stored = [task.training_obs(row, rows[0]) for row in rows]
+    except KeyError as err:
+        raise LcrlError(
+            f"{path} has no observation key {err.args[0]!r} (it has "
+            f"{', '.join(sorted(ep['obs']))}), which this run's policy and critic read: "
+            "record the file with this run's preset (lcrl demos record --preset ...)"
+        ) from None
+    obs = {k: np.stack([s[k] for s in stored]) for k in stored[0]}
+    text = ep["instruction"]
+    goal = task.ids[text] if text is not None and text in task.ids else 0
+    scenes = scenes_from_arrays(ep["scene"])
+    return {
+        "obs": obs,
+        "action": ep["action"],
+        "reward": np.zeros(t, np.float32),
+        # successes end episodes through the goal space (terminate_on_success), from labels
+        "terminated": np.zeros(t, bool),
+        **task.episode_fields(scenes, goal, env),
+    }
+
+
 def scenes_from_arrays(scene: Mapping[str, np.ndarray]) -> list[SceneState]:
     """Rebuild an episode's :class:`~envs.scene.SceneState` list from its scene arrays."""
     needed = ("positions", "gripper", "present", "colours", "shapes", "half_extents")

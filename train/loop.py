@@ -316,6 +316,11 @@ class Trainer(BaseTrainer):
         self._credit = 0.0
         self._metrics: dict[str, float] = {}
         self._metric_count = 0
+        # BC -> RL fine-tuning (cfg.finetune): offline updates done, demonstrations stored
+        self.pretrained = 0
+        self._demos_loaded = False
+        if cfg.finetune.demos:
+            self._check_demos()
         if ckpt is not None:
             self.restore(ckpt)
         elif self.task.text_goals:
@@ -334,12 +339,63 @@ class Trainer(BaseTrainer):
             if self.step >= self._stage_end(self.stage) and self.stage < len(self.stages) - 1:
                 with self.holding_signals():  # a stage ends whole: a stop waits for it
                     self.next_stage()
+        ft = self.cfg.finetune
+        if ft.demos:
+            if not self._demos_loaded:
+                with self.holding_signals():  # the file goes in whole
+                    self._load_demos()
+            if self.pretrained < ft.pretrain_updates:
+                self._pretrain()
+                return
+            self.agent.q_weight, self.agent.extra_bc = 1.0, ft.weight(self.step)
         if self.cfg.collect.backend == "ray":
             self.collect_remote()
         else:
             self.collect_episode()
         if self.stages and self.cfg.sequential.replay:
             self._stage_episodes.extend(self._last_episodes)
+
+    # --- BC -> RL fine-tuning ----------------------------------------------------------
+    def _check_demos(self) -> None:
+        """The demonstration file fits this run (one error line naming what does not)."""
+        from lcrl.demos import DemoDataset
+        from train.demos import check_dataset
+
+        path = self.cfg.finetune.demos
+        with DemoDataset(path) as data:
+            check_dataset(data, path, self.problem, self.task, self.env)
+
+    def _load_demos(self) -> None:
+        """Every episode of ``finetune.demos`` into the replay buffer, labelled like the
+        run's own episodes (they age out as the buffer fills, like any episode)."""
+        from lcrl.demos import DemoDataset
+        from train.demos import buffer_episode
+
+        path = self.cfg.finetune.demos
+        with DemoDataset(path) as data:
+            for e in range(data.num_episodes):
+                episode = buffer_episode(data, e, path, self.task, self.env)
+                self.buffer.add_episode(episode)
+                self.agent.observe(episode["obs"], episode.get("achieved_goal"))
+            steps = data.num_steps
+        self._demos_loaded = True
+        print(
+            f"fine-tuning from {path}: {data.num_episodes} episodes ({steps} steps) in the "
+            f"replay buffer; {self.cfg.finetune.pretrain_updates - self.pretrained} offline "
+            "updates first",
+            flush=True,
+        )
+
+    def _pretrain(self) -> None:
+        """A block of offline updates on what the buffer holds: the critic as online, the
+        actor cloning (no Q term; the hindsight BC term at ``finetune.bc_weight``)."""
+        ft = self.cfg.finetune
+        self._start = self.snapshot()
+        n = min(500, ft.pretrain_updates - self.pretrained)
+        self.agent.q_weight, self.agent.extra_bc = 0.0, ft.bc_weight
+        self._update(n)
+        self.pretrained += n
+        self._start = None
 
     # --- sequential stages -------------------------------------------------------------
     def _stage_end(self, stage: int) -> int:
@@ -760,6 +816,8 @@ class Trainer(BaseTrainer):
                 "recent": list(self.recent),
                 "credit": self._credit,
                 "train_s": self.train_seconds(),
+                "pretrained": self.pretrained,
+                "demos_loaded": self._demos_loaded,
             },
         }
         if self.stages:
@@ -780,7 +838,13 @@ class Trainer(BaseTrainer):
             ckpt,
             "trainer",
             {"step": int, "episodes": int, "recent": list, "credit": float},
-            optional={"sim_errors": int, "scripted_episodes": int, "train_s": float},
+            optional={
+                "sim_errors": int,
+                "scripted_episodes": int,
+                "train_s": float,
+                "pretrained": int,
+                "demos_loaded": bool,
+            },
         )
         for name, module in self.agent.modules().items():
             ckpt.load_module(name, module)
@@ -799,6 +863,9 @@ class Trainer(BaseTrainer):
         self.recent.extend(float(x) for x in trainer["recent"])
         self._credit = float(trainer["credit"])
         self.train_s_before = float(trainer.get("train_s", 0.0))
+        self.pretrained = int(trainer.get("pretrained", 0))
+        # demonstrations come back with the buffer; without it they are loaded again
+        self._demos_loaded = bool(trainer.get("demos_loaded", False)) and ckpt.has_arrays()
         if self.sampler is not None and ckpt.has_state("task_sampler"):
             with restoring(ckpt, "the states 'task_sampler' and 'task_rng'"):
                 self.sampler.load_state_dict(ckpt.state("task_sampler"))

@@ -37,6 +37,7 @@ import numpy as np
 
 from lcrl.errors import LcrlError
 from train.config import OFFLINE_ALGOS, TrainConfig
+from train.demos import buffer_episode, check_dataset
 from train.loop import Trainer
 
 #: Gradient updates per :meth:`OfflineTrainer.advance` (one unit of rollback).
@@ -96,61 +97,11 @@ class OfflineTrainer(Trainer):
     # --- the dataset -------------------------------------------------------------------
     def _check_data(self) -> None:
         """The file has what this run's observations, actions and goals need."""
-        data, problem, cfg = self.data, self.problem, self.cfg
-        path = cfg.offline
-        if data.num_episodes == 0:
-            raise LcrlError(f"{path} holds no episode")
-        want = () if problem.discrete else (problem.action_dim,)
-        if tuple(data.action_shape) != want or data.discrete != problem.discrete:
-            raise LcrlError(
-                f"{path} has {'discrete' if data.discrete else 'continuous'} actions of shape "
-                f"{data.action_shape}; this run acts with {want or 'discrete'} actions"
-            )
-        if getattr(self.task, "table", None) is None:
-            raise LcrlError(
-                "--offline relabels language goals from the stored scene: use a language-goal "
-                f"preset (lang2d, robosuite), not {cfg.env.goal_type} goals"
-            )
-        episode = self._episode(0)  # names a missing observation or scene key
-        for key, shape in problem.obs_shapes.items():
-            got = tuple(episode["obs"][key].shape[1:])
-            if got != tuple(shape):
-                raise LcrlError(
-                    f"{path}: observation {key!r} has shape {got}, this run's policy reads "
-                    f"{tuple(shape)}: record the file with this run's preset"
-                )
+        check_dataset(self.data, self.cfg.offline, self.problem, self.task, self.env)
 
     def _episode(self, e: int) -> dict[str, Any]:
         """Episode ``e`` of the file as the buffer stores it, labelled by the task."""
-        from train.demos import scenes_from_arrays
-
-        ep = self.data.episode(e)
-        t = int(ep["length"])
-        rows = [{k: v[i] for k, v in ep["obs"].items()} for i in range(t + 1)]
-        try:
-            stored = [self.task.training_obs(row, rows[0]) for row in rows]
-        except KeyError as e:
-            raise LcrlError(
-                f"{self.cfg.offline} has no observation key {e.args[0]!r} (it has "
-                f"{', '.join(sorted(ep['obs']))}), which this run's policy and critic read: "
-                "record the file with this run's preset (lcrl demos record --preset ...)"
-            ) from None
-        obs = {k: np.stack([s[k] for s in stored]) for k in stored[0]}
-        text = ep["instruction"]
-        task = self.task
-        # an episode without a (known) instruction keeps goal 0: its recorded-goal rows are
-        # scored against that instruction like any other, the relabelled ones by what it did
-        goal = task.ids[text] if text is not None and text in task.ids else 0
-        scenes = scenes_from_arrays(ep["scene"])
-        # successes end episodes through the goal space (terminate_on_success), from labels
-        terminated = np.zeros(t, bool)
-        return {
-            "obs": obs,
-            "action": ep["action"],
-            "reward": np.zeros(t, np.float32),
-            "terminated": terminated,
-            **task.episode_fields(scenes, goal, self.env),
-        }
+        return buffer_episode(self.data, e, self.cfg.offline, self.task, self.env)
 
     def _feed(self, slots: float, observe: bool = True) -> None:
         """Add episodes of the file (in order, cycling) until ``slots`` have been fed; with

@@ -207,6 +207,7 @@ STATE_TYPES: dict[type, tuple[Any, str]] = {
     int: (_count(0), "an integer >= 0"),
     float: (_number, "a number"),
     list: (lambda v: isinstance(v, list) and all(_number(x) for x in v), "a list of numbers"),
+    bool: (lambda v: isinstance(v, bool), "true or false"),
 }
 
 
@@ -218,7 +219,7 @@ def state_fields(
 ) -> dict[str, Any]:
     """The saved state ``name`` of ``state.json``, an object whose ``fields`` are each
     present with their type (``optional`` ones may be absent): ``int`` (>= 0), ``float``
-    (any number), ``list`` (of numbers).
+    (any number), ``list`` (of numbers), ``bool``.
 
     Raises:
         CheckpointError: the state or a field is missing or of the wrong type, naming

@@ -107,6 +107,11 @@ class SAC(Agent):
         self.actor = self._net(2 * n)
         self.critic = self._critics(n)
         self.critic_target, self._target_flat = flat_target(self.critic)
+        #: Set by a trainer between updates (BC -> RL fine-tuning): the weight of the Q term
+        #: in the actor loss (0: the actor clones, with its entropy term) and a hindsight BC
+        #: weight added to ``hindsight_bc``.
+        self.q_weight = 1.0
+        self.extra_bc = 0.0
         self.actor_opt = FlatAdam(
             self.actor.parameters(), cfg.actor_lr, max_grad_norm=cfg.max_grad_norm
         )
@@ -254,16 +259,17 @@ class SAC(Agent):
             o, g, a_taken, _, w = take(rows, actor_obs)
             a, logp, mean_action = self._policy(o, g, with_mean=True)
             q_pi = self.critic(o, g, a).min(0).values.squeeze(-1)
-            loss = _weighted_mean(alpha * logp - q_pi, w)
+            loss = _weighted_mean(alpha * logp - self.q_weight * q_pi, w)
             rel = relabelled if rows is None else relabelled[rows]
             bc_loss = None
-            if cfg.hindsight_bc > 0.0 and rel.any():
+            bc_weight = cfg.hindsight_bc + self.extra_bc
+            if bc_weight > 0.0 and rel.any():
                 mask = torch.as_tensor(rel, device=self.device)
                 bc_rows = (mean_action[mask] - a_taken[mask]).pow(2).sum(-1)
                 bc_loss = _weighted_mean(bc_rows, None if w is None else w[mask])
                 if rows is not None:  # the task's share of the mean over relabelled rows
                     bc_loss = bc_loss * (int(rel.sum()) / n_rel * n / len(rows))
-                loss = loss + cfg.hindsight_bc * bc_loss
+                loss = loss + bc_weight * bc_loss
             losses.append(loss + ground(self.actor, o, g, rows, "actor"))
             bc_losses.append(bc_loss)
             logps.append(logp)
