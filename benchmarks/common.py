@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import csv
 import json
 import os
 import shlex
@@ -18,6 +19,7 @@ __all__ = [
     "RESULTS_DIR",
     "caption",
     "command",
+    "final_eval",
     "machine",
     "machine_line",
     "run_jobs",
@@ -75,6 +77,26 @@ def run_jobs(jobs: Sequence[tuple[str, list[str], Path]], parallel: int = 2) -> 
                 print(f"{name} done", flush=True)
     if failed:
         raise SystemExit("; ".join(failed))
+
+
+def final_eval(out: Path, episodes: int, sets: Sequence[str]) -> dict[str, Any]:
+    """The last evaluation in a run's eval.csv (``episodes`` per set): success per set
+    with its 95% Wilson interval and per family."""
+    from train.eval_suite import wilson_interval
+
+    with (out / "eval.csv").open() as f:
+        row = list(csv.DictReader(f))[-1]
+    result: dict[str, Any] = {"step": int(row["step"])}
+    for name in sets:
+        rate = float(row[f"{name}/success"])
+        low, high = wilson_interval(round(rate * episodes), episodes)
+        families = {
+            k.split("/", 1)[1]: float(v)
+            for k, v in row.items()
+            if k.startswith(f"{name}/") and k != f"{name}/success" and v != ""
+        }
+        result[name] = {"success": rate, "ci": [round(low, 3), round(high, 3)], **families}
+    return result
 
 
 def command() -> str:

@@ -25,7 +25,6 @@ the seen-instruction success), with per-seed figures, Wilson intervals and the s
 from __future__ import annotations
 
 import argparse
-import csv
 import sys
 from pathlib import Path
 from typing import Any
@@ -34,13 +33,13 @@ sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
 from benchmarks.common import (
     command,
+    final_eval,
     machine,
     run_jobs,
     save_figure,
     save_json,
     save_markdown,
 )
-from train.eval_suite import wilson_interval
 from train.report import spread
 
 NAME = "offline-lang2d"
@@ -88,23 +87,6 @@ def run_all(args: argparse.Namespace, data: Path) -> None:
     run_jobs(jobs, args.parallel)
 
 
-def final_eval(out: Path, episodes: int) -> dict[str, Any]:
-    """The last row of a run's eval.csv: success per set with its Wilson interval."""
-    with (out / "eval.csv").open() as f:
-        row = list(csv.DictReader(f))[-1]
-    result: dict[str, Any] = {"step": int(row["step"])}
-    for name in SETS:
-        rate = float(row[f"{name}/success"])
-        low, high = wilson_interval(round(rate * episodes), episodes)
-        families = {
-            k.split("/", 1)[1]: float(v)
-            for k, v in row.items()
-            if k.startswith(f"{name}/") and k != f"{name}/success" and v != ""
-        }
-        result[name] = {"success": rate, "ci": [round(low, 3), round(high, 3)], **families}
-    return result
-
-
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--arms", nargs="+", choices=list(ARMS), default=list(ARMS))
@@ -121,7 +103,7 @@ def main(argv: list[str] | None = None) -> int:
     info = machine()
     arms: dict[str, Any] = {}
     for arm in args.arms:
-        runs = {s: final_eval(run_dir(args, arm, s), args.eval_episodes) for s in args.seeds}
+        runs = {s: final_eval(run_dir(args, arm, s), args.eval_episodes, SETS) for s in args.seeds}
         arms[arm] = {
             "options": ARMS[arm],
             **{name: spread([r[name]["success"] for r in runs.values()]) for name in SETS},

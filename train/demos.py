@@ -120,10 +120,10 @@ def check_dataset(data: DemoDataset, path: str, problem: Any, task: Any, env: An
             f"{path} has {'discrete' if data.discrete else 'continuous'} actions of shape "
             f"{data.action_shape}; this run acts with {want or 'discrete'} actions"
         )
-    if getattr(task, "table", None) is None:
+    if getattr(task, "table", None) is None and task.goal_kind != "vector":
         raise LcrlError(
-            f"{path}: goals are relabelled from the stored scene as instructions: use a "
-            "language-goal preset (lang2d, robosuite)"
+            f"{path}: offline runs relabel instructions (from the stored scene) or state "
+            f"goals (from stored achieved_goal), not {task.goal_kind} goals"
         )
     episode = buffer_episode(data, 0, path, task, env)  # names a missing key
     for key, shape in problem.obs_shapes.items():
@@ -153,16 +153,26 @@ def buffer_episode(data: DemoDataset, e: int, path: str, task: Any, env: Any) ->
             "record the file with this run's preset (lcrl demos record --preset ...)"
         ) from None
     obs = {k: np.stack([s[k] for s in stored]) for k in stored[0]}
-    text = ep["instruction"]
-    goal = task.ids[text] if text is not None and text in task.ids else 0
-    scenes = scenes_from_arrays(ep["scene"])
+    if getattr(task, "table", None) is not None:  # language: the captioner on the scene
+        text = ep["instruction"]
+        goal = task.ids[text] if text is not None and text in task.ids else 0
+        records: list[Any] = scenes_from_arrays(ep["scene"])
+    else:  # state goals: the stored achieved and desired goals
+        missing = [k for k in ("achieved_goal", "desired_goal") if k not in ep["obs"]]
+        if missing:
+            raise LcrlError(
+                f"{path} stores no {' or '.join(missing)}, which state goals are relabelled "
+                "from: record it with lcrl demos record --actor random --preset PRESET"
+            )
+        records = [task.step_record(row, env) for row in rows]
+        goal = task.goal(rows[0], env)
     return {
         "obs": obs,
         "action": ep["action"],
         "reward": np.zeros(t, np.float32),
         # successes end episodes through the goal space (terminate_on_success), from labels
         "terminated": np.zeros(t, bool),
-        **task.episode_fields(scenes, goal, env),
+        **task.episode_fields(records, goal, env),
     }
 
 
@@ -268,11 +278,18 @@ class RecordConfig:
                 f"unknown preset {self.preset!r}; choose one of {', '.join(_language_presets())}"
             )
         env = PRESETS[self.preset][1].env
-        if not is_language(env):
+        if not is_language(env) and (self.actor != "random" or env.goal_type != "state"):
             raise LcrlError(
                 f"preset {self.preset!r} has no language goals, so no scripted controller; "
                 f"choose one of {', '.join(_language_presets())}"
+                + (
+                    ", or record random play with --actor random"
+                    if env.goal_type == "state"
+                    else ""
+                )
             )
+        if not is_language(env) and self.families:
+            raise LcrlError(f"preset {self.preset!r} has state goals: it has no --families")
         changes: dict[str, Any] = {}
         if self.families:
             allowed = env_spec(env.kind).families
@@ -353,10 +370,12 @@ def record(cfg: RecordConfig) -> Path:
     """
     from tqdm import tqdm
 
-    from train.tasks import ScriptedActor, Task, find_language_wrapper
+    from train.tasks import ScriptedActor, Task, find_language_wrapper, is_language
 
     cfg.validate()
     env_cfg = cfg.env_config()
+    if not is_language(env_cfg):
+        return _record_play(cfg, env_cfg)
     images = bool(cfg.images or env_cfg.image_obs)
     env = _recording_env(env_cfg, images, cfg.image_size)
     task = Task(env)
@@ -475,6 +494,68 @@ def _format_rates(tried: Mapping[str, int], won: Mapping[str, int], actor: str =
     if total:
         lines.append(f"  {'all':<6} {sum(won.values()) / total:.2f}  ({sum(won.values())}/{total})")
     return "\n".join(lines)
+
+
+def _record_play(cfg: RecordConfig, env_cfg: Any) -> Path:
+    """Random play on a state-goal preset's env: per step ``observation``,
+    ``achieved_goal`` and ``desired_goal`` (what offline HER relabels state goals from), no
+    instruction and no scene. Ctrl-C keeps the finished episodes."""
+    from tqdm import tqdm
+
+    from train.tasks import Task, make_env
+
+    env = make_env(env_cfg, "train", training=False)
+    task = Task(env)
+    rng = np.random.default_rng([cfg.seed, 1])
+    meta = {
+        "env": asdict(env_cfg),
+        "preset": cfg.preset,
+        "source": "random",
+        "recording": {"episodes": cfg.episodes, "actor": "random", "noise": None,
+                      "seed": cfg.seed, "max_episode_steps": env_cfg.max_episode_steps},
+    }  # fmt: skip
+    writer = DemoWriter(cfg.resolved_out(), meta, overwrite=cfg.overwrite)
+    keys = ("observation", "achieved_goal", "desired_goal")
+    won = 0
+    bar = tqdm(total=cfg.episodes, disable=not cfg.progress, desc="record", unit="ep")
+    try:
+        for i in range(cfg.episodes):
+            obs, _ = env.reset(seed=int(cfg.seed * 1_000_003 + i))
+            rows, actions, info = [obs], [], {}
+            while True:
+                a = task.random_action(rng)
+                obs, _, terminated, truncated, info = env.step(task.scale_action(a))
+                rows.append(obs)
+                actions.append(a)
+                if terminated or truncated:
+                    break
+            success = bool(info.get("is_success", False))
+            won += success
+            arrays = {k: np.stack([np.asarray(r[k], np.float32) for r in rows]) for k in keys}
+            writer.add_episode(arrays, np.asarray(actions), success=success, source="random")
+            bar.update(1)
+    except KeyboardInterrupt:
+        bar.close()
+        env.close()
+        if writer.num_episodes:
+            writer.update_meta({"interrupted": True})
+            path = writer.close()
+            print(f"interrupted: kept the {writer.num_episodes} finished episodes in {path}")
+        else:
+            writer.discard()
+            print("interrupted before the first episode finished: nothing written")
+        raise
+    except BaseException:
+        bar.close()
+        env.close()
+        writer.discard()
+        raise
+    bar.close()
+    env.close()
+    path = writer.close()
+    print(f"random play reached its goal in {won}/{cfg.episodes} episodes")
+    print(f"saved {cfg.episodes} episodes to {path}")
+    return path
 
 
 def _record_episode(

@@ -1,0 +1,196 @@
+"""BC -> RL fine-tuning against BC alone and RL alone at the same environment budget, on
+the 2D tabletop's push instructions.
+
+    python benchmarks/bc_finetune.py                    # 100 demonstrations, 15k online steps
+    python benchmarks/bc_finetune.py --demos 20 --steps 400 --bc-updates 200 --seeds 0 \\
+        --eval-episodes 10                              # a check
+
+Records ``--demos`` scripted push demonstrations of the ``lang2d`` preset's env (action
+noise 0.3), then trains, per seed:
+
+* ``bc``: behavioural cloning on the demonstrations alone (``lcrl train lang2d-bc``,
+  ``--bc-updates`` updates): it sees only the demonstration steps;
+* ``rl``: SAC with language HER from scratch, no scripted episodes, for as many
+  environment steps as the demonstrations plus the fine-tuned run's online steps;
+* ``finetuned``: ``--finetune.demos``: the demonstrations in the buffer, offline updates
+  with a cloning actor, then ``--steps`` online steps with a decaying BC term.
+
+Each run is evaluated with ``--eval-episodes`` episodes per instruction set at its end.
+Runs go two at a time with one torch thread each; finished runs are kept.
+
+Writes ``benchmarks/results/bc_finetune.{json,md,png}``: ``headline.finetuned_seen``,
+``bc_seen`` and ``rl_seen`` (seen-instruction success, mean over seeds).
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+from typing import Any
+
+sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
+
+from benchmarks.common import (
+    command,
+    final_eval,
+    machine,
+    run_jobs,
+    save_figure,
+    save_json,
+    save_markdown,
+)
+from lcrl.demos import DemoDataset
+from train.report import spread
+
+NAME = "bc_finetune"
+LCRL = [sys.executable, "-m", "train.cli"]
+ARMS = ("bc", "rl", "finetuned")
+SETS = ("train", "heldout", "paraphrase")
+COMMON = ["--env.families", "push", "--eval-every", "0", "--checkpoint-every", "0"]
+COMMON += ["--overwrite", "--no-progress", "--no-tensorboard"]
+
+
+def run_dir(args: argparse.Namespace, arm: str, seed: int) -> Path:
+    return Path(args.work) / f"{arm}-s{seed}"
+
+
+def record(args: argparse.Namespace) -> Path:
+    """The demonstration file (recorded once)."""
+    path = Path(args.work) / f"push-{args.demos}.h5"
+    if not path.is_file():
+        cmd = [*LCRL, "demos", "record", "--preset", "lang2d", "--families", "push"]
+        cmd += ["--episodes", str(args.demos), "--noise", "0.3", "--seed", "100"]
+        run_jobs(
+            [("record", [*cmd, "--out", str(path), "--no-progress"], path.with_suffix(".log"))]
+        )
+    return path
+
+
+def arm_command(arm: str, args: argparse.Namespace, seed: int, demos: Path, budget: int) -> list:
+    """The ``lcrl train`` command of an arm."""
+    out = ["--out", str(run_dir(args, arm, seed)), "--seed", str(seed)]
+    out += ["--eval-episodes", str(args.eval_episodes), *COMMON]
+    if arm == "bc":
+        return [*LCRL, "train", "lang2d-bc", "--demos", str(demos), *out, "--total-steps",
+                str(args.bc_updates)]  # fmt: skip
+    online = ["--scripted-fraction", "0"]
+    if arm == "rl":
+        return [*LCRL, "train", "lang2d", *out, *online, "--total-steps", str(budget)]
+    finetune = ["--finetune.demos", str(demos), "--finetune.decay-steps", str(args.decay_steps)]
+    finetune += ["--finetune.pretrain-updates", str(args.pretrain_updates)]
+    return [*LCRL, "train", "lang2d", *out, *online, "--total-steps", str(args.steps), *finetune]
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--seeds", type=int, nargs="+", default=[0])
+    parser.add_argument("--demos", type=int, default=100, help="scripted push episodes")
+    parser.add_argument("--steps", type=int, default=15_000, help="fine-tuning online steps")
+    parser.add_argument("--pretrain-updates", type=int, default=2000)
+    parser.add_argument("--decay-steps", type=int, default=10_000)
+    parser.add_argument("--bc-updates", type=int, default=5000)
+    parser.add_argument("--eval-episodes", type=int, default=100)
+    parser.add_argument("--parallel", type=int, default=2)
+    parser.add_argument("--work", default="runs/bench/bc_finetune")
+    args = parser.parse_args(argv)
+
+    demos = record(args)
+    with DemoDataset(demos) as data:
+        demo_steps = data.num_steps
+    budget = demo_steps + args.steps  # environment steps behind each RL arm
+    jobs = [
+        (
+            f"{arm}-s{s}",
+            arm_command(arm, args, s, demos, budget),
+            run_dir(args, arm, s).with_suffix(".log"),
+        )
+        for s in args.seeds
+        for arm in ("rl", "finetuned", "bc")
+        if not (run_dir(args, arm, s) / "report.md").is_file()
+    ]
+    run_jobs(jobs, args.parallel)
+
+    info = machine()
+    arms: dict[str, Any] = {}
+    for arm in ARMS:
+        runs = {s: final_eval(run_dir(args, arm, s), args.eval_episodes, SETS) for s in args.seeds}
+        arms[arm] = {
+            "command": " ".join(arm_command(arm, args, args.seeds[0], demos, budget)[3:]),
+            **{n: spread([r[n]["success"] for r in runs.values()]) for n in SETS},
+            "per_seed": {str(s): r for s, r in runs.items()},
+        }
+    env_steps = {"bc": demo_steps, "rl": budget, "finetuned": budget}
+    headline = {f"{arm}_seen": round(arms[arm]["train"]["mean"], 3) for arm in ARMS}
+    headline.update(
+        environment_steps=budget, demo_steps=demo_steps, online_steps=args.steps,
+        seeds=len(args.seeds),
+    )  # fmt: skip
+    fine = arms["finetuned"]["train"]["mean"]
+    reached = {
+        "finetuned_above_bc": fine > arms["bc"]["train"]["mean"],
+        "finetuned_above_rl": fine > arms["rl"]["train"]["mean"],
+    }
+    save_json(
+        NAME,
+        {
+            "headline": headline,
+            "target": "finetuned_seen above bc_seen and rl_seen at the same environment budget",
+            "reached": reached,
+            "command": command(),
+            "machine": info,
+            "settings": {**vars(args), "data": str(demos)},
+            "environment_steps": env_steps,
+            "arms": arms,
+        },
+    )
+    lines = [
+        "| arm | environment steps | seen (push) | held-out combinations | paraphrases | "
+        "seen, 95% interval (seed " + str(args.seeds[0]) + ") |",
+        "|---|---:|---:|---:|---:|---|",
+    ]
+    for arm, a in arms.items():
+        first = a["per_seed"][str(args.seeds[0])]["train"]
+        cells = [f"{a[n]['mean']:.2f}" + (f" ± {a[n]['std']:.2f}" if len(args.seeds) > 1 else "")
+                 for n in SETS]  # fmt: skip
+        lines.append(
+            f"| {arm} | {env_steps[arm]} | " + " | ".join(cells)
+            + f" | [{first['ci'][0]:.2f}, {first['ci'][1]:.2f}] |"
+        )  # fmt: skip
+    lines += ["", "Commands (from the repository root):", ""]
+    lines += [f"- {arm}: `lcrl {a['command']}`" for arm, a in arms.items()]
+    verdict = ", ".join(f"{k} {'reached' if v else 'NOT reached'}" for k, v in reached.items())
+    body = (
+        f"{args.demos} scripted push demonstrations ({demo_steps} steps, action noise 0.3) of "
+        f"`lang2d`; fine-tuning: {args.pretrain_updates} offline updates, then {args.steps} "
+        f"online steps with the BC weight decaying over {args.decay_steps}; RL alone: "
+        f"{budget} steps; seeds {args.seeds}; {args.eval_episodes} evaluation episodes per "
+        f"set. Target, fine-tuned above BC alone and RL alone: **{verdict}**.\n\n"
+        + "\n".join(lines)
+    )
+    save_markdown(NAME, "BC -> RL fine-tuning (lang2d push)", body, info)
+
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from benchmarks.common import success_bars
+
+    fig, ax = plt.subplots(figsize=(6, 3.6))
+    results = [
+        {
+            "success": a["train"]["mean"],
+            "ci": a["per_seed"][str(args.seeds[0])]["train"]["ci"],
+        }
+        for a in arms.values()
+    ]
+    success_bars(ax, list(arms), results, args.eval_episodes, color="tab:blue")
+    ax.set_title(f"lang2d push, {budget} environment steps")
+    fig.tight_layout(rect=(0, 0.08, 1, 1))
+    save_figure(NAME, fig, info)
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
