@@ -525,7 +525,13 @@ def _open(path: str | os.PathLike, mode: str = "r") -> Any:
     if fmt != FORMAT:
         f.close()
         what = f"a {fmt!r} file" if isinstance(fmt, str) else "not an lcrl file"
-        raise LcrlError(f"{p} is {what}, not an {FORMAT} dataset")
+        hint = ""
+        if isinstance(fmt, str) and "caption" in fmt:  # frames and labels, no actions
+            hint = (
+                ": a caption dataset stores no actions, so no policy learns from it; record "
+                "random play with lcrl demos record --actor random"
+            )
+        raise LcrlError(f"{p} is {what}, not an {FORMAT} dataset{hint}")
     version = int(f.attrs.get("version", -1))
     if version != VERSION:
         f.close()

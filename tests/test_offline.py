@@ -296,7 +296,14 @@ def test_files_that_do_not_fit_name_what_is_missing(tmp_path):
     bare = write(tmp_path / "s.h5", {"observation": np.zeros((5, 58), np.float32)}, acts)
     with pytest.raises(LcrlError, match="scene"):
         offline(tmp_path / "r3", bare)
-    for name in ("r1", "r2", "r3"):
+    # a caption dataset: frames and labels, no actions
+    import h5py
+
+    with h5py.File(tmp_path / "c.h5", "w") as f:
+        f.attrs["format"] = "lcrl-caption-dataset"
+    with pytest.raises(LcrlError, match="a caption dataset stores no actions"):
+        offline(tmp_path / "r4", tmp_path / "c.h5")
+    for name in ("r1", "r2", "r3", "r4"):
         assert not (tmp_path / name / "checkpoints").exists()
 
 
