@@ -47,3 +47,17 @@ def cli(*args: str) -> int:
 def error_line(stderr: str) -> str:
     """The last line of stderr (the transformers loading bar may precede it)."""
     return stderr.strip().splitlines()[-1]
+
+
+def interrupt_update(monkeypatch, agent, at: int) -> None:
+    """Make ``agent.update`` raise ``KeyboardInterrupt`` on its ``at``-th call: a Ctrl-C in
+    the middle of a block of updates."""
+    update, calls = agent.update, {"n": 0}
+
+    def interrupted(batch):
+        calls["n"] += 1
+        if calls["n"] == at:
+            raise KeyboardInterrupt
+        return update(batch)
+
+    monkeypatch.setattr(agent, "update", interrupted)

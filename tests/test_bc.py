@@ -19,7 +19,7 @@ import numpy as np
 import pytest
 import safetensors.torch
 import torch
-from helpers import cli, error_line
+from helpers import cli, error_line, interrupt_update
 
 from lcrl.algos import AgentOptions, Problem
 from lcrl.bc import BC, BCConfig
@@ -382,15 +382,7 @@ def test_ctrl_c_saves_and_resume_continues_exactly(demos, tmp_path, monkeypatch,
 
     out = tmp_path / "part"
     trainer = BCTrainer(tiny_bc(out, demos, checkpoint_every=100))
-    update, calls = trainer.agent.update, {"n": 0}
-
-    def interrupted(batch):
-        calls["n"] += 1
-        if calls["n"] == 151:
-            raise KeyboardInterrupt
-        return update(batch)
-
-    monkeypatch.setattr(trainer.agent, "update", interrupted)
+    interrupt_update(monkeypatch, trainer.agent, 151)
     with pytest.raises(KeyboardInterrupt):
         trainer.run()
     assert "interrupted at update 150" in capsys.readouterr().out

@@ -19,7 +19,7 @@ import numpy as np
 import pytest
 import safetensors.torch
 import torch
-from helpers import cli, error_line, tiny
+from helpers import cli, error_line, interrupt_update, tiny
 
 from lcrl.checkpoint import find_latest, load_checkpoint
 from lcrl.demos import DemoDataset, DemoWriter
@@ -206,15 +206,7 @@ def test_stopped_run_resumes_exactly(play, tmp_path, monkeypatch, capsys):
 
     out = tmp_path / "part"
     trainer = offline(out, play, total_steps=300, checkpoint_every=100, buffer=buffer)
-    update, calls = trainer.agent.update, {"n": 0}
-
-    def interrupted(batch):
-        calls["n"] += 1
-        if calls["n"] == 151:
-            raise KeyboardInterrupt
-        return update(batch)
-
-    monkeypatch.setattr(trainer.agent, "update", interrupted)
+    interrupt_update(monkeypatch, trainer.agent, 151)
     with pytest.raises(KeyboardInterrupt):
         trainer.run()
     assert "interrupted at update 100" in capsys.readouterr().out
@@ -453,15 +445,7 @@ def test_finetuning_bc_weight_decays_to_zero():
 def test_finetuning_stopped_while_pretraining_resumes_there(push_demos, tmp_path, monkeypatch):
     out = tmp_path / "run"
     trainer = finetuner(out, push_demos)
-    update, calls = trainer.agent.update, {"n": 0}
-
-    def interrupted(batch):
-        calls["n"] += 1
-        if calls["n"] == 550:
-            raise KeyboardInterrupt
-        return update(batch)
-
-    monkeypatch.setattr(trainer.agent, "update", interrupted)
+    interrupt_update(monkeypatch, trainer.agent, 550)
     with pytest.raises(KeyboardInterrupt):
         trainer.run()
     ckpt = load_checkpoint(find_latest(out))

@@ -441,21 +441,8 @@ def record(cfg: RecordConfig) -> Path:
             stats["steps"] += len(ep["actions"])
             writer.add_episode(**ep, source=cfg.actor)
             bar.set_postfix(success=f"{sum(won.values()) / max(1, sum(tried.values())):.2f}")
-    except KeyboardInterrupt:
-        bar.close()
-        env.close()
-        if writer.num_episodes:
-            writer.update_meta({"per_family": _rates(tried, won), "interrupted": True, **stats})
-            path = writer.close()
-            print(f"interrupted: kept the {writer.num_episodes} finished episodes in {path}")
-        else:
-            writer.discard()
-            print("interrupted before the first episode finished: nothing written")
-        raise
-    except BaseException:
-        bar.close()
-        env.close()
-        writer.discard()
+    except BaseException as e:
+        _stop_recording(writer, env, bar, e, {"per_family": _rates(tried, won), **stats})
         raise
     bar.close()
     env.close()
@@ -496,6 +483,24 @@ def _format_rates(tried: Mapping[str, int], won: Mapping[str, int], actor: str =
     return "\n".join(lines)
 
 
+def _stop_recording(
+    writer: DemoWriter, env: Any, bar: Any, error: BaseException, meta: Mapping[str, Any]
+) -> None:
+    """A recording stopped by ``error``: on Ctrl-C the finished episodes are kept (the
+    file completed with ``meta`` and moved into place), on any other error nothing."""
+    bar.close()
+    env.close()
+    if not isinstance(error, KeyboardInterrupt):
+        writer.discard()
+    elif writer.num_episodes:
+        writer.update_meta({**meta, "interrupted": True})
+        path = writer.close()
+        print(f"interrupted: kept the {writer.num_episodes} finished episodes in {path}")
+    else:
+        writer.discard()
+        print("interrupted before the first episode finished: nothing written")
+
+
 def _record_play(cfg: RecordConfig, env_cfg: Any) -> Path:
     """Random play on a state-goal preset's env: per step ``observation``,
     ``achieved_goal`` and ``desired_goal`` (what offline HER relabels state goals from), no
@@ -534,21 +539,8 @@ def _record_play(cfg: RecordConfig, env_cfg: Any) -> Path:
             arrays = {k: np.stack([np.asarray(r[k], np.float32) for r in rows]) for k in keys}
             writer.add_episode(arrays, np.asarray(actions), success=success, source="random")
             bar.update(1)
-    except KeyboardInterrupt:
-        bar.close()
-        env.close()
-        if writer.num_episodes:
-            writer.update_meta({"interrupted": True})
-            path = writer.close()
-            print(f"interrupted: kept the {writer.num_episodes} finished episodes in {path}")
-        else:
-            writer.discard()
-            print("interrupted before the first episode finished: nothing written")
-        raise
-    except BaseException:
-        bar.close()
-        env.close()
-        writer.discard()
+    except BaseException as e:
+        _stop_recording(writer, env, bar, e, {})
         raise
     bar.close()
     env.close()

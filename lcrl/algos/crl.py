@@ -28,6 +28,7 @@ import torch.nn.functional as F
 from torch import nn
 
 from lcrl.algos.base import Agent, AgentOptions, AlgoSpec, GoalEmbedder, Problem, check_fields
+from lcrl.algos.td3 import deterministic_act
 from lcrl.buffer import Batch
 from lcrl.nets import FlatAdam, grounding_loss
 
@@ -101,13 +102,7 @@ class CRL(Agent):
     ) -> np.ndarray:
         """Deterministic actions, plus Gaussian exploration noise when not
         ``deterministic``."""
-        with torch.inference_mode():
-            a = torch.tanh(self.actor(self.obs_tensors(obs), self.goal_tensor(goal, embedded)))
-            if not deterministic:
-                noise = torch.randn(a.shape, generator=self.gen, device=self.device)
-                a = (a + self.cfg.exploration_noise * noise).clamp(-1.0, 1.0)
-        self.acts += 1
-        return a.cpu().numpy()
+        return deterministic_act(self, obs, goal, deterministic, embedded)
 
     def contrastive_logits(
         self,

@@ -64,6 +64,25 @@ class TD3Config:
         )
 
 
+def deterministic_act(
+    agent: Agent,
+    obs: Mapping[str, np.ndarray],
+    goal: np.ndarray | torch.Tensor,
+    deterministic: bool,
+    embedded: bool,
+) -> np.ndarray:
+    """``tanh(actor(obs, goal))``, plus Gaussian noise of std
+    ``agent.cfg.exploration_noise`` (clipped to the action box) unless ``deterministic``:
+    how deterministic actors (TD3, CRL) act."""
+    with torch.inference_mode():
+        a = torch.tanh(agent.actor(agent.obs_tensors(obs), agent.goal_tensor(goal, embedded)))
+        if not deterministic:
+            noise = torch.randn(a.shape, generator=agent.gen, device=agent.device)
+            a = (a + agent.cfg.exploration_noise * noise).clamp(-1.0, 1.0)
+    agent.acts += 1
+    return a.cpu().numpy()
+
+
 class TD3(Agent):
     """Twin delayed deep deterministic policy gradient.
 
@@ -109,13 +128,7 @@ class TD3(Agent):
     ) -> np.ndarray:
         """Deterministic actions, plus clipped Gaussian exploration noise when not
         ``deterministic``."""
-        with torch.inference_mode():
-            a = torch.tanh(self.actor(self.obs_tensors(obs), self.goal_tensor(goal, embedded)))
-            if not deterministic:
-                noise = torch.randn(a.shape, generator=self.gen, device=self.device)
-                a = (a + self.cfg.exploration_noise * noise).clamp(-1.0, 1.0)
-        self.acts += 1
-        return a.cpu().numpy()
+        return deterministic_act(self, obs, goal, deterministic, embedded)
 
     def update(self, batch: Batch) -> dict[str, float]:
         """One critic step, and an actor and target step every ``policy_delay`` calls."""
