@@ -65,8 +65,8 @@ class OfflineTrainer(Trainer):
             raise LcrlError("--offline and --sequential.stages do not go together")
         if cfg.relabel.learned:
             raise LcrlError(
-                "--offline relabels with the rule captioner on the stored scene; relabel the "
-                "file with a learned captioner first (lcrl demos relabel --captioner CKPT)"
+                "--offline labels what each step achieved with the rule captioner on the "
+                "stored scene; learned relabelling (--relabel.*) is for online runs"
             )
 
     def __init__(self, cfg: TrainConfig) -> None:
