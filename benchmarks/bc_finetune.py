@@ -1,7 +1,7 @@
 """BC -> RL fine-tuning against BC alone and RL alone at the same environment budget, on
 the 2D tabletop's push instructions.
 
-    python benchmarks/bc_finetune.py                    # 100 demonstrations, 15k online steps
+    python benchmarks/bc_finetune.py                    # 100 demonstrations, 15k steps, 3 seeds
     python benchmarks/bc_finetune.py --demos 20 --steps 400 --bc-updates 200 --seeds 0 \\
         --eval-episodes 10                              # a check
 
@@ -84,7 +84,7 @@ def arm_command(arm: str, args: argparse.Namespace, seed: int, demos: Path, budg
 
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("--seeds", type=int, nargs="+", default=[0])
+    parser.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2])
     parser.add_argument("--demos", type=int, default=100, help="scripted push episodes")
     parser.add_argument("--steps", type=int, default=15_000, help="fine-tuning online steps")
     parser.add_argument("--pretrain-updates", type=int, default=2000)
@@ -146,17 +146,17 @@ def main(argv: list[str] | None = None) -> int:
     )
     lines = [
         "| arm | environment steps | seen (push) | held-out combinations | paraphrases | "
-        "seen, 95% interval (seed " + str(args.seeds[0]) + ") |",
+        "seen per seed, 95% interval |",
         "|---|---:|---:|---:|---:|---|",
     ]
     for arm, a in arms.items():
-        first = a["per_seed"][str(args.seeds[0])]["train"]
         cells = [f"{a[n]['mean']:.2f}" + (f" ± {a[n]['std']:.2f}" if len(args.seeds) > 1 else "")
                  for n in SETS]  # fmt: skip
-        lines.append(
-            f"| {arm} | {env_steps[arm]} | " + " | ".join(cells)
-            + f" | [{first['ci'][0]:.2f}, {first['ci'][1]:.2f}] |"
-        )  # fmt: skip
+        per = ", ".join(
+            f"{r['train']['success']:.2f} [{r['train']['ci'][0]:.2f}, {r['train']['ci'][1]:.2f}]"
+            for r in a["per_seed"].values()
+        )
+        lines.append(f"| {arm} | {env_steps[arm]} | " + " | ".join(cells) + f" | {per} |")
     lines += ["", "Commands (from the repository root):", ""]
     lines += [f"- {arm}: `lcrl {a['command']}`" for arm, a in arms.items()]
     verdict = ", ".join(f"{k} {'reached' if v else 'NOT reached'}" for k, v in reached.items())
@@ -175,17 +175,21 @@ def main(argv: list[str] | None = None) -> int:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    from benchmarks.common import success_bars
-
     fig, ax = plt.subplots(figsize=(6, 3.6))
-    results = [
-        {
-            "success": a["train"]["mean"],
-            "ci": a["per_seed"][str(args.seeds[0])]["train"]["ci"],
-        }
-        for a in arms.values()
-    ]
-    success_bars(ax, list(arms), results, args.eval_episodes, color="tab:blue")
+    names = list(arms)
+    ax.bar(
+        names,
+        [a["train"]["mean"] for a in arms.values()],
+        yerr=[a["train"]["std"] for a in arms.values()],
+        capsize=4,
+        color="tab:blue",
+    )
+    for i, a in enumerate(arms.values()):  # each seed, with its 95% Wilson interval
+        for j, r in enumerate(a["per_seed"].values()):
+            x = i + 0.12 * (j - (len(args.seeds) - 1) / 2)
+            ax.plot([x, x], r["train"]["ci"], c="k", lw=0.8)
+            ax.plot(x, r["train"]["success"], "k.", ms=4)
+    ax.set(ylim=(0, 1.02), ylabel="seen success (mean ± sd; seeds, 95% CI)")
     ax.set_title(f"lang2d push, {budget} environment steps")
     fig.tight_layout(rect=(0, 0.08, 1, 1))
     save_figure(NAME, fig, info)
