@@ -11,6 +11,18 @@ from lcrl.nets import NetConfig
 from train.cli import main
 from train.config import PRESETS, TrainConfig
 
+#: Options that shrink an ``lcrl train`` command line to a few seconds.
+TINY_CLI = [
+    "--eval-episodes", "3",
+    "--checkpoint-every", "0",
+    "--log-every", "100",
+    "--batch-size", "32",
+    "--agent.net.hidden", "32", "32",
+    "--agent.net.text-dim", "8",
+    "--no-progress",
+    "--no-tensorboard",
+]  # fmt: skip
+
 
 def tiny(preset: str, out: Path, **overrides) -> TrainConfig:
     """A preset shrunk to a few hundred steps and 32-unit networks."""

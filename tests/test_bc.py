@@ -19,7 +19,7 @@ import numpy as np
 import pytest
 import safetensors.torch
 import torch
-from helpers import cli, error_line, interrupt_update
+from helpers import TINY_CLI, cli, error_line, interrupt_update
 
 from lcrl.algos import AgentOptions, Problem
 from lcrl.bc import BC, BCConfig
@@ -35,16 +35,6 @@ from train.evaluate import evaluate, load_policy, run_episode
 
 SETS = ("train", "heldout", "paraphrase")
 OBS_DIM = 58  # the lang2d preset's observation: pusher x, y + 8 slots of 7 values
-TINY_CLI = [
-    "--eval-episodes", "3",
-    "--checkpoint-every", "0",
-    "--log-every", "100",
-    "--batch-size", "32",
-    "--agent.net.hidden", "32", "32",
-    "--agent.net.text-dim", "8",
-    "--no-progress",
-    "--no-tensorboard",
-]  # fmt: skip
 
 
 class Rows(NamedTuple):

@@ -19,24 +19,13 @@ import numpy as np
 import pytest
 import safetensors.torch
 import torch
-from helpers import cli, error_line, interrupt_update, tiny
+from helpers import TINY_CLI, cli, error_line, interrupt_update, tiny
 
 from lcrl.checkpoint import find_latest, load_checkpoint
 from lcrl.demos import DemoDataset, DemoWriter
 from lcrl.errors import LcrlError
 from train.demos import RecordConfig, record
 from train.offline import OfflineTrainer
-
-TINY_CLI = [
-    "--eval-episodes", "3",
-    "--checkpoint-every", "0",
-    "--log-every", "100",
-    "--batch-size", "32",
-    "--agent.net.hidden", "32", "32",
-    "--agent.net.text-dim", "8",
-    "--no-progress",
-    "--no-tensorboard",
-]  # fmt: skip
 
 
 @pytest.fixture(scope="module", autouse=True)
