@@ -73,6 +73,19 @@ class Batch(NamedTuple):
     discount: np.ndarray | None = None
 
 
+def batch_rows(batch: Batch, rows: Any) -> Batch:
+    """The rows ``rows`` (indices or a mask) of every array of ``batch``."""
+
+    def pick(x: Any) -> Any:
+        if x is None:
+            return None
+        if isinstance(x, dict):
+            return {k: v[rows] for k, v in x.items()}
+        return x[rows]
+
+    return Batch(*(pick(x) for x in batch))
+
+
 class HindsightReplayBuffer:
     """Preallocated episode storage with vectorised hindsight relabelling.
 

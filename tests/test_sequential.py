@@ -5,10 +5,12 @@ from __future__ import annotations
 import json
 import math
 
+import numpy as np
 import pytest
 import torch
 from helpers import cli, error_line, tiny
 
+from lcrl.buffer import Batch, batch_rows
 from lcrl.continual import EWC
 from train.config import SequentialConfig
 from train.loop import Trainer
@@ -43,6 +45,23 @@ def test_ewc_penalty_is_zero_at_the_anchor_and_grows_away_from_it():
     assert again.penalty("critic", params) == ewc.penalty("critic", params)
 
 
+def test_batch_rows_picks_the_same_rows_of_every_array():
+    batch = Batch(
+        obs={"x": np.arange(10).reshape(5, 2)},
+        action=np.arange(5.0),
+        reward=np.arange(5.0) * 2,
+        next_obs={"x": np.arange(10).reshape(5, 2) + 1},
+        terminated=np.zeros(5),
+        goal=np.arange(5) + 10,
+        relabelled=np.array([True, False, True, False, True]),
+        index=np.arange(5) + 100,
+    )
+    row = batch_rows(batch, [3])
+    assert row.obs["x"].tolist() == [[6, 7]] and row.next_obs["x"].tolist() == [[7, 8]]
+    assert row.action.tolist() == [3.0] and row.goal.tolist() == [13]
+    assert row.index.tolist() == [103] and row.discount is None
+
+
 def test_transfer_metrics_by_hand():
     stages = [("reach",), ("push",), ("put",)]
     matrix = [
@@ -69,10 +88,20 @@ def test_sequential_run_writes_its_matrix(tmp_path, replay, ewc):
         total_steps=400,
         learning_starts=100,
         eval_episodes=6,
-        sequential=SequentialConfig(stages=("reach", "push"), replay=replay, ewc=ewc),
+        sequential=SequentialConfig(
+            stages=("reach", "push"), replay=replay, ewc=ewc, ewc_samples=12
+        ),
     )
     trainer = Trainer(cfg)
     assert trainer.envs[0].unwrapped is not None
+    sizes: list[int] = []
+    gradients = trainer.agent.loss_gradients
+
+    def per_row(batch):
+        sizes.append(len(batch.action))
+        return gradients(batch)
+
+    trainer.agent.loss_gradients = per_row
     trainer.run()
     payload = json.loads((out / "sequential.json").read_text())
     assert [r["after"] for r in payload["rows"]] == ["init", "reach", "push"]
@@ -86,6 +115,7 @@ def test_sequential_run_writes_its_matrix(tmp_path, replay, ewc):
     if ewc:  # the Fisher of both networks, anchored at the end of the first stage
         assert set(trainer.agent.ewc.fisher) == {"critic", "actor"}
         assert trainer.agent.ewc.fisher["critic"].sum() > 0
+        assert sizes == [1] * 12  # the empirical Fisher: one transition per gradient
     if replay:
         steps = sum(len(e["action"]) for e in trainer.memory[0])
         assert 0 < steps <= replay

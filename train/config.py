@@ -153,8 +153,11 @@ class SequentialConfig:
     Fisher information of the critic and actor losses is estimated on that stage's data
     and ``ewc / 2 * sum F (theta - theta_stage)^2`` pulls the weights back towards where
     they ended the stage (Fisher summed over stages, anchored at the last). SAC. 0: off."""
-    ewc_batches: int = 20
-    """Batches of the Fisher estimate at the end of each stage."""
+    ewc_samples: int = 256
+    """Transitions of the Fisher estimate at the end of each stage: the loss gradient of
+    each one alone is squared (the empirical Fisher), then averaged. The squared gradient
+    of a whole batch's mean loss would average the per-transition gradients away and
+    underestimate the Fisher by about the batch size."""
 
     def families(self) -> list[tuple[str, ...]]:
         """The families of each stage."""
@@ -173,9 +176,9 @@ class SequentialConfig:
                     f"sequential.stages: {'+'.join(stage) or 'an empty stage'} is not made of "
                     f"env.families {tuple(families)}"
                 )
-        if self.replay < 0 or self.ewc < 0 or self.ewc_batches < 1:
+        if self.replay < 0 or self.ewc < 0 or self.ewc_samples < 1:
             raise LcrlError(
-                "sequential.replay and sequential.ewc must be >= 0, sequential.ewc_batches >= 1"
+                "sequential.replay and sequential.ewc must be >= 0, sequential.ewc_samples >= 1"
             )
         if self.ewc and algo not in ("sac", "auto"):
             raise LcrlError(f"sequential.ewc is implemented for sac, not {algo}")

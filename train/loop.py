@@ -477,16 +477,18 @@ class Trainer(BaseTrainer):
         return [episodes[i] for i in sorted(kept)]
 
     def _consolidate(self) -> None:
-        """EWC at the end of a stage: the diagonal Fisher information of the critic and
-        actor losses, from ``sequential.ewc_batches`` batches of the stage's data."""
+        """EWC at the end of a stage: the diagonal empirical Fisher information of the
+        critic and actor losses, from ``sequential.ewc_samples`` transitions of the stage's
+        data, each one's gradient squared on its own."""
         import torch
 
+        from lcrl.buffer import batch_rows
+
         sums: dict[str, torch.Tensor] = {}
-        n = self.cfg.sequential.ewc_batches
-        for _ in range(n):
-            for name, g in self.agent.loss_gradients(
-                self.buffer.sample(self.cfg.batch_size)
-            ).items():
+        n = self.cfg.sequential.ewc_samples
+        batch = self.buffer.sample(n)
+        for i in range(n):
+            for name, g in self.agent.loss_gradients(batch_rows(batch, [i])).items():
                 sums[name] = sums.get(name, 0.0) + g * g
         for name, params in self.agent.flat_parameters().items():
             self.agent.ewc.consolidate(name, params, sums[name] / n)
