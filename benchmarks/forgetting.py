@@ -103,16 +103,29 @@ def main(argv: list[str] | None = None) -> int:
         for arm in args.arms
     }
     headline["seeds"] = len(args.seeds)
-    reached = {
-        f"forgetting_{arm}": headline[f"forgetting_{arm}"] < headline["forgetting_naive"]
+    # below naive on the mean over seeds, and on most seeds seed for seed (a mean a hair
+    # below naive with most seeds above it is noise, not a mitigation)
+    wins = {
+        arm: sum(
+            arms[arm]["per_seed"][str(s)]["metrics"]["forgetting"]
+            < arms["naive"]["per_seed"][str(s)]["metrics"]["forgetting"]
+            for s in args.seeds
+        )
         for arm in args.arms
         if arm != "naive" and "naive" in args.arms
+    }
+    reached = {
+        f"forgetting_{arm}": headline[f"forgetting_{arm}"] < headline["forgetting_naive"]
+        and 2 * n > len(args.seeds)
+        for arm, n in wins.items()
     }
     save_json(
         NAME,
         {
             "headline": headline,
-            "target": "forgetting_replay and forgetting_ewc below forgetting_naive",
+            "target": "forgetting_replay and forgetting_ewc below forgetting_naive (mean over "
+            "seeds, and on most seeds against naive on the same seed)",
+            "seeds_below_naive": wins,
             "reached": reached,
             "command": command(),
             "machine": info,
@@ -152,11 +165,16 @@ def main(argv: list[str] | None = None) -> int:
             cells = [sum(r["rows"][i]["success"][f] for r in rows) / len(rows) for f in fams]
             lines.append(f"| {row['after']} | " + " | ".join(f"{c:.2f}" for c in cells) + " |")
         lines.append("")
-    verdict = ", ".join(f"{k} {'reached' if v else 'NOT reached'}" for k, v in reached.items())
+    verdict = ", ".join(
+        f"{k} {'reached' if v else 'NOT reached'} ({wins[k.removeprefix('forgetting_')]} of "
+        f"{len(args.seeds)} seeds below naive)"
+        for k, v in reached.items()
+    )
     body = (
         f"Stages {' -> '.join(args.stages)} on `lang2d`, {args.steps} steps in all, seeds "
         f"{args.seeds}; replay memory {args.replay} transitions, EWC weight {args.ewc}. "
-        f"Target: replay and EWC forget less than naive: **{verdict}**.\n\n" + "\n".join(lines)
+        "Target: replay and EWC forget less than naive, on the mean and on most seeds: "
+        f"**{verdict}**.\n\n" + "\n".join(lines)
     )
     save_markdown(NAME, "Forgetting in sequential training (lang2d)", body, info)
 
