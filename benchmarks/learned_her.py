@@ -46,6 +46,7 @@ def run_args(args: argparse.Namespace, name: str) -> list[str]:
     if name == "learned":
         cmd += ["--relabel.captioner", "learned", "--relabel.reward", "learned"]
         cmd += ["--relabel.checkpoint", args.captioner]
+        cmd += ["--relabel.threshold", str(args.threshold)]
     return cmd
 
 
@@ -94,6 +95,12 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--eval-episodes", type=int, default=50)
     parser.add_argument("--final-episodes", type=int, default=100)
     parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument(
+        "--threshold",
+        type=float,
+        default=0.5,
+        help="reward-model probability that counts as satisfied (--relabel.threshold)",
+    )
     parser.add_argument(
         "--reuse-rule",
         default="",
