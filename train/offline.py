@@ -35,6 +35,7 @@ from typing import Any
 
 import numpy as np
 
+from lcrl.buffer import batch_rows
 from lcrl.errors import LcrlError
 from train.config import OFFLINE_ALGOS, TrainConfig
 from train.demos import buffer_episode, check_dataset
@@ -185,12 +186,7 @@ class OfflineTrainer(Trainer):
             keep = np.flatnonzero(batch.relabelled)
             if keep.size == 0:
                 continue
-            rows = batch._replace(
-                obs={k: v[keep] for k, v in batch.obs.items()},
-                action=batch.action[keep],
-                goal=batch.goal[keep],
-            )
-            for k, v in self.agent.update(rows).items():
+            for k, v in self.agent.update(batch_rows(batch, keep)).items():
                 self._metrics[k] = self._metrics.get(k, 0.0) + v
             self._metric_count += 1
 
