@@ -95,6 +95,27 @@ def test_eval_command_and_wrong_inputs(trained, dataset, capsys, tmp_path):
     assert "no dataset at" in error_line(capsys.readouterr().err)
 
 
+def test_training_continues_from_a_model(trained, dataset, capsys, tmp_path):
+    """--init starts from a model's weights and normalisers: its first losses are the
+    trained model's, not a new network's; another held-out split is refused."""
+    out = tmp_path / "more"
+    args = ["perception", "train", "--data", str(dataset), "--heldout-fraction", "0.15"]
+    assert cli(*args, "--out", str(out), "--init", str(trained), "--steps", "50",
+               "--lr", "1e-4", "--no-progress") == 0  # fmt: skip
+    fresh = tmp_path / "fresh"
+    assert cli(*args, "--out", str(fresh), "--steps", "50", "--no-progress") == 0
+    capsys.readouterr()
+    continued = json.loads((out / "model" / "history.json").read_text())
+    new = json.loads((fresh / "model" / "history.json").read_text())
+    assert continued[0]["position_loss"] < 0.5 * new[0]["position_loss"]
+    before = json.loads((trained / "eval.json").read_text())["heldout_episodes"]
+    after = json.loads((out / "eval.json").read_text())["heldout_episodes"]
+    assert after["position_error_cm"] < 1.2 * before["position_error_cm"]
+    assert load_model(out)[1]["train"]["init"] == str(trained)
+    assert cli(*args[:-1], "0.3", "--out", str(tmp_path / "x"), "--init", str(trained)) == 2
+    assert "held out other episodes" in error_line(capsys.readouterr().err)
+
+
 def test_a_dataset_without_state_is_refused(tmp_path, capsys):
     from captioner.dataset import CaptionDatasetWriter
 

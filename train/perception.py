@@ -77,6 +77,12 @@ class PerceptionTrainConfig:
     """Seed of the held-out episodes, the batches and the augmentation."""
     model: PerceptionConfig = field(default_factory=PerceptionConfig)
     """The network."""
+    init: str = ""
+    """Start from this perception model's weights and normalisers instead of a new network
+    (continue training, e.g. at a lower ``--lr``; its network settings replace
+    ``--model.*``). It must read frames of the dataset's size and its slot layout, and
+    have been trained with the same held-out episodes (same ``--seed`` and
+    ``--heldout-fraction``)."""
     device: str = "cpu"
     """Torch device."""
     threads: int = 0
@@ -157,8 +163,12 @@ def train(cfg: PerceptionTrainConfig) -> dict[str, Any]:
     layout = SlotLayout.of(meta["slot_layout"])
     device = torch.device(cfg.device)
     torch.manual_seed(cfg.seed)
-    model = Perception(data.frames.shape[1:], layout, cfg.model, fit_stats(layout, data.state))
-    model.to(device)
+    if cfg.init:
+        model = initial_model(cfg, data.frames.shape[1:], layout, held_eps)
+    else:
+        stats = fit_stats(layout, data.state)
+        model = Perception(data.frames.shape[1:], layout, cfg.model, stats)
+    model.to(device).train()
     opt = torch.optim.Adam(model.parameters(), lr=cfg.lr)
     sched = torch.optim.lr_scheduler.CosineAnnealingLR(opt, cfg.steps, eta_min=cfg.lr / 10)
     gen = torch.Generator(device=device)
@@ -208,6 +218,42 @@ def train(cfg: PerceptionTrainConfig) -> dict[str, Any]:
     (out / "eval.json").write_text(json.dumps({"heldout_episodes": results}, indent=1))
     print(format_results(results, "held-out episodes"))
     return results
+
+
+def initial_model(
+    cfg: PerceptionTrainConfig,
+    frame_shape: tuple[int, ...],
+    layout: SlotLayout,
+    heldout: np.ndarray,
+) -> Perception:
+    """The model of ``--init``, checked against the dataset; ``cfg.model`` becomes its
+    network settings (the checkpoint records them).
+
+    Raises:
+        LcrlError: another frame size, slot layout or set of held-out episodes.
+    """
+    model, meta = load_model(cfg.init)
+    if tuple(model.frame_shape) != tuple(frame_shape):
+        raise LcrlError(
+            f"--init {cfg.init} reads {tuple(model.frame_shape)} frames; {cfg.data} holds "
+            f"{tuple(frame_shape)} frames"
+        )
+    if model.layout.to_list() != layout.to_list():
+        raise LcrlError(
+            f"--init {cfg.init} estimates slot layout {model.layout.to_list()}; {cfg.data} "
+            f"has {layout.to_list()} (another object set)"
+        )
+    trained_on = meta.get("train", {}).get("data")
+    if trained_on and Path(trained_on).resolve() == Path(cfg.data).resolve():
+        before = sorted(int(e) for e in meta.get("heldout_episodes", []))
+        if before != sorted(int(e) for e in heldout):
+            raise LcrlError(
+                f"--init {cfg.init} held out other episodes of {cfg.data}: its held-out "
+                "evaluation would read frames it trained on (use its --seed and "
+                "--heldout-fraction)"
+            )
+    cfg.model = model.cfg
+    return model
 
 
 def save_model(
