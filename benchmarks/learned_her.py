@@ -74,6 +74,22 @@ def reuse(run: Path, into: Path, args: argparse.Namespace) -> float:
     return round((run / "report.md").stat().st_mtime - (run / "config.json").stat().st_mtime, 1)
 
 
+def update_captioner_markdown(path: Path, headline: dict) -> None:
+    """Rewrite the relabelling lines of the captioner's Markdown (its command and the rest
+    stay the captioner benchmark's)."""
+    if not path.is_file():
+        return
+    lines = path.read_text().splitlines()
+    for key in ("learned_her_seen", "rule_her_seen"):
+        line = f"- {key}: {headline[key]:.2f} (see learned-relabelling results)."
+        at = [i for i, x in enumerate(lines) if x.startswith(f"- {key}:")]
+        if at:
+            lines[at[0]] = line
+        else:
+            lines.append(line)
+    path.write_text("\n".join(lines) + "\n")
+
+
 def _config_of(cmd: list[str]) -> dict:
     """The resolved config a ``lcrl train`` command line would write to config.json."""
     import dataclasses
@@ -182,6 +198,7 @@ def main(argv: list[str] | None = None) -> int:
         doc.setdefault("reached", {})["learned_her_within_10_points"] = reached["within_10_points"]
         doc["learned_her"] = {"command": command(), "file": f"{name}.json"}
         captioner_file.write_text(json.dumps(doc, indent=1))
+        update_captioner_markdown(captioner_file.with_suffix(".md"), headline)
 
     lines = [
         "| relabelling | seen | held-out combinations | paraphrases | train time (s) |",

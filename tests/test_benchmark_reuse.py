@@ -44,3 +44,16 @@ def test_a_run_with_the_same_config_is_cut_at_the_budget(job, tmp_path):
         *job[:1], {"relabel": SUITES["lang2d-learned"]["runs"]["learned"][1]["relabel"]}, *job[2:]
     )
     assert reusable(learned, old) is None
+
+
+def test_the_captioner_markdown_takes_the_relabelling_figures(tmp_path):
+    from benchmarks.learned_her import update_captioner_markdown
+
+    md = tmp_path / "captioner-lang2d.md"
+    old = "- learned_her_seen: 0.61 (see learned-relabelling results)."
+    md.write_text(f"# t\n\nCommand: `x`\n\n{old}\n")
+    update_captioner_markdown(md, {"learned_her_seen": 0.7, "rule_her_seen": 0.74})
+    lines = md.read_text().splitlines()
+    assert "- learned_her_seen: 0.70 (see learned-relabelling results)." in lines
+    assert lines[-1] == "- rule_her_seen: 0.74 (see learned-relabelling results)."
+    assert "Command: `x`" in lines and sum("learned_her_seen" in x for x in lines) == 1
