@@ -78,6 +78,11 @@ def main(argv: list[str] | None = None) -> int:
     )
     parser.add_argument("--perception", default="", help="with --encoder perception")
     parser.add_argument("--data", default="", help="an existing caption dataset to use")
+    parser.add_argument(
+        "--out",
+        default="",
+        help="checkpoint folder (default: runs/bench/captioner-<env>[-perception])",
+    )
     parser.add_argument("--augment-pad", type=int, default=4)
     parser.add_argument(
         "--near-negatives",
@@ -112,7 +117,7 @@ def main(argv: list[str] | None = None) -> int:
     data_path = Path(
         args.data or f"runs/bench/captions-{args.env}-{args.episodes}-{args.image_size}.h5"
     )
-    ckpt = Path(f"runs/bench/{name}" + ("-perception" if args.perception else ""))
+    ckpt = Path(args.out or f"runs/bench/{name}" + ("-perception" if args.perception else ""))
     previous = RESULTS_DIR / f"{name}.json"
     timings = {}
     if args.eval_only:
