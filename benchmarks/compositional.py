@@ -1,21 +1,25 @@
 """Compositional generalisation over seeds: slots selected by position from the pooled
 sentence vector, beside slots selected through their colour and shape with the auxiliary
-grounding loss; same presets, seeds and budget.
+grounding loss, with and without instruction augmentation; same presets, seeds and
+budget.
 
-    python benchmarks/compositional.py --env lang2d     # reach and push, 100k steps
+    python benchmarks/compositional.py --env lang2d --arms pooled phrased --also grounded
     python benchmarks/compositional.py --env robosuite  # reach, privileged state, 100k steps
     python benchmarks/compositional.py --env lang2d --preset lang2d-quick --steps 8000
 
 Arms (``--arms``): ``pooled`` (``--agent.net.slot-mode select``, no grounding loss),
-``attributes`` (``--agent.net.slot-mode attributes``) and ``grounded`` (attributes and
-``--agent.grounding W``). Each arm trains one run per seed (``lcrl train PRESET --seed
-S``), two runs at a time with one torch thread each, and is evaluated with ``lcrl eval``
-(100 episodes per set: seen, held-out combinations, paraphrases). Finished runs (their
+``attributes`` (``--agent.net.slot-mode attributes``), ``grounded`` (attributes and
+``--agent.grounding W``) and ``phrased`` (grounded, and ``--env.phrasings N``: updates
+also read training-only phrasings of the instructions, whose words the paraphrase set
+never uses). Each arm trains one run per seed (``lcrl train PRESET --seed S``), two runs
+at a time with one torch thread each, and is evaluated with ``lcrl eval`` (100 episodes
+per set: seen, held-out combinations, paraphrases). Finished runs (their
 ``final-eval.json``) are kept, so an interrupted benchmark goes on where it stopped.
+``--also ARM`` adds an arm's finished runs to the report without training more.
 
 Writes ``benchmarks/results/compositional-<env>.{json,md,png}`` (``compositional-<preset>``
-with another ``--preset``). The headline is the
-grounded arm's: ``seen`` (mean over seeds), ``heldout_ratio`` and ``paraphrase_ratio``
+with another ``--preset``). The headline is that of the last of ``--arms`` (or
+``--headline-arm``): ``seen`` (mean over seeds), ``heldout_ratio`` and ``paraphrase_ratio``
 (mean held-out or paraphrase success over mean seen success), with the spread over seeds;
 the pooled arm's figures stand beside them. Targets: lang2d seen >= 0.90, held-out ratio
 >= 0.70, paraphrase ratio >= 0.90; robosuite seen >= 0.85, held-out ratio >= 0.70.
@@ -44,10 +48,10 @@ TARGETS = {
     "robosuite": {"seen": 0.85, "heldout_ratio": 0.70},
 }
 SETS = ("train", "heldout", "paraphrase")
-ARMS = ("pooled", "attributes", "grounded")
+ARMS = ("pooled", "attributes", "grounded", "phrased")
 
 
-def arm_args(arm: str, grounding: float) -> list[str]:
+def arm_args(arm: str, grounding: float, phrasings: int = 16) -> list[str]:
     """The ``lcrl train`` options of an arm."""
     from train.config import SLOT_ATTRIBUTES
 
@@ -59,6 +63,9 @@ def arm_args(arm: str, grounding: float) -> list[str]:
         return [*attributes, "--agent.grounding", "0"]
     if arm == "grounded":
         return [*attributes, "--agent.grounding", str(grounding)]
+    if arm == "phrased":
+        grounded = [*attributes, "--agent.grounding", str(grounding)]
+        return [*grounded, "--env.phrasings", str(phrasings)]
     raise SystemExit(f"unknown arm {arm!r}; choose from {ARMS}")
 
 
@@ -122,7 +129,7 @@ def run_all(args: argparse.Namespace) -> dict[str, float]:
             out.parent.mkdir(parents=True, exist_ok=True)
             train = [*LCRL, "train", args.preset, "--out", str(out), "--seed", str(seed)]
             train += ["--total-steps", str(args.steps), "--overwrite", "--no-progress"]
-            train += arm_args(arm, args.grounding)
+            train += arm_args(arm, args.grounding, args.phrasings)
             ev = [*LCRL, "eval", str(out), "--episodes", str(args.episodes), "--num-envs", "1"]
             ev += ["--sets", *SETS, "--no-progress", "--json", str(out / "final-eval.json")]
             script = " && ".join(shlex.join(cmd) for cmd in (train, ev))
@@ -155,6 +162,20 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2])
     parser.add_argument("--preset", default="", help="default: the env's (see PRESETS)")
     parser.add_argument("--arms", nargs="+", choices=ARMS, default=["pooled", "grounded"])
+    parser.add_argument(
+        "--also",
+        nargs="+",
+        choices=ARMS,
+        default=[],
+        help="arms reported with the seeds they have finished, never trained",
+    )
+    parser.add_argument(
+        "--headline-arm",
+        choices=ARMS,
+        default="",
+        help="the arm the headline reports (default: the last of --arms)",
+    )
+    parser.add_argument("--phrasings", type=int, default=16, help="the phrased arm's count")
     parser.add_argument("--steps", type=int, default=100_000)
     parser.add_argument("--grounding", type=float, default=1.0, help="the grounded arm's weight")
     parser.add_argument("--episodes", type=int, default=100, help="lcrl eval episodes per set")
@@ -174,8 +195,13 @@ def main(argv: list[str] | None = None) -> int:
             s: json.loads((run_dir(args, arm, s) / "final-eval.json").read_text())["sets"]
             for s in args.seeds
         }
+    for arm in args.also:
+        found = {s: run_dir(args, arm, s) / "final-eval.json" for s in range(100)}
+        runs = {s: json.loads(f.read_text())["sets"] for s, f in found.items() if f.is_file()}
+        if runs and arm not in per_arm:
+            per_arm[arm] = runs
     arms = {arm: summarise(runs) for arm, runs in per_arm.items()}
-    new = "grounded" if "grounded" in arms else args.arms[0]
+    new = args.headline_arm or args.arms[-1]
     head = headline(args.env, arms, new)
     ok = reached(args.env, head)
     name = f"compositional-{tag}"
@@ -199,7 +225,7 @@ def main(argv: list[str] | None = None) -> int:
             "command": command(),
             "machine": info,
             "settings": vars(args),
-            "arm_options": {arm: arm_args(arm, args.grounding) for arm in args.arms},
+            "arm_options": {arm: arm_args(arm, args.grounding, args.phrasings) for arm in arms},
             "arms": arms,
             "per_seed": per_seed,
             "heldout_family_object": combos,
@@ -242,11 +268,11 @@ def main(argv: list[str] | None = None) -> int:
         ax.bar(xs, [a[k]["mean"] for k in SETS], width, yerr=[a[k]["std"] for k in SETS],
                capsize=3, label=arm, alpha=0.8)  # fmt: skip
         for x, k in zip(xs, SETS, strict=True):
-            ys = [per_seed[arm][str(s)][k]["success"] for s in args.seeds]
+            ys = [r[k]["success"] for r in per_seed[arm].values()]
             ax.plot([x] * len(ys), ys, "k.", ms=4)
     ax.set_xticks(range(len(SETS)), ["seen", "held-out combinations", "paraphrases"])
     ax.set(ylim=(0, 1.02), ylabel="success (mean ± sd over seeds; dots: seeds)")
-    ax.set_title(f"{args.preset}, {args.steps:,} steps, {len(args.seeds)} seeds")
+    ax.set_title(f"{args.preset}, {args.steps:,} steps, seeds {args.seeds}")
     ax.legend()
     fig.tight_layout(rect=(0, 0.08, 1, 1))
     save_figure(name, fig, info)

@@ -43,3 +43,41 @@ def test_a_seed_that_learned_nothing_counts_in_the_means():
     assert arm["heldout_ratio_per_seed"]["mean"] == pytest.approx(0.5)  # the other seed only
     nothing = summarise({0: _sets(0.0, 0.0, 0.0)})
     assert nothing["heldout_ratio"] == 0.0 and nothing["heldout_ratio_per_seed"] is None
+
+
+def test_report_from_finished_runs_with_an_arm_of_fewer_seeds(tmp_path, monkeypatch):
+    """Finished runs are never trained again; ``--also`` adds an arm with the seeds it
+    has; the headline is the last of ``--arms``, the pooled arm's figures beside it."""
+    import json
+
+    import benchmarks.common as common
+    import benchmarks.compositional as comp
+
+    monkeypatch.setattr(common, "RESULTS_DIR", tmp_path / "results")
+    work = tmp_path / "work"
+    values = {
+        ("pooled", 0): (0.9, 0.2, 0.8),
+        ("pooled", 1): (0.9, 0.3, 0.8),
+        ("phrased", 0): (1.0, 0.9, 0.95),
+        ("phrased", 1): (0.9, 0.8, 0.85),
+        ("grounded", 0): (1.0, 1.0, 0.5),
+    }
+    for (arm, seed), v in values.items():
+        run = work / f"{arm}-s{seed}"
+        run.mkdir(parents=True)
+        sets = _sets(*v)
+        sets["heldout"]["family_object"] = {"reach": {"blue cube": {"success": v[1]}}}
+        (run / "final-eval.json").write_text(json.dumps({"sets": sets}))
+    args = ["--work", str(work), "--seeds", "0", "1", "--arms", "pooled", "phrased"]
+    assert comp.main([*args, "--also", "grounded", "attributes"]) == 0
+    out = json.loads((tmp_path / "results" / "compositional-lang2d.json").read_text())
+    h = out["headline"]
+    assert h["seen"] == 0.95 and h["heldout_ratio"] == round(0.85 / 0.95, 3)
+    assert h["paraphrase_ratio"] == round(0.9 / 0.95, 3) and h["seeds"] == 2
+    assert h["pooled_heldout_ratio"] == round(0.25 / 0.9, 3)
+    assert out["reached"] == {"seen": True, "heldout_ratio": True, "paraphrase_ratio": True}
+    assert out["arms"]["grounded"]["seeds"] == [0] and "attributes" not in out["arms"]
+    assert "--env.phrasings" in out["arm_options"]["phrased"]
+    md = (tmp_path / "results" / "compositional-lang2d.md").read_text()
+    assert "| grounded | 0 |" in md and "Headline (phrased)" in md
+    assert (tmp_path / "results" / "compositional-lang2d.png").is_file()

@@ -63,6 +63,12 @@ class EnvConfig:
     """Instruction families to train and evaluate (language goals)."""
     split_seed: int = 0
     """Seed of the compositional instruction split (language goals)."""
+    phrasings: int = 0
+    """Instruction augmentation (language goals): up to this many other phrasings of
+    every training instruction, with synonyms and templates the grammar does not know
+    (:mod:`captioner.phrasings`), are embedded once; in every update half the rows read
+    one of them instead of the instruction itself. The grammar's own synonyms stay
+    unseen, for the ``paraphrase`` evaluation set. 0: off."""
     min_objects: int = 2
     """Fewest objects on the table."""
     max_objects: int = 3

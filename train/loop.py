@@ -34,6 +34,26 @@ from train.trainer import BaseTrainer, eval_row, open_run
 __all__ = ["Trainer", "checkpoint_meta", "eval_row", "open_run"]
 
 
+def attach_phrasings(agent: Any, task: Any) -> None:
+    """Give the agent the training-only phrasings of the instructions
+    (``cfg.env.phrasings``), when the task embedded some."""
+    found = task.phrasing_embeddings() if hasattr(task, "phrasing_embeddings") else None
+    if found is not None:
+        agent.set_phrasings(*found)
+
+
+def text_goal_sample(task: Any) -> np.ndarray:
+    """The goal vectors the text-goal normaliser's statistics come from: the training
+    instructions' embeddings and, with ``cfg.env.phrasings``, their other phrasings."""
+    vectors = task.embeddings[: task.num_train]
+    found = task.phrasing_embeddings() if hasattr(task, "phrasing_embeddings") else None
+    if found is None:
+        return vectors
+    variants, counts = found
+    filled = np.arange(variants.shape[1])[None, :] < counts[:, None]
+    return np.concatenate([vectors, variants[filled]], 0)
+
+
 def attach_grounding(agent: Any, task: Any, cfg: TrainConfig) -> None:
     """Give the agent the slots each instruction names when ``cfg.agent.grounding`` is on
     and the task has instructions; other goals (state, image, task ids) name no object, so
@@ -324,8 +344,9 @@ class Trainer(BaseTrainer):
         if ckpt is not None:
             self.restore(ckpt)
         elif self.task.text_goals:
-            self.agent.observe({}, self.task.embeddings[: self.task.num_train])
+            self.agent.observe({}, text_goal_sample(self.task))
         attach_grounding(self.agent, self.task, cfg)
+        attach_phrasings(self.agent, self.task)
         if cfg.collect.backend == "ray":
             self.start_workers()
 

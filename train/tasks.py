@@ -580,6 +580,8 @@ class LanguageTask(Task):
         tasks: a fixed task set: the table is exactly these instructions, all of them
             training instructions (relabelled among themselves), and their ids are task
             ids (:attr:`num_tasks`).
+        phrasings: training-only phrasings embedded per training instruction
+            (``env.phrasings``), 0: none.
     """
 
     goal_kind = "text"
@@ -598,7 +600,7 @@ class LanguageTask(Task):
             raise LcrlError("language tasks need a text encoder")
         if cfg.tasks:
             kwargs["tasks"] = task_texts(cfg)
-        return cls(env, embed, image_obs=cfg.image_obs, **kwargs)
+        return cls(env, embed, image_obs=cfg.image_obs, phrasings=cfg.phrasings, **kwargs)
 
     def outcome(self, env: gym.Env) -> dict[str, Any]:
         """The episode's instruction and its family (``free`` for unparsed text)."""
@@ -614,6 +616,7 @@ class LanguageTask(Task):
         num_train: int | None = None,
         image_obs: bool = False,
         tasks: tuple[str, ...] = (),
+        phrasings: int = 0,
     ) -> None:
         super().__init__(env)
         if tasks:
@@ -655,6 +658,8 @@ class LanguageTask(Task):
             self.label_ids = {self.captioner.parse(t).text: i for t, i in self.train_ids.items()}
         self.embed_fn = embed
         self.embeddings = np.asarray(embed(self.table), np.float32)
+        self.phrasings = int(phrasings)
+        self._phrasing_cache: tuple[np.ndarray, np.ndarray] | None = None
         space = env.observation_space
         shape = tuple(space["observation"].shape)
         self.obs_shapes = {"observation": shape, "initial": shape}
@@ -662,6 +667,39 @@ class LanguageTask(Task):
         self.goal_space = LabelGoals(
             len(self.table), self.embeddings, num_relabel=self.num_train, terminate_on_success=True
         )
+
+    def phrasing_embeddings(self) -> tuple[np.ndarray, np.ndarray] | None:
+        """Embeddings of up to :attr:`phrasings` training-only phrasings of every training
+        instruction (:func:`captioner.phrasings.training_phrasings`), ``(num_train,
+        phrasings, d)``, and how many each has; None when :attr:`phrasings` is 0. Embedded
+        on the first call (training only)."""
+        if self.phrasings <= 0:
+            return None
+        if self._phrasing_cache is None:
+            self._phrasing_cache = self._embed_phrasings(self.phrasings, self.embed_fn)
+        return self._phrasing_cache
+
+    def _embed_phrasings(self, count: int, embed: Any) -> tuple[np.ndarray, np.ndarray]:
+        from captioner.grammar import try_parse
+        from captioner.phrasings import training_phrasings
+
+        counts = np.zeros(self.num_train, np.int64)
+        texts: list[list[str]] = []
+        for i, text in enumerate(self.table[: self.num_train]):
+            meaning = try_parse(text)
+            found = training_phrasings(meaning, count, seed=i) if meaning is not None else []
+            texts.append(found)
+            counts[i] = len(found)
+        flat = [t for group in texts for t in group]
+        d = self.embeddings.shape[1]
+        out = np.zeros((self.num_train, count, d), np.float32)
+        if flat:
+            vectors = np.asarray(embed(flat), np.float32)
+            k = 0
+            for i, group in enumerate(texts):
+                out[i, : len(group)] = vectors[k : k + len(group)]
+                k += len(group)
+        return out, counts
 
     def grounding_targets(self) -> np.ndarray:
         """Per instruction id, the object slots it names, as the grammar parses it: the

@@ -363,6 +363,59 @@ class Agent:
         ids = torch.as_tensor(np.asarray(goal_ids, np.int64), device=self.device)
         return self.grounding_targets[ids]
 
+    #: Per goal id, other phrasings of its instruction (:meth:`set_phrasings`).
+    phrasings: torch.Tensor | None = None
+    phrasing_counts: torch.Tensor | None = None
+    phrasing_share: float = 0.5
+
+    def set_phrasings(self, variants: np.ndarray, counts: np.ndarray, share: float = 0.5) -> None:
+        """Train on other phrasings of the instructions: in every update a ``share`` of
+        the rows whose goal id has phrasings reads one of them, drawn uniformly, instead
+        of the instruction's own embedding. Acting and evaluation are unchanged.
+
+        Args:
+            variants: ``(ids, P, d)`` embeddings of up to ``P`` phrasings per goal id (ids
+                beyond the first axis have none).
+            counts: ``(ids,)`` how many of the ``P`` are filled for each id.
+            share: fraction of such rows that read a phrasing, in (0, 1].
+
+        Raises:
+            LcrlError: shapes that disagree, or a share outside (0, 1].
+        """
+        v = np.asarray(variants, np.float32)
+        c = np.asarray(counts)
+        if v.ndim != 3 or c.shape != v.shape[:1] or c.dtype.kind not in "iu":
+            raise LcrlError(
+                f"phrasings must be (ids, P, d) embeddings with (ids,) integer counts, got "
+                f"{v.shape} and {c.shape}"
+            )
+        if c.size and (c.min() < 0 or c.max() > v.shape[1]):
+            raise LcrlError(f"phrasing counts must be between 0 and {v.shape[1]}")
+        if not 0.0 < share <= 1.0:
+            raise LcrlError(f"the share of rows reading a phrasing must be in (0, 1], not {share}")
+        self.phrasings = torch.as_tensor(v, device=self.device)
+        self.phrasing_counts = torch.as_tensor(c.astype(np.int64), device=self.device)
+        self.phrasing_share = float(share)
+
+    def batch_goal(self, goal: np.ndarray) -> torch.Tensor:
+        """A batch's goals as network input (:meth:`goal_tensor`), with other phrasings of
+        the instructions in a share of the rows when :meth:`set_phrasings` gave some."""
+        g = np.asarray(goal)
+        if self.phrasings is None or g.ndim != 1 or g.dtype.kind not in "iu":
+            return self.goal_tensor(g)
+        vectors = self.goal_embed(g, self.device).clone()
+        ids = torch.as_tensor(g.astype(np.int64), device=self.device)
+        known = ids < self.phrasings.shape[0]
+        safe = torch.where(known, ids, torch.zeros_like(ids))
+        n = torch.where(known, self.phrasing_counts[safe], torch.zeros_like(ids))
+        u = torch.rand(len(g), generator=self.gen, device=self.device)
+        pick = (n > 0) & (u < self.phrasing_share)
+        if bool(pick.any()):
+            r = torch.rand(len(g), generator=self.gen, device=self.device)
+            k = torch.minimum((r * n).long(), (n - 1).clamp(min=0))
+            vectors[pick] = self.phrasings[safe[pick], k[pick]]
+        return self.goal_tensor(vectors, embedded=True)
+
     #: The perception module fine-tuned with the losses (:meth:`attach_perception`).
     perceiver: nn.Module | None = None
     perceiver_opt: FlatAdam | None = None
@@ -458,7 +511,7 @@ class Agent:
         obs = self.obs_tensors(batch.obs)
         with torch.set_grad_enabled(self.perceiver is None and torch.is_grad_enabled()):
             nobs = self.obs_tensors(batch.next_obs)  # targets only: no gradient
-        goal = self.goal_tensor(batch.goal)
+        goal = self.batch_goal(batch.goal)
         pad = self.options.augment_pad
         if pad:
             for d in (obs, nobs):

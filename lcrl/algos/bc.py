@@ -188,7 +188,7 @@ class BC(Agent):
             ``grad_norm`` (with clipping), and ``log_std`` (gaussian loss).
         """
         obs = self.obs_tensors(batch.obs)
-        goal = self.goal_tensor(batch.goal)
+        goal = self.batch_goal(batch.goal)
         pad = self.options.augment_pad
         if pad:
             for key, t in obs.items():
