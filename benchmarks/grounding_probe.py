@@ -10,8 +10,11 @@ goal encoder does) and gives logits over the 8 object slots: ``flat`` (one logit
 slot, as ``--agent.net.slot-mode select``) or ``attributes`` (a colour logit plus a shape
 logit per slot). It is trained by cross-entropy on the training instructions only
 (what ``--agent.grounding`` adds to the RL losses) and scored on held-out combinations and
-paraphrases, on a reach and push split and on a reach split (whose held-out kinds no
-training instruction names). Writes ``benchmarks/results/grounding-probe.{json,md,png}``.
+paraphrases; ``phrased`` is ``attributes`` trained also on 16 training-only phrasings of
+each training instruction (``--env.phrasings 16``, :mod:`captioner.phrasings`), whose
+words the paraphrases never use. All on a reach and push split and on a reach split
+(whose held-out kinds no training instruction names).
+Writes ``benchmarks/results/grounding-probe.{json,md,png}``.
 """
 
 from __future__ import annotations
@@ -47,7 +50,7 @@ def main(argv: list[str] | None = None) -> int:
 
     torch.set_num_threads(1)
     info = machine()
-    kinds = ("flat", "attributes")
+    kinds = ("flat", "attributes", "phrased")
     results: dict[str, dict[str, dict[str, list[float]]]] = {}
     sizes: dict[str, dict[int, dict[str, int]]] = {}
     for family_set in args.family_sets:
@@ -99,10 +102,10 @@ def main(argv: list[str] | None = None) -> int:
     import matplotlib.pyplot as plt
 
     fig, axes = plt.subplots(1, len(summary), figsize=(5.5 * len(summary), 3.6), squeeze=False)
-    width = 0.38
+    width = 0.8 / len(kinds)
     for ax, (fs, by_kind) in zip(axes[0], summary.items(), strict=True):
         for j, (kind, a) in enumerate(by_kind.items()):
-            xs = [i + (j - 0.5) * width for i in range(len(SETS))]
+            xs = [i + (j - (len(by_kind) - 1) / 2) * width for i in range(len(SETS))]
             ax.bar(xs, [a[n] for n in SETS], width, label=kind)
         ax.set_xticks(range(len(SETS)), ["seen", "held-out", "paraphrases"])
         ax.set(ylim=(0, 1.05), ylabel="slot picked = object named", title=f"families: {fs}")
@@ -118,6 +121,7 @@ def run_probe(families, args, kinds):
     import torch
     import torch.nn.functional as F
 
+    from captioner.phrasings import training_phrasings
     from captioner.splits import make_split
     from envs.scene import COLOURS, OBJECT_KINDS, SHAPES
     from lcrl.text_encoder import FrozenTextEncoder
@@ -144,6 +148,14 @@ def run_probe(families, args, kinds):
                 return self.slots(h)
             return self.colour(h) @ colour_of.T + self.shape(h) @ shape_of.T
 
+    def phrasings(split) -> tuple[torch.Tensor, torch.Tensor]:
+        texts, y = [], []
+        for i, m in enumerate(split.instructions("train")):
+            found = training_phrasings(m, 16, seed=i)
+            texts += found
+            y += [OBJECT_KINDS.index((m.colour, m.shape))] * len(found)
+        return torch.as_tensor(enc.encode(texts)), torch.as_tensor(y)
+
     results = {k: {s: [] for s in SETS} for k in kinds}
     sizes = {}
     for split_seed in args.split_seeds:
@@ -154,15 +166,18 @@ def run_probe(families, args, kinds):
             y = [OBJECT_KINDS.index((m.colour, m.shape)) for m in split.instructions(name)]
             data[name] = (torch.as_tensor(enc.encode(texts)), torch.as_tensor(y))
         sizes[split_seed] = {name: len(data[name][1]) for name in SETS}
-        mean, std = data["train"][0].mean(0), data["train"][0].std(0) + 1e-6
+        extra = phrasings(split)
         for kind in results:
+            xt, yt = data["train"]
+            if kind == "phrased":  # the normaliser's statistics cover the phrasings too
+                xt, yt = torch.cat([xt, extra[0]]), torch.cat([yt, extra[1]])
+            mean, std = xt.mean(0), xt.std(0) + 1e-6
             for seed in args.seeds:
                 torch.manual_seed(seed)
-                model = Selector(kind)
+                model = Selector("flat" if kind == "flat" else "attributes")
                 opt = torch.optim.Adam(model.parameters(), 1e-3)
-                x, y = data["train"]
                 for _ in range(args.steps):
-                    loss = F.cross_entropy(model((x - mean) / std), y)
+                    loss = F.cross_entropy(model((xt - mean) / std), yt)
                     opt.zero_grad()
                     loss.backward()
                     opt.step()

@@ -27,8 +27,8 @@ from captioner.grammar import (
 
 #: Shape synonyms the grammar does not know.
 EXTRA_SHAPE_WORDS: dict[str, tuple[str, ...]] = {
-    "cube": ("brick", "square", "cuboid"),
-    "cylinder": ("barrel", "drum", "pillar"),
+    "cube": ("brick", "square", "cuboid", "crate"),
+    "cylinder": ("barrel", "drum", "pillar", "tin", "pipe"),
 }
 #: Direction phrases the grammar does not know (viewer frame, as the grammar's).
 EXTRA_DIRECTION_WORDS: dict[str, tuple[str, ...]] = {
