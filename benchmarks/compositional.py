@@ -115,6 +115,46 @@ def reached(env: str, h: dict[str, Any]) -> dict[str, bool]:
     return {k: h[k] >= v for k, v in TARGETS[env].items()}
 
 
+def combination_success(
+    per_arm: dict[str, dict[int, dict[str, Any]]], set_name: str
+) -> dict[str, dict[str, float]]:
+    """Per family x object of a set, each arm's success pooled over its seeds (successes
+    over episodes): ``{"push blue cube": {arm: success}}``."""
+    out: dict[str, dict[str, float]] = {}
+    for arm, runs in per_arm.items():
+        totals: dict[str, list[int]] = {}
+        for r in runs.values():
+            for fam, objects in r[set_name].get("family_object", {}).items():
+                for obj, v in objects.items():
+                    t = totals.setdefault(f"{fam} {obj}", [0, 0])
+                    t[0] += int(v.get("successes", round(v["success"] * v.get("episodes", 1))))
+                    t[1] += int(v.get("episodes", 1))
+        for combo, (hits, n) in totals.items():
+            out.setdefault(combo, {})[arm] = hits / n if n else 0.0
+    return dict(sorted(out.items()))
+
+
+def combination_tables(per_combo: dict[str, dict[str, dict[str, float]]]) -> str:
+    """Markdown: every held-out combination, and the seen ones that fail (below 0.50) in
+    some arm, with each arm's success over its seeds."""
+    arms = sorted({a for table in per_combo.values() for row in table.values() for a in row})
+    head = f"| combination | {' | '.join(arms)} |\n|---|{'---:|' * len(arms)}\n"
+
+    def rows(table: dict[str, dict[str, float]]) -> str:
+        cells = [
+            f"| {combo} | " + " | ".join(f"{row[a]:.2f}" if a in row else "" for a in arms) + " |"
+            for combo, row in table.items()
+        ]
+        return "\n".join(cells) + "\n"
+
+    text = "Held-out combinations (success over each arm's seeds):\n\n"
+    text += head + rows(per_combo.get("heldout", {}))
+    failing = {c: r for c, r in per_combo.get("train", {}).items() if min(r.values()) < 0.5}
+    text += "\nSeen combinations below 0.50 in some arm: "
+    text += ("\n\n" + head + rows(failing)) if failing else "none.\n"
+    return text
+
+
 def run_all(args: argparse.Namespace) -> dict[str, float]:
     """Train and evaluate every (arm, seed) that has no ``final-eval.json`` yet, ``--parallel``
     at a time; returns the seconds each took."""
@@ -216,6 +256,7 @@ def main(argv: list[str] | None = None) -> int:
         arm: {str(s): r["heldout"].get("family_object", {}) for s, r in runs.items()}
         for arm, runs in per_arm.items()
     }
+    per_combo = {k: combination_success(per_arm, k) for k in ("heldout", "train")}
     save_json(
         name,
         {
@@ -229,6 +270,7 @@ def main(argv: list[str] | None = None) -> int:
             "arms": arms,
             "per_seed": per_seed,
             "heldout_family_object": combos,
+            "combination_success": per_combo,
             "seconds": seconds,
         },
     )
@@ -255,7 +297,8 @@ def main(argv: list[str] | None = None) -> int:
         f"Preset `{args.preset}`, {args.steps:,} steps, seeds {args.seeds}; "
         f"`lcrl eval` with {args.episodes} episodes per set (95% Wilson intervals per run).\n\n"
         + "\n".join(lines)
-        + f"\n\nHeadline ({new}): {verdict}.\n"
+        + f"\n\nHeadline ({new}): {verdict}.\n\n"
+        + combination_tables(per_combo)
     )
     save_markdown(name, f"Compositional generalisation ({args.env})", body, info)
 

@@ -81,3 +81,34 @@ def test_report_from_finished_runs_with_an_arm_of_fewer_seeds(tmp_path, monkeypa
     md = (tmp_path / "results" / "compositional-lang2d.md").read_text()
     assert "| grounded | 0 |" in md and "Headline (phrased)" in md
     assert (tmp_path / "results" / "compositional-lang2d.png").is_file()
+
+
+def test_combination_tables_pool_seeds_and_list_failures():
+    from benchmarks.compositional import combination_success, combination_tables
+
+    def run(held, seen):
+        sets = _sets(0.9, 0.5, 0.8)
+        sets["heldout"]["family_object"] = {"reach": {"blue cube": held}}
+        sets["train"]["family_object"] = {"push": {"red cube": seen}}
+        return sets
+
+    per_arm = {
+        "pooled": {
+            0: run({"success": 0.0, "successes": 0, "episodes": 4},
+                   {"success": 0.25, "successes": 1, "episodes": 4}),
+            1: run({"success": 0.5, "successes": 2, "episodes": 4},
+                   {"success": 0.5, "successes": 2, "episodes": 4}),
+        },
+        "grounded": {0: run({"success": 1.0, "successes": 2, "episodes": 2},
+                            {"success": 1.0, "successes": 3, "episodes": 3})},
+    }  # fmt: skip
+    held = combination_success(per_arm, "heldout")
+    assert held == {"reach blue cube": {"pooled": 0.25, "grounded": 1.0}}
+    seen = combination_success(per_arm, "train")
+    assert seen["push red cube"] == {"pooled": 3 / 8, "grounded": 1.0}
+    md = combination_tables({"heldout": held, "train": seen})
+    assert "| reach blue cube | 1.00 | 0.25 |" in md  # arms in sorted order
+    assert "| push red cube | 1.00 | 0.38 |" in md
+    assert "below 0.50 in some arm: none" in combination_tables(
+        {"heldout": held, "train": {"push red cube": {"pooled": 0.9}}}
+    )
