@@ -115,6 +115,43 @@ def reached(env: str, h: dict[str, Any]) -> dict[str, bool]:
     return {k: h[k] >= v for k, v in TARGETS[env].items()}
 
 
+def slot_selection(run: Path) -> dict[str, Any] | None:
+    """What the trained actor's slot reader picks for each instruction of the run's split
+    (its first head's top slot against the object the instruction names), per set: the
+    fraction right and the sentences it gets wrong. None for a run without checkpoints or
+    without a ``select`` or ``attributes`` slot reader (those pick from the goal alone)."""
+    if not (run / "checkpoints").is_dir():
+        return None
+    import numpy as np
+    import torch
+
+    import lcrl
+    from captioner.grammar import try_parse
+    from envs.scene import OBJECT_KINDS
+
+    policy = lcrl.load(run)
+    agent, task = policy.agent, policy.task
+    if not agent.options.net.slots or agent.options.net.slot_mode == "attention":
+        return None
+    out: dict[str, Any] = {}
+    for name in SETS:
+        texts = [t for t in task.split.texts(name) if try_parse(t).family in task.families]
+        meanings = [try_parse(t) for t in texts]
+        named = np.array([OBJECT_KINDS.index((m.colour, m.shape)) for m in meanings])
+        obs = {k: np.zeros((len(texts), *v), np.float32) for k, v in task.obs_shapes.items()}
+        with torch.no_grad():
+            goal = agent.goal_tensor(torch.as_tensor(policy.embed(texts)), embedded=True)
+            logits = agent.actor.selection_logits(agent.obs_tensors(obs), goal)
+        picked = logits.reshape(-1, *logits.shape[-3:])[0, :, 0].argmax(-1).cpu().numpy()
+        right = picked == named
+        out[name] = {
+            "accuracy": float(right.mean()) if len(texts) else None,
+            "instructions": len(texts),
+            "wrong": [t for t, ok in zip(texts, right, strict=True) if not ok],
+        }
+    return out
+
+
 def combination_success(
     per_arm: dict[str, dict[int, dict[str, Any]]], set_name: str
 ) -> dict[str, dict[str, float]]:
@@ -132,6 +169,29 @@ def combination_success(
         for combo, (hits, n) in totals.items():
             out.setdefault(combo, {})[arm] = hits / n if n else 0.0
     return dict(sorted(out.items()))
+
+
+def selection_table(selection: dict[str, dict[str, dict[str, Any] | None]]) -> str:
+    """Markdown: per run, the fraction of each set's instructions whose object the actor's
+    slot reader picks (:func:`slot_selection`)."""
+    rows = []
+    for arm, runs in selection.items():
+        for seed, sel in runs.items():
+            if sel is None:
+                continue
+            cells = [
+                "" if sel[k]["accuracy"] is None else f"{sel[k]['accuracy']:.2f}" for k in SETS
+            ]
+            rows.append(f"| {arm} | {seed} | {' | '.join(cells)} |")
+    if not rows:
+        return ""
+    return (
+        "\nThe object the actor's slot reader picks, against the one each instruction names "
+        "(fraction of the set's instructions):\n\n"
+        "| arm | seed | seen | held-out combinations | paraphrases |\n|---|---:|---:|---:|---:|\n"
+        + "\n".join(rows)
+        + "\n"
+    )
 
 
 def combination_tables(per_combo: dict[str, dict[str, dict[str, float]]]) -> str:
@@ -257,6 +317,10 @@ def main(argv: list[str] | None = None) -> int:
         for arm, runs in per_arm.items()
     }
     per_combo = {k: combination_success(per_arm, k) for k in ("heldout", "train")}
+    selection = {
+        arm: {str(s): slot_selection(run_dir(args, arm, s)) for s in runs}
+        for arm, runs in per_arm.items()
+    }
     save_json(
         name,
         {
@@ -271,6 +335,7 @@ def main(argv: list[str] | None = None) -> int:
             "per_seed": per_seed,
             "heldout_family_object": combos,
             "combination_success": per_combo,
+            "slot_selection": selection,
             "seconds": seconds,
         },
     )
@@ -299,6 +364,7 @@ def main(argv: list[str] | None = None) -> int:
         + "\n".join(lines)
         + f"\n\nHeadline ({new}): {verdict}.\n\n"
         + combination_tables(per_combo)
+        + selection_table(selection)
     )
     save_markdown(name, f"Compositional generalisation ({args.env})", body, info)
 

@@ -112,3 +112,42 @@ def test_combination_tables_pool_seeds_and_list_failures():
     assert "below 0.50 in some arm: none" in combination_tables(
         {"heldout": held, "train": {"push red cube": {"pooled": 0.9}}}
     )
+
+
+def test_slot_selection_of_a_trained_run(tmp_path):
+    """The actor's pick per instruction of each set, against the object named; a run
+    without checkpoints has none."""
+    import dataclasses
+
+    from helpers import tiny
+
+    import lcrl
+    from benchmarks.compositional import selection_table, slot_selection
+    from train.config import PRESETS
+    from train.loop import Trainer
+
+    out = tmp_path / "run"
+    cfg = tiny("lang2d-quick", out, total_steps=120, learning_starts=100)
+    net = dataclasses.replace(PRESETS["lang2d-quick"][1].agent.net, hidden=(32, 32))
+    Trainer(dataclasses.replace(cfg, agent=dataclasses.replace(cfg.agent, net=net))).run()
+    sel = slot_selection(out)
+    split = lcrl.load(out).task.split  # the run's own, of the reach family
+
+    def texts(name):
+        pairs = zip(split.texts(name), split.instructions(name), strict=True)
+        return [t for t, m in pairs if m.family == "reach"]
+
+    for name in ("train", "heldout", "paraphrase"):
+        n = len(texts(name))
+        assert n > 0
+        assert sel[name]["instructions"] == n
+        assert 0.0 <= sel[name]["accuracy"] <= 1.0
+        assert len(sel[name]["wrong"]) == round((1 - sel[name]["accuracy"]) * n)
+        assert set(sel[name]["wrong"]) <= set(texts(name))
+    assert slot_selection(tmp_path) is None
+    plain = tmp_path / "plain"  # networks without a slot reader
+    Trainer(tiny("lang2d-quick", plain, total_steps=110, learning_starts=100)).run()
+    assert slot_selection(plain) is None
+    md = selection_table({"grounded": {"0": sel, "1": None}})
+    assert md.count("| grounded |") == 1 and f"{sel['train']['accuracy']:.2f}" in md
+    assert selection_table({"grounded": {"0": None}}) == ""
