@@ -750,6 +750,15 @@ PRESETS: dict[str, tuple[str, TrainConfig]] = {
         "the lang2d run without scripted episodes: every training episode is the policy's",
         _lang2d(out="runs/lang2d-rl", scripted_fraction=0.0),
     ),
+    "lang2d-grounded": (
+        "lang2d with slots picked through their colour and shape, the grounding loss and "
+        "16 training-only phrasings per instruction: held-out word combinations as seen ones",
+        _lang2d(
+            out="runs/lang2d-grounded",
+            env=_env2d(phrasings=16),
+            agent=_grounded2d(),
+        ),
+    ),
     "lang2d-quick": (
         "a small lang2d run (reach, 2 objects, 8k steps, small networks, slots picked through "
         "their colour and shape with the grounding loss): a few minutes on a CPU",
