@@ -296,10 +296,10 @@ def main(argv: list[str] | None = None) -> int:
             for s in args.seeds
         }
     for arm in args.also:
-        found = {s: run_dir(args, arm, s) / "final-eval.json" for s in range(100)}
-        runs = {s: json.loads(f.read_text())["sets"] for s, f in found.items() if f.is_file()}
+        found = Path(args.work).glob(f"{arm}-s*/final-eval.json")
+        runs = {int(f.parent.name.rsplit("-s", 1)[1]): f for f in found}
         if runs and arm not in per_arm:
-            per_arm[arm] = runs
+            per_arm[arm] = {s: json.loads(runs[s].read_text())["sets"] for s in sorted(runs)}
     arms = {arm: summarise(runs) for arm, runs in per_arm.items()}
     new = args.headline_arm or args.arms[-1]
     head = headline(args.env, arms, new)

@@ -676,13 +676,14 @@ class LanguageTask(Task):
         if self.phrasings <= 0:
             return None
         if self._phrasing_cache is None:
-            self._phrasing_cache = self._embed_phrasings(self.phrasings, self.embed_fn)
+            self._phrasing_cache = self._embed_phrasings()
         return self._phrasing_cache
 
-    def _embed_phrasings(self, count: int, embed: Any) -> tuple[np.ndarray, np.ndarray]:
+    def _embed_phrasings(self) -> tuple[np.ndarray, np.ndarray]:
         from captioner.grammar import try_parse
         from captioner.phrasings import training_phrasings
 
+        count = self.phrasings
         counts = np.zeros(self.num_train, np.int64)
         texts: list[list[str]] = []
         for i, text in enumerate(self.table[: self.num_train]):
@@ -694,7 +695,7 @@ class LanguageTask(Task):
         d = self.embeddings.shape[1]
         out = np.zeros((self.num_train, count, d), np.float32)
         if flat:
-            vectors = np.asarray(embed(flat), np.float32)
+            vectors = np.asarray(self.embed_fn(flat), np.float32)
             k = 0
             for i, group in enumerate(texts):
                 out[i, : len(group)] = vectors[k : k + len(group)]
