@@ -74,16 +74,7 @@ class LanguageGoalWrapper(gym.Wrapper):
         self.terminate_on_success = terminate_on_success
         self.family_balanced = family_balanced
         self.max_resample = max_resample
-        texts = self.split.texts(split_set)
-        meanings = self.split.instructions(split_set)
-        self._candidates = [
-            (t, m) for t, m in zip(texts, meanings, strict=True) if m.family in self.families
-        ]
-        if not self._candidates:
-            raise LcrlError(
-                f"the {split_set!r} set of this split has no instruction of the families "
-                f"{self.families} (split families: {self.split.families})"
-            )
+        self._candidates = self._instructions(self.families)
         self.observation_space = gym.spaces.Dict(
             {
                 **dict(env.observation_space.spaces),
@@ -95,6 +86,33 @@ class LanguageGoalWrapper(gym.Wrapper):
         self.instruction: str = ""
         self.meaning: Instruction | None = None
         self.s0: SceneState | None = None
+
+    def _instructions(self, families: Sequence[str]) -> list[tuple[str, Instruction]]:
+        """The (text, meaning) pairs of the split set whose family is in ``families``."""
+        texts = self.split.texts(self.split_set)
+        meanings = self.split.instructions(self.split_set)
+        out = [(t, m) for t, m in zip(texts, meanings, strict=True) if m.family in families]
+        if not out:
+            raise LcrlError(
+                f"the {self.split_set!r} set of this split has no instruction of the families "
+                f"{tuple(families)} (split families: {self.split.families})"
+            )
+        return out
+
+    def draw_from(self, families: Sequence[str]) -> None:
+        """Draw instructions of ``families`` only, from the next reset or switch on (a
+        curriculum over families); the captioner still judges and labels every family.
+
+        Raises:
+            LcrlError: a family the wrapper does not have, or one without instructions.
+        """
+        bad = [f for f in families if f not in self.families]
+        if bad or not families:
+            raise LcrlError(
+                f"cannot draw instructions of {tuple(families)}: this env's families are "
+                f"{self.families}"
+            )
+        self._candidates = self._instructions(tuple(families))
 
     def _scene(self) -> SceneState:
         return self.env.unwrapped.scene()

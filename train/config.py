@@ -30,7 +30,7 @@ from lcrl.goals import STRATEGIES, TASK_RELABEL_ERROR
 from lcrl.multitask import MultiTaskOptions
 from lcrl.nets import NetConfig, check_task_heads
 from lcrl.text_encoder import TextEncoderConfig
-from train.tasks import EnvConfig, check_tasks, goal_modality, slot_attributes
+from train.tasks import EnvConfig, check_tasks, goal_modality, is_language, slot_attributes
 
 
 @dataclass
@@ -185,6 +185,66 @@ class SequentialConfig:
 
 
 @dataclass
+class ExploreConfig:
+    """Where training episodes start and which instructions they get: chains of
+    instructions, hand-overs from the scripted controller, a curriculum over families
+    (language goals, ``collect.backend local``)."""
+
+    chain: float = 0.0
+    """Training on chains: the probability that a training episode which achieved its
+    instruction goes on in the same scene with a new instruction (drawn among the
+    training instructions feasible there, as ``lcrl eval --chain`` does), instead of a
+    reset. The new instruction is judged from the scene at the switch, displacements
+    restart there, and the time limit starts again; each instruction is stored as an
+    episode of its own. The policy so learns to start from layouts other than reset
+    layouts. 0: every episode starts from a reset."""
+    chain_length: int = 3
+    """Most instructions in a row before the next reset (with ``chain``)."""
+    handover: float = 0.0
+    """Starts along demonstrations: the fraction of the policy's training episodes in
+    which the env's scripted controller acts first, for a number of steps drawn uniformly
+    in ``1..handover_steps``, and the policy then takes over from wherever it left the
+    robot (holding a cube, next to a target). The controller's steps are stored and count
+    in ``total_steps``. 0: off."""
+    handover_steps: int = 30
+    """Most steps the scripted controller acts before it hands over (with ``handover``)."""
+    curriculum: tuple[str, ...] = ()
+    """A curriculum over instruction families, in order (``reach push lift put stack``):
+    training instructions come from the first family, and the next one opens when the
+    policy's live success on the family opened last reaches ``curriculum_threshold`` over
+    its last ``curriculum_window`` episodes; opened families stay. Hindsight labels and
+    evaluation cover every family of ``env.families`` throughout. Empty: all families
+    from the start."""
+    curriculum_threshold: float = 0.6
+    """Live success that opens the next family of the curriculum."""
+    curriculum_window: int = 50
+    """Policy episodes of the family opened last that the threshold is judged on."""
+
+    @property
+    def active(self) -> bool:
+        return bool(self.chain or self.handover or self.curriculum)
+
+    def validate(self, families: tuple[str, ...]) -> None:
+        """Raise :class:`LcrlError` for settings that cannot train."""
+        for name in ("chain", "handover", "curriculum_threshold"):
+            value = getattr(self, name)
+            if not 0.0 <= value <= 1.0:
+                raise LcrlError(f"explore.{name} must be in [0, 1], got {value}")
+        if self.chain_length < 2 and self.chain:
+            raise LcrlError("explore.chain_length must be at least 2 (instructions in a row)")
+        if self.handover_steps < 1 or self.curriculum_window < 1:
+            raise LcrlError("explore.handover_steps and explore.curriculum_window must be >= 1")
+        bad = [f for f in self.curriculum if f not in families]
+        if bad:
+            raise LcrlError(
+                f"explore.curriculum names {', '.join(bad)}, not among env.families "
+                f"{tuple(families)}"
+            )
+        if len(set(self.curriculum)) != len(self.curriculum):
+            raise LcrlError("explore.curriculum names a family twice")
+
+
+@dataclass
 class FinetuneConfig:
     """BC -> RL fine-tuning (SAC): a run that starts from a behavioural-cloning actor and a
     critic pretrained offline on a demonstration file, then trains online with language
@@ -313,6 +373,9 @@ class TrainConfig:
     """BC -> RL fine-tuning from a demonstration file (SAC)."""
     collect: CollectionConfig = field(default_factory=CollectionConfig)
     """How training episodes are collected (environments stepped at once)."""
+    explore: ExploreConfig = field(default_factory=ExploreConfig)
+    """Training on chains of instructions, starts along scripted demonstrations and a
+    curriculum over families (language goals)."""
     torch_threads: int = 0
     """Torch threads of the training process; 0: the cores this process may use, divided
     among the training processes lcrl runs at once (``LCRL_PROCESSES``, set by the
@@ -423,6 +486,9 @@ class TrainConfig:
                 "learned relabelling needs --relabel.checkpoint (train one with lcrl caption train)"
             )
         self.collect.validate()
+        self.explore.validate(tuple(self.env.families))
+        if self.explore.active:
+            self._validate_explore()
         self.sequential.validate(tuple(self.env.families), self.algo)
         self.finetune.validate(self.algo)
         if self.finetune.demos and (self.offline or self.demos):
@@ -454,6 +520,24 @@ class TrainConfig:
                     "multitask.conflict_every): the frames would be read once per task"
                 )
         self._validate_tasks()
+
+    def _validate_explore(self) -> None:
+        """Chains, hand-overs and curricula need language goals in the local loop."""
+        if not is_language(self.env):
+            raise LcrlError(
+                "explore.chain, explore.handover and explore.curriculum train language goals "
+                f"(this run's goal type is {self.env.goal_type!r})"
+            )
+        if self.env.tasks:
+            raise LcrlError("explore.* draw instructions: not with a fixed task set (env.tasks)")
+        if self.collect.backend != "local":
+            raise LcrlError("explore.* train with collect.backend local")
+        if self.offline or self.demos:
+            raise LcrlError("explore.* shape online episodes: not with --offline or --demos")
+        if self.explore.curriculum and self.sequential.stages:
+            raise LcrlError("explore.curriculum and sequential.stages both order the families")
+        if self.explore.chain and self.env.perception:
+            raise LcrlError("explore.chain is not supported with env.perception yet")
 
     def _validate_tasks(self) -> None:
         """Multi-task settings: the task set, no relabelling over task ids, per-task heads
@@ -736,6 +820,34 @@ def _robosuite_slots(families: tuple[str, ...] = ("reach",), **env: Any) -> Trai
     )
 
 
+#: The robosuite instruction families in the order the manipulation curriculum opens them.
+MANIPULATION_FAMILIES = ("reach", "push", "lift", "put", "stack")
+
+
+def _robosuite_manip(families: tuple[str, ...] = MANIPULATION_FAMILIES) -> TrainConfig:
+    """:func:`_robosuite_slots` for manipulation: 100-step episodes (the scripted put and
+    stack take up to about 90), a third of the policy's episodes begun by the scripted
+    controller, chains of up to 3 instructions, and with several families a curriculum
+    that opens them in order; 300k steps, a checkpoint (with the replay buffer) every 10k
+    so that ``--resume`` carries a run across sessions."""
+    name = "manip" if len(families) > 1 else families[0]
+    cfg = _robosuite_slots(families, max_episode_steps=100)
+    return dataclasses.replace(
+        cfg,
+        out=f"runs/robosuite-{name}",
+        explore=ExploreConfig(
+            chain=0.5,
+            handover=0.3,
+            handover_steps=60,
+            curriculum=families if len(families) > 1 else (),
+        ),
+        total_steps=300_000,
+        eval_every=10_000,
+        checkpoint_every=10_000,
+        keep_checkpoints=1,
+    )
+
+
 PRESETS: dict[str, tuple[str, TrainConfig]] = {
     "lang2d": (
         "2D tabletop, language goals (reach, push), SAC + language HER, 20% scripted "
@@ -803,6 +915,20 @@ PRESETS: dict[str, tuple[str, TrainConfig]] = {
         "robosuite Panda tabletop, reach instructions, privileged state, positions relative "
         "to the gripper and displacements, slot selection, 20% scripted episodes, 30k steps",
         _robosuite_slots(),
+    ),
+    "robosuite-manip": (
+        "robosuite Panda tabletop, all five families (reach, push, lift, put, stack) in one "
+        "policy, privileged state: robosuite-reach's slots plus starts along scripted "
+        "demonstrations, chains of instructions and a curriculum over families, 300k steps",
+        _robosuite_manip(),
+    ),
+    "robosuite-push": (
+        "robosuite-manip's recipe on push instructions alone, 300k steps",
+        _robosuite_manip(("push",)),
+    ),
+    "robosuite-lift": (
+        "robosuite-manip's recipe on lift instructions alone, 300k steps",
+        _robosuite_manip(("lift",)),
     ),
     "robosuite-image-reach": (
         "robosuite-reach acting from the agentview camera and proprioception through a "

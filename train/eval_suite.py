@@ -50,6 +50,7 @@ from train.environments import env_spec
 from train.tasks import (
     FEASIBLE_TRIES,
     Task,
+    features_wrapper,
     find_language_wrapper,
     make_env,
     reset_feasible,
@@ -275,16 +276,6 @@ class EpisodeResult:
     stop: str = ""
 
 
-def _features_wrapper(env: gym.Env) -> Any:
-    """The :class:`envs.features.SlotFeatures` with displacements inside ``env``, if any."""
-    e: Any = env
-    while isinstance(e, gym.Wrapper):
-        if getattr(e, "displacement", False) and hasattr(e, "restart_displacements"):
-            return e
-        e = e.env
-    return None
-
-
 class EvalEpisodes(gym.Wrapper):
     """Runs a fixed list of evaluation episodes inside one sub-env of a vector env.
 
@@ -332,7 +323,7 @@ class EvalEpisodes(gym.Wrapper):
         self.aliases = dict(aliases or {})
         self._reads: str | None = None  # the free text read for the canonical instruction
         self.lang = find_language_wrapper(env) if language else None
-        self.features = _features_wrapper(env) if language else None
+        self.features = features_wrapper(env) if language else None
         self._next = 0
         self._spec: EpisodeSpec | None = None
         self._result: EpisodeResult | None = None

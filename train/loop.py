@@ -26,9 +26,17 @@ from lcrl.multitask import CONFLICT_KEYS, TaskSampler
 from train.config import TrainConfig, config_to_dict
 from train.environments import canonical_kind
 from train.evaluate import build_agent, build_task
+from train.explore import Explorer
 from train.machine import set_threads
 from train.run_meta import restoring, state_fields
-from train.tasks import ScriptedActor, is_language, make_env, reset_feasible, task_texts
+from train.tasks import (
+    ScriptedActor,
+    find_language_wrapper,
+    is_language,
+    make_env,
+    reset_feasible,
+    task_texts,
+)
 from train.trainer import BaseTrainer, eval_row, open_run
 
 __all__ = ["Trainer", "checkpoint_meta", "eval_row", "open_run"]
@@ -125,6 +133,19 @@ class _Episode:
     t: int = 0
     action: Any = None
     random_action: Any = None
+    #: The last observation the env returned (where a chained episode goes on).
+    obs: Any = None
+    #: Steps the scripted controller acts before the policy takes over (0: none).
+    handover: int = 0
+    #: Position in a chain of instructions in one scene (0: began at a reset).
+    chain_index: int = 0
+    #: The family of its instruction (language goals), for a curriculum.
+    family: str = ""
+
+    @property
+    def scripted_now(self) -> bool:
+        """Whether the scripted controller acts the next step."""
+        return self.scripted or self.t < self.handover
 
 
 def begin_episode(
@@ -150,6 +171,22 @@ def begin_episode(
         obs, info = reset_feasible(env, seed, task_texts(cfg.env)[task_id])
     else:
         obs, info = env.reset(seed=seed)
+    return start_episode(cfg, task, env, obs, info, scripted, rng, scripted_rng, task_id)
+
+
+def start_episode(
+    cfg: TrainConfig,
+    task: Any,
+    env: Any,
+    obs: Any,
+    info: dict[str, Any],
+    scripted: ScriptedActor | None,
+    rng: np.random.Generator,
+    scripted_rng: np.random.Generator,
+    task_id: int | None = None,
+) -> _Episode:
+    """An episode that starts from ``obs`` (after a reset, or where a chained one ended);
+    whether the scripted controller acts it is drawn from ``scripted_rng``."""
     acted = scripted is not None and scripted_rng.random() < cfg.scripted_fraction
     if acted:
         scripted.reset()
@@ -165,6 +202,7 @@ def begin_episode(
         task_id=task_id,
         scripted=acted,
         info=info,
+        obs=obs,
     )
 
 
@@ -172,6 +210,7 @@ def step_episode(task: Any, ep: _Episode) -> None:
     """Step an episode's env with its action (``ep.action``) and record what happened."""
     obs, reward, terminated, truncated, info = ep.env.step(task.scale_action(ep.action))
     ep.t += 1
+    ep.obs = obs
     ep.stored.append(task.training_obs(obs, ep.first))
     ep.records.append(task.step_record(obs, ep.env))
     ep.actions.append(ep.action)
@@ -265,8 +304,14 @@ class Trainer(BaseTrainer):
         #: One scripted controller per environment (none without scripted episodes).
         self.scripted = [
             ScriptedActor(cfg.env, self.task, cfg.scripted_noise)
-            for _ in (self.envs if cfg.scripted_fraction > 0 else ())
+            for _ in (self.envs if cfg.scripted_fraction > 0 or cfg.explore.handover else ())
         ]
+        #: Chains, hand-overs and the family curriculum (None: all off).
+        self.explorer = (
+            Explorer(cfg.explore, cfg.env.families, self.scripted_rng)
+            if cfg.explore.active
+            else None
+        )
         self._init_rest(cfg, ckpt)
 
     #: The replay buffer is filled again from its source on resume (offline runs), so
@@ -347,6 +392,8 @@ class Trainer(BaseTrainer):
             self.agent.observe({}, text_goal_sample(self.task))
         attach_grounding(self.agent, self.task, cfg)
         attach_phrasings(self.agent, self.task)
+        if self.explorer is not None:
+            self.explorer.apply(self.envs)
         if cfg.collect.backend == "ray":
             self.start_workers()
 
@@ -609,9 +656,11 @@ class Trainer(BaseTrainer):
         while active:
             if self.step < cfg.learning_starts:
                 for ep in active:
-                    if not ep.scripted and ep.t % cfg.random_action_repeat == 0:
+                    if not ep.scripted_now and ep.t % cfg.random_action_repeat == 0:
                         ep.random_action = self.task.random_action(ep.rng)
-            acting = [ep for ep in active if not ep.scripted and self.step >= cfg.learning_starts]
+            acting = [
+                ep for ep in active if not ep.scripted_now and self.step >= cfg.learning_starts
+            ]
             if acting:
                 last = [ep.stored[-1] for ep in acting]
                 obs = {k: np.stack([o[k] for o in last]) for k in last[0]}
@@ -619,7 +668,7 @@ class Trainer(BaseTrainer):
                 for ep, a in zip(acting, actions, strict=True):
                     ep.action = a
             for ep in active:
-                if ep.scripted:
+                if ep.scripted_now:
                     ep.action = self.scripted[ep.slot].act(ep.env, ep.scripted_rng)
                 elif self.step < cfg.learning_starts:
                     ep.action = ep.random_action
@@ -632,28 +681,56 @@ class Trainer(BaseTrainer):
         with self.holding_signals():  # the episodes are stored whole, or not at all
             for ep in episodes:
                 self._store(ep)
-                self._finish_episode(ep.scripted, ep.succeeded, ep.task_id, ep.info)
+                self._finish_episode(
+                    ep.scripted, ep.succeeded, ep.task_id, ep.info, handover=bool(ep.handover)
+                )
+                if self.explorer is not None:
+                    self._explored(ep)
             self._start = None
 
     def _begin(self, slot: int, env: Any) -> _Episode:
         """Reset ``env`` for the next episode (index ``self.episodes + slot``), with the
-        task the sampler draws when the run has a task set."""
+        task the sampler draws when the run has a task set; with ``explore``, go on in
+        the scene of a chained episode instead, and draw a hand-over."""
         task_id = None
         if self.sampler is not None:
             task_id = self.sampler.sample(self.task_rng)
         scripted = self.scripted[slot] if self.scripted else None
-        ep = begin_episode(
-            self.cfg,
-            self.task,
-            env,
-            self.episodes + slot,
-            scripted,
-            task_id,
-            rng=self.rng,
-            scripted_rng=self.scripted_rng,
-        )
+        chained = self.explorer.continuation(slot, env) if self.explorer is not None else None
+        if chained is not None:
+            obs, index = chained
+            ep = start_episode(
+                self.cfg, self.task, env, obs, {}, scripted, self.rng, self.scripted_rng
+            )
+            ep.chain_index = index
+        else:
+            ep = begin_episode(
+                self.cfg,
+                self.task,
+                env,
+                self.episodes + slot,
+                scripted,
+                task_id,
+                rng=self.rng,
+                scripted_rng=self.scripted_rng,
+            )
         ep.slot = slot
+        if self.explorer is not None:
+            ep.family = find_language_wrapper(env).meaning.family
+            if not ep.scripted and scripted is not None:
+                ep.handover = self.explorer.handover_steps()
+                if ep.handover:
+                    scripted.reset()
         return ep
+
+    def _explored(self, ep: _Episode) -> None:
+        """After storing ``ep``: chain its environment's next episode, move the
+        curriculum."""
+        complete = ep.done
+        opened = self.explorer.finished(ep, complete, self.step)
+        if opened is not None:
+            self.explorer.apply(self.envs)
+            print(f"curriculum: {opened} opens at step {self.step}", flush=True)
 
     def _step(self, ep: _Episode) -> None:
         step_episode(self.task, ep)
@@ -667,13 +744,19 @@ class Trainer(BaseTrainer):
         self.agent.observe(episode["obs"], episode.get("achieved_goal"))
 
     def _finish_episode(
-        self, scripted: bool, succeeded: bool, task_id: int | None, info: dict[str, Any]
+        self,
+        scripted: bool,
+        succeeded: bool,
+        task_id: int | None,
+        info: dict[str, Any],
+        handover: bool = False,
     ) -> None:
-        """Count a stored episode."""
+        """Count a stored episode (one the scripted controller began, ``handover``, is not
+        the policy's alone: it stays out of the live success rate)."""
         self.episodes += 1
         if scripted:
             self.scripted_episodes += 1
-        else:  # the live success rate is the policy's
+        elif not handover:  # the live success rate is the policy's
             self.recent.append(float(succeeded))
             if task_id is not None:
                 self.sampler.update(task_id, succeeded)
@@ -695,6 +778,7 @@ class Trainer(BaseTrainer):
             "credit": self._credit,
             "metrics": (dict(self._metrics), self._metric_count),
             "grad": {k: list(v) for k, v in self._grad_metrics.items()},
+            "explore": None if self.explorer is None else copy.deepcopy(self.explorer.state_dict()),
         }
 
     def _generators(self) -> list[np.random.Generator]:
@@ -713,6 +797,9 @@ class Trainer(BaseTrainer):
         self.step, self._credit = start["step"], start["credit"]
         (self._metrics, self._metric_count) = start["metrics"]
         self._grad_metrics = start["grad"]
+        if self.explorer is not None:
+            self.explorer.load_state_dict(start["explore"])
+            self.explorer.drop_pending()
         self._start = None
 
     def _updates_due(self, steps: int = 1) -> int:
@@ -782,6 +869,8 @@ class Trainer(BaseTrainer):
         row.update({k: v / n for k, v in sorted(self._metrics.items())})
         self._metrics, self._metric_count = {}, 0
         row.update(self._multitask_columns())
+        if self.explorer is not None:
+            row.update(self.explorer.columns())
         self.progress_log.write(row)
         self.last_logged = self.step
         if self.tb is not None:
@@ -843,6 +932,8 @@ class Trainer(BaseTrainer):
                 "demos_loaded": self._demos_loaded,
             },
         }
+        if self.explorer is not None:
+            states["explore"] = self.explorer.state_dict()
         if self.stages:
             states["sequential"] = {"stage": self.stage, "rows": self.stage_rows}
             if self.agent.ewc is not None:
@@ -895,6 +986,9 @@ class Trainer(BaseTrainer):
                 self.task_rng.bit_generator.state = ckpt.state("task_rng")
         if self.stages and ckpt.has_state("sequential"):
             self._restore_stage(ckpt)
+        if self.explorer is not None and ckpt.has_state("explore"):
+            with restoring(ckpt, "the state 'explore'"):
+                self.explorer.load_state_dict(ckpt.state("explore"))
         if ckpt.has_arrays():
             self.buffer.load_arrays(ckpt.arrays())
         print(f"resumed {self.out} at step {self.step} ({self.episodes} episodes)")

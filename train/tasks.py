@@ -53,6 +53,7 @@ __all__ = [
     "TaskIdTask",
     "check_tasks",
     "env_spec",
+    "features_wrapper",
     "find_language_wrapper",
     "goal_modality",
     "goals_label",
@@ -61,6 +62,7 @@ __all__ = [
     "make_env",
     "make_task",
     "reset_feasible",
+    "switch_in_place",
     "task_texts",
 ]
 
@@ -935,6 +937,45 @@ def find_language_wrapper(env: gym.Env) -> Any:
         if not hasattr(e, "env"):
             raise LcrlError("a language task needs an env wrapped by LanguageGoalWrapper")
         e = e.env
+
+
+def features_wrapper(env: gym.Env) -> Any:
+    """The :class:`envs.features.SlotFeatures` with displacements inside ``env``, if any."""
+    e: Any = env
+    while isinstance(e, gym.Wrapper):
+        if getattr(e, "displacement", False) and hasattr(e, "restart_displacements"):
+            return e
+        e = e.env
+    return None
+
+
+def switch_in_place(env: gym.Env, obs: Mapping[str, Any]) -> dict[str, Any] | None:
+    """Give a running language episode its next instruction in the same scene (a chain):
+    the wrapper draws one among the training instructions feasible there, displacements
+    restart and the time limit starts again.
+
+    Args:
+        env: the training env, as :func:`make_env` built it.
+        obs: the last observation it returned.
+
+    Returns:
+        The observation the next instruction starts from, or None when no instruction
+        is feasible in the scene (the env then needs a reset).
+    """
+    wrapper = find_language_wrapper(env)
+    if wrapper.switch_instruction() is None:
+        return None
+    out = dict(obs)
+    out["instruction"] = wrapper.instruction
+    features = features_wrapper(env)
+    if features is not None:
+        out["observation"] = features.restart_displacements()
+    e: Any = env
+    while isinstance(e, gym.Wrapper):
+        if isinstance(e, gym.wrappers.TimeLimit):
+            e._elapsed_steps = 0
+        e = e.env
+    return out
 
 
 def make_task(cfg: EnvConfig, env: gym.Env, embed: Any = None, **kwargs: Any) -> Task:

@@ -1,0 +1,228 @@
+"""Chains of instructions, hand-overs from the scripted controller and the family
+curriculum of training episodes (``--explore.*``)."""
+
+from __future__ import annotations
+
+import itertools
+from types import SimpleNamespace
+
+import gymnasium as gym
+import numpy as np
+import pytest
+from helpers import cli, error_line, tiny
+
+from lcrl.errors import LcrlError
+from train.config import ExploreConfig
+from train.explore import Explorer
+from train.loop import Trainer
+from train.tasks import ScriptedActor, find_language_wrapper
+
+#: lang2d observation: pusher x, y, then 8 slots of [x, y, present, x - pusher x,
+#: y - pusher y, displacement x, displacement y].
+SLOTS = (2, 8, 7)
+
+
+def _slots(obs: np.ndarray) -> np.ndarray:
+    start, count, width = SLOTS
+    return np.asarray(obs[start:]).reshape(count, width)
+
+
+def _collect(trainer: Trainer, episodes: int) -> list:
+    """Collect until ``episodes`` are stored; the stored episodes (the loop's objects)."""
+    seen: list = []
+    store = trainer._store
+
+    def keep(ep):
+        seen.append(ep)
+        store(ep)
+
+    trainer._store = keep
+    while len(seen) < episodes:
+        trainer.collect_episode()
+    return seen
+
+
+def test_chained_episodes_go_on_in_the_scene_the_last_one_left(tmp_path):
+    cfg = tiny(
+        "lang2d",
+        tmp_path / "run",
+        scripted_fraction=1.0,  # the controller almost always succeeds: chains form
+        scripted_noise=0.0,
+        explore=ExploreConfig(chain=1.0, chain_length=3),
+    )
+    trainer = Trainer(cfg)
+    try:
+        eps = _collect(trainer, 12)
+    finally:
+        trainer.close()
+    chained = [(a, b) for a, b in itertools.pairwise(eps) if b.chain_index > 0]
+    assert chained, "no chain formed"
+    assert trainer.explorer.chained == len(chained)
+    for prev, ep in chained:
+        assert ep.chain_index == prev.chain_index + 1 <= 2  # at most 3 in a row
+        assert prev.succeeded
+        last, first = _slots(prev.stored[-1]["observation"]), _slots(ep.stored[0]["observation"])
+        # the same scene: positions and relative positions carry over ...
+        np.testing.assert_allclose(first[:, :5], last[:, :5], atol=1e-6)
+        pusher = prev.stored[-1]["observation"][:2], ep.stored[0]["observation"][:2]
+        np.testing.assert_allclose(*pusher)
+        # ... displacements restart at the switch, which is the episode's first observation
+        assert np.all(first[:, 5:] == 0.0)
+        np.testing.assert_array_equal(ep.stored[0]["initial"], ep.stored[0]["observation"])
+        # a new instruction, judged from the scene at the switch: not achieved at once
+        assert ep.goal != prev.goal or ep.t > 0
+    # a chain never goes beyond its length: every third instruction in a row resets
+    assert max(ep.chain_index for ep in eps) <= 2
+
+
+def test_a_chained_episode_gets_the_whole_time_limit_again(tmp_path):
+    cfg = tiny(
+        "lang2d",
+        tmp_path / "run",
+        scripted_fraction=1.0,
+        scripted_noise=0.0,
+        explore=ExploreConfig(chain=1.0, chain_length=2),
+    )
+    trainer = Trainer(cfg)
+    counted: list[tuple[int, int, int]] = []
+    store = trainer._store
+
+    def keep(ep):
+        env = ep.env
+        while not isinstance(env, gym.wrappers.TimeLimit):
+            env = env.env
+        counted.append((ep.chain_index, ep.t, env._elapsed_steps))
+        store(ep)
+
+    trainer._store = keep
+    try:
+        while sum(c > 0 for c, _, _ in counted) < 3:
+            trainer.collect_episode()
+    finally:
+        trainer.close()
+    # the time limit counts each instruction's own steps: it restarts at a switch
+    assert all(elapsed == t for _, t, elapsed in counted)
+    assert any(c > 0 and t > 0 for c, t, _ in counted)
+
+
+def test_handover_episodes_begin_with_the_scripted_controller(tmp_path, monkeypatch):
+    marker = np.full(2, 0.123, np.float32)
+    monkeypatch.setattr(ScriptedActor, "act", lambda self, env, rng: marker.copy())
+    cfg = tiny(
+        "lang2d",
+        tmp_path / "run",
+        learning_starts=0,
+        scripted_fraction=0.0,
+        explore=ExploreConfig(handover=1.0, handover_steps=5),
+    )
+    trainer = Trainer(cfg)
+    try:
+        eps = _collect(trainer, 6)
+    finally:
+        trainer.close()
+    for ep in eps:
+        assert not ep.scripted and 1 <= ep.handover <= 5
+        prefix = min(ep.handover, len(ep.actions))
+        for a in ep.actions[:prefix]:
+            np.testing.assert_array_equal(a, marker)  # the controller's steps ...
+        for a in ep.actions[prefix:]:
+            assert not np.array_equal(a, marker)  # ... then the policy's
+    # they are not the policy's alone: the live success rate leaves them out
+    assert not trainer.recent
+    assert trainer.explorer.handovers == len(eps)
+    assert trainer.explorer.columns()["handover_episodes"] == len(eps)
+
+
+def _episode(family: str, succeeded: bool, scripted: bool = False, handover: int = 0):
+    return SimpleNamespace(
+        slot=0,
+        obs={},
+        succeeded=succeeded,
+        chain_index=0,
+        scripted=scripted,
+        handover=handover,
+        family=family,
+    )
+
+
+def test_the_curriculum_opens_the_next_family_on_live_success():
+    cfg = ExploreConfig(curriculum=("reach", "push", "lift"), curriculum_window=4)
+    ex = Explorer(cfg, ("reach", "push", "lift", "put"), np.random.default_rng(0))
+    assert ex.families() == ("reach", "put")  # families it does not name are open
+    for ok in (True, True, False):
+        assert ex.finished(_episode("reach", ok), True, 10) is None
+    # scripted and handed-over episodes do not count
+    assert ex.finished(_episode("reach", True, scripted=True), True, 11) is None
+    assert ex.finished(_episode("reach", True, handover=3), True, 11) is None
+    assert ex.finished(_episode("reach", True), True, 12) == "push"  # 3 of the last 4
+    assert ex.families() == ("reach", "push", "put")
+    # now only the family opened last moves it on
+    for _ in range(8):
+        assert ex.finished(_episode("reach", True), True, 13) is None
+    for _ in range(4):
+        assert ex.finished(_episode("push", False), True, 14) is None
+    assert ex.opened == 2
+    state = ex.state_dict()
+    again = Explorer(cfg, ("reach", "push", "lift", "put"), np.random.default_rng(0))
+    again.load_state_dict(state)
+    assert again.families() == ex.families() and again.openings == [(12, "push")]
+    assert list(again.recent["push"]) == [0.0] * 4
+
+
+def test_training_draws_only_open_families_and_checkpoints_the_curriculum(tmp_path):
+    out = tmp_path / "run"
+    cfg = tiny(
+        "lang2d",
+        out,
+        total_steps=300,
+        checkpoint_every=0,
+        explore=ExploreConfig(curriculum=("push", "reach"), curriculum_window=1000),
+    )
+    trainer = Trainer(cfg)
+    try:
+        eps = _collect(trainer, 8)
+        assert {ep.family for ep in eps} == {"push"}
+        assert find_language_wrapper(trainer.envs[0]).families == ("reach", "push")
+        trainer.explorer.opened = 2  # as if push had been learned
+        trainer.explorer.apply(trainer.envs)
+        eps = _collect(trainer, 30)
+        assert {ep.family for ep in eps} == {"push", "reach"}
+        trainer.save()
+    finally:
+        trainer.close()
+    resumed = Trainer(tiny("lang2d", out, total_steps=600, resume=True))
+    try:
+        assert resumed.explorer.opened == 2
+        assert {ep.family for ep in _collect(resumed, 30)} == {"push", "reach"}
+    finally:
+        resumed.close()
+
+
+def test_draw_from_refuses_families_the_env_does_not_have(tmp_path):
+    trainer = Trainer(tiny("lang2d", tmp_path / "run"))
+    try:
+        with pytest.raises(LcrlError, match="families"):
+            find_language_wrapper(trainer.envs[0]).draw_from(("lift",))
+    finally:
+        trainer.close()
+
+
+@pytest.mark.parametrize(
+    ("args", "message"),
+    [
+        (["--explore.chain", "1.5"], "explore.chain must be in [0, 1]"),
+        (["--explore.curriculum", "reach", "lift"], "explore.curriculum names lift"),
+        (["--explore.curriculum", "reach", "reach"], "names a family twice"),
+        (["--explore.chain", "0.5", "--explore.chain-length", "1"], "chain_length"),
+    ],
+)
+def test_bad_explore_settings_are_one_line_errors(tmp_path, capsys, args, message):
+    status = cli("train", "lang2d", "--out", str(tmp_path / "r"), *args)
+    assert status != 0
+    assert message in error_line(capsys.readouterr().err)
+
+
+def test_explore_needs_language_goals(tmp_path, capsys):
+    status = cli("train", "state2d", "--out", str(tmp_path / "r"), "--explore.chain", "0.5")
+    assert status != 0
+    assert "train language goals" in error_line(capsys.readouterr().err)
