@@ -1,0 +1,315 @@
+"""Robosuite manipulation beyond reach: push, lift, put and stack learned with language HER.
+
+Run from the repository root::
+
+    python benchmarks/manipulation.py                  # train robosuite-manip to 300k, evaluate
+    python benchmarks/manipulation.py --steps 60000    # train up to 60k steps now, evaluate
+    python benchmarks/manipulation.py --eval-only      # evaluate the run as it stands
+
+The run (``lcrl train robosuite-manip``, privileged state: all five families in one policy,
+starts handed over by the scripted controller, chains of instructions, a curriculum over
+families; see docs/training.md) lives in ``--work``. When that folder has a checkpoint the
+run goes on from it with ``--resume``: a run spans sessions, and its checkpoints keep the
+replay buffer. Then its latest checkpoint is evaluated:
+
+- per family, ``--episodes`` episodes of each instruction set (seen, held-out
+  combinations, paraphrases): ``lcrl eval RUN --families F``;
+- two instructions in a row (``lcrl eval RUN --chain 2``): ``chain2`` is the fraction of
+  chains whose first two instructions both succeed;
+- the scripted controllers on the same number of episodes per family, with the same
+  100-step limit (``captioner.scripted3d.evaluate``);
+- one ``lcrl act`` GIF per family (``--gifs``).
+
+Writes ``benchmarks/results/robosuite-manipulation.{json,md,png}``. Headline: seen
+success per family (``reach`` ... ``stack``, targets 0.90, 0.80, 0.70, 0.50, 0.30),
+``chain2`` (target 0.60), ``steps``, ``updates`` and ``wall_clock_s`` (training seconds of
+the whole run on this machine, over all its sessions).
+"""
+
+from __future__ import annotations
+
+import argparse
+import csv
+import json
+import os
+import shlex
+import subprocess
+import sys
+from pathlib import Path
+from typing import Any
+
+sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
+
+from benchmarks.common import (
+    RESULTS_DIR,
+    command,
+    machine,
+    save_figure,
+    save_json,
+    save_markdown,
+    side_by_side_env,
+)
+from train.config import MANIPULATION_FAMILIES
+
+NAME = "robosuite-manipulation"
+PRESET = "robosuite-manip"
+LCRL = [sys.executable, "-m", "train.cli"]
+SETS = ("train", "heldout", "paraphrase")
+#: Seen-instruction success per family, and two instructions in a row.
+TARGETS = {"reach": 0.90, "push": 0.80, "lift": 0.70, "put": 0.50, "stack": 0.30, "chain2": 0.60}
+#: The episode limit of the preset, also given to the scripted controllers.
+MAX_STEPS = 100
+
+
+def has_checkpoint(work: Path) -> bool:
+    return any((work / "checkpoints").glob("step_*"))
+
+
+def train(args: argparse.Namespace) -> None:
+    """Train (or go on training) the run up to ``--steps``."""
+    work = Path(args.work)
+    cmd = [*LCRL, "train", args.preset, "--out", str(work), "--total-steps", str(args.steps)]
+    cmd += ["--no-progress"] + (["--resume"] if has_checkpoint(work) else [])
+    print("== " + shlex.join(cmd), flush=True)
+    env = side_by_side_env(args.processes, MUJOCO_GL=os.environ.get("MUJOCO_GL", "egl"))
+    subprocess.run(cmd, check=True, env=env)
+
+
+def lcrl_eval(args: argparse.Namespace, out: Path, *options: str) -> dict[str, Any] | None:
+    """``lcrl eval`` of the run with ``options``; its JSON document (None when it fails,
+    e.g. a set without an instruction of the family)."""
+    cmd = [*LCRL, "eval", args.work, "--episodes", str(args.episodes), "--num-envs", "1"]
+    cmd += [*options, "--no-progress", "--json", str(out)]
+    print("== " + shlex.join(cmd), flush=True)
+    env = side_by_side_env(args.processes, MUJOCO_GL=os.environ.get("MUJOCO_GL", "egl"))
+    done = subprocess.run(cmd, env=env, capture_output=True, text=True)
+    if done.returncode != 0:
+        print(done.stderr.strip().splitlines()[-1] if done.stderr.strip() else "failed")
+        return None
+    return json.loads(out.read_text())
+
+
+def evaluate(args: argparse.Namespace) -> dict[str, Any]:
+    """Per family and set: success with its interval; the chain figures."""
+    folder = Path(args.work) / "evals" / "manipulation"
+    folder.mkdir(parents=True, exist_ok=True)
+    out: dict[str, Any] = {"families": {}, "chain": None}
+    for family in args.families:
+        # one process for the three sets; set by set when one has no instruction of it
+        doc = lcrl_eval(args, folder / f"{family}.json", "--families", family, "--sets", *SETS)
+        docs = {name: doc for name in SETS}
+        if doc is None:
+            docs = {
+                name: lcrl_eval(
+                    args, folder / f"{family}-{name}.json", "--families", family, "--sets", name
+                )
+                for name in SETS
+            }
+        per_set: dict[str, Any] = {}
+        for name, d in docs.items():
+            s = d["sets"][name] if d else None
+            per_set[name] = None if s is None else {k: s[k] for k in ("success", "ci", "episodes")}
+            if d and "step" not in out:
+                out["step"] = d["step"]
+        out["families"][family] = per_set
+    doc = lcrl_eval(args, folder / "chain2.json", "--chain", "2", "--sets", "train")
+    if doc is not None:
+        out["chain"] = doc["sets"]["train"].get("chain")
+    return out
+
+
+def scripted(args: argparse.Namespace) -> dict[str, float]:
+    """The scripted controller's success per family, same limit and number of episodes."""
+    from captioner.scripted3d import evaluate as run_scripted
+    from train.config import PRESETS
+
+    cfg = PRESETS[args.preset][1].env
+    steps = run_scripted(
+        args.families,
+        range(args.episodes),
+        MAX_STEPS,
+        num_objects=(cfg.min_objects, cfg.max_objects),
+    )
+    return {f: sum(n is not None for n in s.values()) / len(s) for f, s in steps.items()}
+
+
+def budget(work: Path) -> dict[str, float]:
+    """Steps, updates and training seconds of the run so far (from its logs)."""
+    out: dict[str, float] = {}
+    with (work / "progress.csv").open() as f:
+        rows = list(csv.DictReader(f))
+    if rows:
+        out.update(steps=int(float(rows[-1]["step"])), updates=int(float(rows[-1]["updates"])))
+    if (work / "eval.csv").is_file():
+        with (work / "eval.csv").open() as f:
+            evals = list(csv.DictReader(f))
+        if evals and evals[-1].get("train_s"):
+            out["wall_clock_s"] = round(float(evals[-1]["train_s"]), 1)
+    return out
+
+
+def curve(work: Path) -> list[dict[str, float]]:
+    """The periodic evaluations of the run (seen success per family)."""
+    path = work / "eval.csv"
+    if not path.is_file():
+        return []
+    with path.open() as f:
+        return [{k: float(v) for k, v in row.items() if v != ""} for row in csv.DictReader(f)]
+
+
+def gifs(args: argparse.Namespace) -> dict[str, str]:
+    """One ``lcrl act`` GIF per family, a seen instruction each, in the results folder."""
+    from captioner.splits import make_split
+
+    split = make_split(0, tuple(MANIPULATION_FAMILIES))
+    texts = dict(
+        reversed(
+            [
+                (m.family, t)
+                for t, m in zip(split.texts("train"), split.instructions("train"), strict=True)
+            ]
+        )
+    )
+    out = {}
+    for family in args.families:
+        path = RESULTS_DIR / f"{NAME}-{family}.gif"
+        cmd = [*LCRL, "act", args.work, "--instruction", texts[family], "--episodes", "1"]
+        cmd += ["--video", str(path), "--fps", "8"]
+        env = side_by_side_env(args.processes, MUJOCO_GL=os.environ.get("MUJOCO_GL", "egl"))
+        if subprocess.run(cmd, env=env, capture_output=True).returncode == 0:
+            out[family] = path.name
+    return out
+
+
+def headline(ev: dict[str, Any], spent: dict[str, float]) -> dict[str, Any]:
+    head: dict[str, Any] = {}
+    for family, sets in ev["families"].items():
+        seen = sets.get("train")
+        head[family] = None if seen is None else seen["success"]
+    chain = ev.get("chain")
+    head["chain2"] = chain["success"][1]["success"] if chain else None
+    head.update(spent)
+    return head
+
+
+def figure(name: str, ev: dict[str, Any], script: dict[str, float], rows: list, info: dict):
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    import numpy as np
+
+    fams = list(ev["families"])
+    fig, (ax, bx) = plt.subplots(1, 2, figsize=(11, 4.2))
+    x = np.arange(len(fams))
+    for i, (key, label) in enumerate((("train", "seen"), ("heldout", "held-out"))):
+        vals = [(ev["families"][f].get(key) or {}).get("success") or 0.0 for f in fams]
+        ax.bar(x + (i - 1) * 0.27, vals, 0.27, label=f"policy, {label}")
+    ax.bar(x + 0.27, [script.get(f, 0.0) for f in fams], 0.27, label="scripted controller")
+    for i, f in enumerate(fams):
+        ax.plot([i - 0.45, i + 0.45], [TARGETS[f]] * 2, "k--", lw=1)
+    ax.set_xticks(x, fams)
+    ax.set_ylim(0, 1.05)
+    ax.set_ylabel("success (dashed: target)")
+    ax.legend(fontsize=7)
+    ax.set_title("per family, privileged state")
+    for f in fams:
+        pts = [(r["step"], r[f"train/{f}"]) for r in rows if f"train/{f}" in r]
+        if pts:
+            bx.plot(*zip(*pts, strict=True), marker="o", label=f)
+    bx.set_xlabel("environment steps")
+    bx.set_ylabel("seen success (periodic evaluation)")
+    bx.set_ylim(0, 1.05)
+    bx.legend(fontsize=7)
+    bx.set_title("learning curve")
+    fig.tight_layout(rect=(0, 0.08, 1, 1))
+    save_figure(name, fig, info)
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--preset", default=PRESET)
+    parser.add_argument("--work", default="runs/bench/robosuite-manip")
+    parser.add_argument("--steps", type=int, default=300_000, help="train up to this step")
+    parser.add_argument("--episodes", type=int, default=100, help="per family and set")
+    parser.add_argument(
+        "--families", nargs="+", default=list(MANIPULATION_FAMILIES), choices=MANIPULATION_FAMILIES
+    )
+    parser.add_argument("--eval-only", action="store_true", help="evaluate without training")
+    parser.add_argument("--gifs", action="store_true", help="an lcrl act GIF per family")
+    parser.add_argument(
+        "--processes", type=int, default=1, help="lcrl processes running beside this one"
+    )
+    args = parser.parse_args(argv)
+    work = Path(args.work)
+    if not args.eval_only:
+        train(args)
+    if not has_checkpoint(work):
+        raise SystemExit(f"{work} has no checkpoint: train it first (without --eval-only)")
+    info = machine()
+    ev = evaluate(args)
+    script = scripted(args)
+    spent = budget(work)
+    head = headline(ev, spent)
+    reached = {
+        k: (head.get(k) is not None and head[k] >= t) for k, t in TARGETS.items() if k in head
+    }
+    videos = gifs(args) if args.gifs else {}
+    rows = curve(work)
+    save_json(
+        NAME,
+        {
+            "headline": head,
+            "targets": TARGETS,
+            "reached": reached,
+            "command": command(),
+            "machine": info,
+            "settings": vars(args),
+            "families": ev["families"],
+            "chain": ev["chain"],
+            "scripted": script,
+            "curve": rows,
+            "gifs": videos,
+        },
+    )
+    lines = [
+        "| family | seen | held-out combinations | paraphrases | scripted controller "
+        "| target (seen) |",
+        "|---|---|---|---|---:|---:|",
+    ]
+    for f, sets in ev["families"].items():
+        cells = []
+        for k in SETS:
+            r = sets.get(k)
+            cells.append(
+                "n/a" if r is None else f"{r['success']:.2f} [{r['ci'][0]:.2f}, {r['ci'][1]:.2f}]"
+            )
+        ok = "reached" if reached.get(f) else "NOT reached"
+        lines.append(
+            f"| {f} | {' | '.join(cells)} | {script.get(f, 0):.2f} | {TARGETS[f]} ({ok}) |"
+        )
+    c2 = head.get("chain2")
+    lines.append(
+        f"\nTwo instructions in a row (`lcrl eval --chain 2`, {args.episodes} chains): "
+        + ("n/a" if c2 is None else f"{c2:.2f}")
+        + f", target {TARGETS['chain2']} ({'reached' if reached.get('chain2') else 'NOT reached'})."
+    )
+    lines.append(
+        f"\nBudget: {spent.get('steps', 0):,} environment steps, {spent.get('updates', 0):,} "
+        f"updates, {spent.get('wall_clock_s', 0) / 3600:.2f} h of training on this machine."
+    )
+    if videos:
+        lines.append("\n" + " ".join(f"![{f}]({p})" for f, p in videos.items()))
+    save_markdown(
+        NAME,
+        "Robosuite manipulation with language HER (privileged state)",
+        "\n".join(lines),
+        info,
+    )
+    figure(NAME, ev, script, rows, info)
+    print("\n".join(lines))
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -1,0 +1,38 @@
+"""benchmarks/manipulation.py: its headline, budget and refusals, without training."""
+
+from __future__ import annotations
+
+import pytest
+
+from benchmarks import manipulation
+
+
+def test_headline_reads_seen_success_per_family_and_the_second_chain_link():
+    ev = {
+        "families": {
+            "reach": {"train": {"success": 0.9, "ci": [0.8, 0.95], "episodes": 100}},
+            "push": {"train": None},
+        },
+        "chain": {"success": [{"length": 1, "success": 0.7}, {"length": 2, "success": 0.4}]},
+    }
+    head = manipulation.headline(ev, {"steps": 1000, "wall_clock_s": 12.5})
+    assert head == {"reach": 0.9, "push": None, "chain2": 0.4, "steps": 1000, "wall_clock_s": 12.5}
+
+
+def test_budget_comes_from_the_run_logs(tmp_path):
+    (tmp_path / "progress.csv").write_text("step,updates\n1000,500\n2000,1500\n")
+    (tmp_path / "eval.csv").write_text("step,train/success,train_s\n2000,0.5,321.04\n")
+    assert manipulation.budget(tmp_path) == {"steps": 2000, "updates": 1500, "wall_clock_s": 321.0}
+    rows = manipulation.curve(tmp_path)
+    assert rows == [{"step": 2000.0, "train/success": 0.5, "train_s": 321.04}]
+
+
+def test_evaluating_a_run_without_checkpoints_is_refused(tmp_path):
+    with pytest.raises(SystemExit, match="has no checkpoint"):
+        manipulation.main(["--work", str(tmp_path / "none"), "--eval-only"])
+
+
+def test_targets_are_the_issue_targets():
+    assert manipulation.TARGETS == {
+        "reach": 0.90, "push": 0.80, "lift": 0.70, "put": 0.50, "stack": 0.30, "chain2": 0.60
+    }  # fmt: skip
