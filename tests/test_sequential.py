@@ -143,3 +143,50 @@ def test_bad_stages_are_one_line_errors(tmp_path, capsys):
     assert error_line(capsys.readouterr().err) == (
         "lcrl: error: sequential.stages: lift is not made of env.families ('reach', 'push')"
     )
+
+
+def test_output_fisher_is_the_score_of_the_policy_and_the_q_gradient(tmp_path):
+    """``ewc_fisher=output``: the actor's gradient is the score of a pre-squash action drawn
+    from the policy (checked against autograd of the Gaussian log-likelihood), the
+    critic's the gradient of its Q-values; neither is scaled by a loss."""
+    trainer = Trainer(tiny("lang2d", tmp_path / "run", learning_starts=50))
+    try:
+        while trainer.buffer.size < 60:
+            trainer.collect_episode()
+        agent = trainer.agent
+        row = batch_rows(trainer.buffer.sample(4), [0])
+        state = agent.gen.get_state()
+        grads = agent.output_gradients(row)
+        agent.gen.set_state(state)
+        obs, _, goal, act, _, _ = agent.batch_tensors(row)
+        mean, log_std = agent.actor(obs, goal).chunk(2, -1)
+        log_std = log_std.clamp(-20.0, 2.0)
+        noise = torch.randn(mean.shape, generator=agent.gen, device=agent.device)
+        u = (mean + log_std.exp() * noise).detach()
+        agent.actor_opt.zero_grad()
+        torch.distributions.Normal(mean, log_std.exp()).log_prob(u).sum().backward()
+        assert torch.allclose(grads["actor"], agent.actor_opt.grad, atol=1e-5)
+        agent.critic_opt.zero_grad()
+        agent.critic(obs, goal, act).sum().backward()
+        assert torch.allclose(grads["critic"], agent.critic_opt.grad, atol=1e-6)
+        assert grads["critic"].abs().sum() > 0 and grads["actor"].abs().sum() > 0
+        agent.actor_opt.zero_grad()
+        agent.critic_opt.zero_grad()
+    finally:
+        trainer.close()
+
+
+def test_stages_with_the_output_fisher_consolidate_both_networks(tmp_path):
+    cfg = tiny(
+        "lang2d",
+        tmp_path / "run",
+        total_steps=400,
+        sequential=SequentialConfig(
+            stages=("reach", "push"), ewc=1.0, ewc_samples=8, ewc_fisher="output"
+        ),
+    )
+    trainer = Trainer(cfg)
+    trainer.run()
+    fisher = trainer.agent.ewc.fisher
+    assert set(fisher) == {"critic", "actor"}
+    assert all(f.min() >= 0 and f.sum() > 0 for f in fisher.values())

@@ -222,3 +222,23 @@ def test_resume_below_the_checkpoint_changes_nothing(tmp_path, capsys, one_threa
         assert "already at step 150" in err and "nothing to do" in err
     assert {name: (out / name).read_bytes() for name in files} == before
     assert sorted(p.name for p in (out / "checkpoints").iterdir()) == ["step_000000150"]
+
+
+def test_progress_log_widens_its_header_for_columns_that_start_later(tmp_path):
+    from train.trainer import CsvLog
+
+    path = tmp_path / "progress.csv"
+    log = CsvLog(path)
+    log.write({"step": 1000, "success": 0.0})
+    log.write({"step": 2000, "success": 0.1, "critic_loss": 0.5, "q": 1.25})
+    log.write({"step": 3000, "success": 0.2, "critic_loss": 0.25, "q": 2.0})
+    lines = path.read_text().splitlines()
+    assert lines == [
+        "step,success,critic_loss,q",
+        "1000,0,,",
+        "2000,0.1,0.5,1.25",
+        "3000,0.2,0.25,2",
+    ]
+    again = CsvLog(path)  # a resumed run keeps the widened header
+    again.write({"step": 4000, "success": 0.3, "critic_loss": 0.125, "q": 3.0})
+    assert path.read_text().splitlines()[-1] == "4000,0.3,0.125,3"

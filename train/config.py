@@ -159,6 +159,13 @@ class SequentialConfig:
     of a whole batch's mean loss would average the per-transition gradients away and
     underestimate the Fisher by about the batch size."""
 
+    ewc_fisher: str = "loss"
+    """What the Fisher information of EWC is the expected squared gradient of: ``loss``
+    (the critic and actor losses on each transition, the empirical Fisher) or ``output``
+    (the networks' outputs: the Q-values as unit-variance Gaussians, the log-likelihood
+    of an action drawn from the policy), which does not vanish on transitions the stage
+    has learned well."""
+
     def families(self) -> list[tuple[str, ...]]:
         """The families of each stage."""
         return [tuple(f for f in stage.split("+") if f) for stage in self.stages]
@@ -179,6 +186,10 @@ class SequentialConfig:
         if self.replay < 0 or self.ewc < 0 or self.ewc_samples < 1:
             raise LcrlError(
                 "sequential.replay and sequential.ewc must be >= 0, sequential.ewc_samples >= 1"
+            )
+        if self.ewc_fisher not in ("loss", "output"):
+            raise LcrlError(
+                f"sequential.ewc_fisher must be 'loss' or 'output', got {self.ewc_fisher!r}"
             )
         if self.ewc and algo not in ("sac", "auto"):
             raise LcrlError(f"sequential.ewc is implemented for sac, not {algo}")

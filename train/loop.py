@@ -545,9 +545,10 @@ class Trainer(BaseTrainer):
         return [episodes[i] for i in sorted(kept)]
 
     def _consolidate(self) -> None:
-        """EWC at the end of a stage: the diagonal empirical Fisher information of the
-        critic and actor losses, from ``sequential.ewc_samples`` transitions of the stage's
-        data, each one's gradient squared on its own."""
+        """EWC at the end of a stage: the diagonal Fisher information of the critic and
+        actor (of their losses, or with ``sequential.ewc_fisher=output`` of their outputs),
+        from ``sequential.ewc_samples`` transitions of the stage's data, each one's
+        gradient squared on its own."""
         import torch
 
         from lcrl.buffer import batch_rows
@@ -555,8 +556,13 @@ class Trainer(BaseTrainer):
         sums: dict[str, torch.Tensor] = {}
         n = self.cfg.sequential.ewc_samples
         batch = self.buffer.sample(n)
+        gradients = (
+            self.agent.output_gradients
+            if self.cfg.sequential.ewc_fisher == "output"
+            else self.agent.loss_gradients
+        )
         for i in range(n):
-            for name, g in self.agent.loss_gradients(batch_rows(batch, [i])).items():
+            for name, g in gradients(batch_rows(batch, [i])).items():
                 sums[name] = sums.get(name, 0.0) + g * g
         for name, params in self.agent.flat_parameters().items():
             self.agent.ewc.consolidate(name, params, sums[name] / n)

@@ -62,7 +62,10 @@ from train.run_meta import run_meta
 
 
 class CsvLog:
-    """Append rows to a CSV file; the header is fixed by the first row (or the file)."""
+    """Append rows to a CSV file. The header is that of the first row (or of the file);
+    a row with columns the header lacks (the update metrics, which begin only once
+    learning starts) widens it: the file is rewritten with the new columns at the end,
+    empty in the earlier rows."""
 
     def __init__(self, path: Path) -> None:
         self.path = path
@@ -73,19 +76,35 @@ class CsvLog:
             self.fields = header.split(",") if header else None
 
     def write(self, row: Mapping[str, Any]) -> None:
-        """Write one row (keys outside the header are dropped).
+        """Write one row.
 
         Raises:
             LcrlError: the file cannot be written (a full disk), naming it.
         """
         new = self.fields is None
-        fields = list(row) if new else self.fields
-        with writing(self.path), self.path.open("a", newline="") as f:
-            w = csv.DictWriter(f, fieldnames=fields, extrasaction="ignore")
-            if new:
-                w.writeheader()
-            w.writerow({k: _fmt(v) for k, v in row.items()})
+        fields = list(row) if new else list(self.fields)
+        extra = [k for k in row if k not in fields]
+        with writing(self.path):
+            if extra:
+                fields += extra
+                self._widen(fields)
+            with self.path.open("a", newline="") as f:
+                w = csv.DictWriter(f, fieldnames=fields, extrasaction="ignore")
+                if new:
+                    w.writeheader()
+                w.writerow({k: _fmt(v) for k, v in row.items()})
         self.fields = fields
+
+    def _widen(self, fields: list[str]) -> None:
+        """Rewrite the file under the header ``fields`` (atomically)."""
+        with self.path.open(newline="") as f:
+            rows = list(csv.DictReader(f))
+        tmp = self.path.with_name(self.path.name + ".tmp")
+        with tmp.open("w", newline="") as f:
+            w = csv.DictWriter(f, fieldnames=fields)
+            w.writeheader()
+            w.writerows(rows)
+        tmp.replace(self.path)
 
 
 @contextlib.contextmanager

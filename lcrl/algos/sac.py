@@ -407,6 +407,30 @@ class SAC(Agent):
         self.actor_opt.zero_grad()
         return out
 
+    def output_gradients(self, batch: Batch) -> dict[str, torch.Tensor]:
+        """Per network, the gradient whose square is the Fisher information of the
+        network's output distribution at ``batch`` (one transition): for the critic, the
+        gradient of its Q-values (a unit-variance Gaussian around each); for the actor,
+        the score ``d log pi(u | s, g) / d theta`` of a pre-squash action ``u`` drawn from
+        the policy itself. Unlike the gradient of the losses, it does not vanish where the
+        losses are small, that is, on what a stage has learned well."""
+        obs, _, goal, act, _, _ = self.batch_tensors(batch)
+        out = {}
+        self.critic_opt.zero_grad()
+        self.critic(obs, goal, act).sum().backward()
+        out["critic"] = self.critic_opt.grad.clone()
+        self.critic_opt.zero_grad()
+        self.actor_opt.zero_grad()
+        mean, log_std = self.actor(obs, goal).chunk(2, -1)
+        log_std = log_std.clamp(-20.0, 2.0)
+        noise = torch.randn(mean.shape, generator=self.gen, device=self.device)
+        # d/d(mean) log N(u) = noise / std and d/d(log std) = noise^2 - 1 at u = mean + std noise
+        score = (noise / log_std.exp()).detach() * mean + (noise.pow(2) - 1.0) * log_std
+        score.sum().backward()
+        out["actor"] = self.actor_opt.grad.clone()
+        self.actor_opt.zero_grad()
+        return out
+
     def learned_task_weights(self) -> np.ndarray | None:
         """GradNorm's current task weights (summing to the number of tasks); None when
         task weights are not learned."""
