@@ -14,6 +14,14 @@ paraphrases; ``phrased`` is ``attributes`` trained also on 16 training-only phra
 each training instruction (``--env.phrasings 16``, :mod:`captioner.phrasings`), whose
 words the paraphrases never use. All on a reach and push split and on a reach split
 (whose held-out kinds no training instruction names).
+
+The second probe asks the same of the rest of the meaning: the family and the direction
+("push ... left"), the part of a paraphrase that the policy's object selection does not
+cover. Trained on the training instructions and their 16 phrasings, a classifier reads
+either the mean-pooled sentence vector (``pooled``, what the policy reads today) or the
+frozen encoder's token states through a learned attention over the words (``tokens``,
+:meth:`lcrl.text_encoder.FrozenTextEncoder.encode_tokens`); scored on paraphrases. Splits
+whose instructions have only one such meaning (reach alone) are skipped.
 Writes ``benchmarks/results/grounding-probe.{json,md,png}``.
 """
 
@@ -66,6 +74,17 @@ def main(argv: list[str] | None = None) -> int:
         for kind, acc in by_kind.items():
             headline[f"{tag}_{kind}_heldout_accuracy"] = round(acc["heldout"], 3)
             headline[f"{tag}_{kind}_paraphrase_accuracy"] = round(acc["paraphrase"], 3)
+    meaning = {}
+    for family_set in args.family_sets:
+        found = run_meaning_probe(family_set.split(","), args)
+        if found is not None:
+            meaning[family_set] = found
+    for fs, by_reader in meaning.items():
+        tag = fs.replace(",", "_")
+        for reader, acc in by_reader.items():
+            headline[f"{tag}_meaning_{reader}_paraphrase_accuracy"] = round(
+                float(np.mean(acc["paraphrase"])), 3
+            )
     name = "grounding-probe"
     save_json(
         name,
@@ -77,6 +96,7 @@ def main(argv: list[str] | None = None) -> int:
             "set_sizes": sizes,
             "accuracy": summary,
             "per_run": results,
+            "meaning_per_run": meaning,
         },
     )
     lines = [
@@ -95,6 +115,21 @@ def main(argv: list[str] | None = None) -> int:
         "two held-out kinds are named by no training instruction: only the attribute "
         "selector can pick them.\n\n" + "\n".join(lines) + "\n"
     )
+    if meaning:
+        rows = [
+            "| families | reader | seen | held-out combinations | paraphrases |",
+            "|---|---|---:|---:|---:|",
+        ]
+        for fs, by_reader in meaning.items():
+            for reader, acc in by_reader.items():
+                cells = " | ".join(f"{np.mean(acc[n]):.3f}" for n in SETS)
+                rows.append(f"| {fs} | {reader} | {cells} |")
+        body += (
+            "\nThe rest of the meaning (family and direction), from the training instructions "
+            "and their 16 phrasings: accuracy of a classifier reading the mean-pooled "
+            "sentence vector (`pooled`) or the token states through a learned attention "
+            "over the words (`tokens`).\n\n" + "\n".join(rows) + "\n"
+        )
     save_markdown(
         name, "Grounding probe: picking the named object from sentence vectors", body, info
     )
@@ -114,6 +149,86 @@ def main(argv: list[str] | None = None) -> int:
     save_figure(name, fig, info)
     print(json.dumps(headline, indent=1))
     return 0
+
+
+def run_meaning_probe(families, args):
+    """Accuracy of the family-and-direction classifiers per reader and set, over splits
+    and seeds; None when the split's instructions have a single such meaning."""
+    import torch
+    import torch.nn.functional as F
+
+    from captioner.phrasings import training_phrasings
+    from captioner.splits import make_split
+    from lcrl.text_encoder import FrozenTextEncoder
+
+    enc = FrozenTextEncoder()
+
+    def meaning(m) -> str:
+        return f"{m.family}:{getattr(m, 'direction', None)}"
+
+    class Reader(torch.nn.Module):
+        def __init__(self, tokens: bool, classes: int) -> None:
+            super().__init__()
+            self.tokens = tokens
+            self.query = torch.nn.Linear(enc.dim, 1) if tokens else None
+            self.proj = torch.nn.Linear(enc.dim, 64)
+            self.out = torch.nn.Linear(64, classes)
+
+        def forward(self, x: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
+            if self.tokens:
+                w = self.query(x).squeeze(-1).masked_fill(~mask, -1e9).softmax(-1)
+                x = (w.unsqueeze(-1) * x).sum(1)
+            return self.out(self.proj(x))
+
+    def inputs(texts: list[str], tokens: bool):
+        if tokens:
+            states, mask = enc.encode_tokens(texts)
+            return torch.as_tensor(states), torch.as_tensor(mask)
+        x = torch.as_tensor(enc.encode(texts))
+        return x, torch.ones(len(texts), 1, dtype=torch.bool)
+
+    results: dict[str, dict[str, list[float]]] = {}
+    for split_seed in args.split_seeds:
+        split = make_split(split_seed, families)
+        train = split.instructions("train")
+        classes = sorted({meaning(m) for m in train})
+        if len(classes) < 2:
+            return None
+        texts, labels = list(split.texts("train")), [meaning(m) for m in train]
+        for i, m in enumerate(train):
+            found = training_phrasings(m, 16, seed=i)
+            texts += found
+            labels += [meaning(m)] * len(found)
+        y = torch.as_tensor([classes.index(c) for c in labels])
+        for reader in ("pooled", "tokens"):
+            tokens = reader == "tokens"
+            x, mask = inputs(texts, tokens)
+            flat = x[mask] if tokens else x  # the statistics of real tokens only
+            mean, std = flat.mean(0), flat.std(0) + 1e-6
+            sets = {
+                name: (
+                    *inputs(list(split.texts(name)), tokens),
+                    torch.as_tensor(
+                        [classes.index(meaning(m)) if meaning(m) in classes else -1
+                         for m in split.instructions(name)]
+                    ),
+                )
+                for name in SETS
+            }  # fmt: skip
+            for seed in args.seeds:
+                torch.manual_seed(seed)
+                model = Reader(tokens, len(classes))
+                opt = torch.optim.Adam(model.parameters(), 1e-3)
+                for _ in range(args.steps // 2):
+                    loss = F.cross_entropy(model((x - mean) / std, mask), y)
+                    opt.zero_grad()
+                    loss.backward()
+                    opt.step()
+                with torch.no_grad():
+                    for name, (xs, ms, ys) in sets.items():
+                        acc = (model((xs - mean) / std, ms).argmax(-1) == ys).float().mean()
+                        results.setdefault(reader, {}).setdefault(name, []).append(acc.item())
+    return results
 
 
 def run_probe(families, args, kinds):

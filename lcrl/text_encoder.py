@@ -242,6 +242,39 @@ class FrozenTextEncoder:
             )
         return self.encode([text])[0]
 
+    def encode_tokens(self, texts: Sequence[str]) -> tuple[np.ndarray, np.ndarray]:
+        """The frozen model's last hidden state of every token, not pooled (uncached).
+
+        Token-level readers (attention over the words of an instruction) start here.
+        Each text is run on its own length, as :meth:`encode` does, so its states do not
+        depend on the other texts; rows are then padded to the longest.
+
+        Args:
+            texts: The texts.
+
+        Returns:
+            ``(states, mask)``: float32 ``(len(texts), T, dim)`` and bool ``(len(texts),
+            T)`` saying which positions hold a token (``T``: the most tokens of a text,
+            special tokens included, at most the encoder's ``max_length``).
+
+        Raises:
+            TextEncoderError: as :meth:`encode`.
+        """
+        items = _check_texts(texts)
+        enc = self._tokenizer(
+            items, truncation=True, max_length=self._max_length, return_attention_mask=True
+        )
+        longest = max((len(ids) for ids in enc["input_ids"]), default=0)
+        states = np.zeros((len(items), longest, self.dim), np.float32)
+        mask = np.zeros((len(items), longest), bool)
+        with torch.inference_mode():
+            for i in range(len(items)):
+                batch = {k: torch.tensor([enc[k][i]] * 2, device=self._device) for k in enc}
+                hidden = self._model(**batch)[0][0].float().cpu().numpy()
+                states[i, : len(hidden)] = hidden
+                mask[i, : len(hidden)] = True
+        return states, mask
+
     def cache_size(self) -> int:
         """Number of texts in the in-memory cache.
 

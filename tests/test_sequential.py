@@ -190,3 +190,27 @@ def test_stages_with_the_output_fisher_consolidate_both_networks(tmp_path):
     fisher = trainer.agent.ewc.fisher
     assert set(fisher) == {"critic", "actor"}
     assert all(f.min() >= 0 and f.sum() > 0 for f in fisher.values())
+
+
+@pytest.mark.parametrize("freeze", [False, True])
+def test_freeze_norm_keeps_the_first_stage_statistics(tmp_path, freeze):
+    cfg = tiny(
+        "lang2d",
+        tmp_path / "run",
+        total_steps=400,
+        sequential=SequentialConfig(stages=("reach", "push"), freeze_norm=freeze),
+    )
+    trainer = Trainer(cfg)
+    norm = trainer.agent.norms["obs_observation"]
+    counts: list[float] = []
+    next_stage = trainer.next_stage
+
+    def record():
+        counts.append(float(norm.count))
+        next_stage()
+
+    trainer.next_stage = record
+    trainer.run()
+    assert len(counts) == 1 and counts[0] > 0
+    # frozen: the push stage's observations never reach the normaliser
+    assert (float(norm.count) == counts[0]) is freeze

@@ -320,3 +320,19 @@ def test_whitening_separates_instructions_that_differ_in_one_word(
     norm.fit(torch.as_tensor(emb))
     white = norm(torch.as_tensor(emb)).numpy()
     assert _cos(white[left], white[right]) < 0.8
+
+
+def test_token_states_pool_to_the_sentence_vector(encoder: FrozenTextEncoder) -> None:
+    texts = ["push the red cube left", "reach the blue cylinder near the green one", "tap"]
+    states, mask = encoder.encode_tokens(texts)
+    assert states.dtype == np.float32 and mask.dtype == bool
+    assert states.shape[:2] == mask.shape and states.shape[2] == encoder.dim
+    assert mask[1].all() and mask[2].sum() < mask[1].sum()  # padded to the longest
+    assert np.all(states[~mask] == 0.0)
+    # the sentence vector is the normalised mean of the token states
+    mean = (states * mask[..., None]).sum(1) / mask.sum(1, keepdims=True)
+    mean /= np.linalg.norm(mean, axis=1, keepdims=True)
+    np.testing.assert_allclose(mean, encoder.encode(texts), atol=1e-5)
+    # a text's states do not depend on the others
+    alone, _ = encoder.encode_tokens(texts[2:])
+    np.testing.assert_allclose(alone[0], states[2, : alone.shape[1]], atol=1e-6)

@@ -166,6 +166,11 @@ class SequentialConfig:
     of an action drawn from the policy), which does not vanish on transitions the stage
     has learned well."""
 
+    freeze_norm: bool = False
+    """Keep the observation normaliser's statistics as the first stage left them: later
+    stages' data then cannot move the inputs of earlier stages' states, which weight
+    penalties such as EWC do not protect against."""
+
     def families(self) -> list[tuple[str, ...]]:
         """The families of each stage."""
         return [tuple(f for f in stage.split("+") if f) for stage in self.stages]
@@ -173,8 +178,11 @@ class SequentialConfig:
     def validate(self, families: tuple[str, ...], algo: str) -> None:
         """Raise :class:`LcrlError` for stages the env cannot train."""
         if not self.stages:
-            if self.replay or self.ewc:
-                raise LcrlError("sequential.replay and sequential.ewc need sequential.stages")
+            if self.replay or self.ewc or self.freeze_norm:
+                raise LcrlError(
+                    "sequential.replay, sequential.ewc and sequential.freeze_norm need "
+                    "sequential.stages"
+                )
             return
         for stage in self.families():
             bad = [f for f in stage if f not in families]

@@ -747,7 +747,8 @@ class Trainer(BaseTrainer):
         self.buffer.add_episode(episode)
         if self.stages and self.cfg.sequential.replay:
             self._just_stored.append(episode)
-        self.agent.observe(episode["obs"], episode.get("achieved_goal"))
+        if not (self.stages and self.stage > 0 and self.cfg.sequential.freeze_norm):
+            self.agent.observe(episode["obs"], episode.get("achieved_goal"))
 
     def _finish_episode(
         self,
