@@ -9,10 +9,12 @@ budget.
 
 Arms (``--arms``): ``pooled`` (``--agent.net.slot-mode select``, no grounding loss),
 ``attributes`` (``--agent.net.slot-mode attributes``), ``grounded`` (attributes and
-``--agent.grounding W``) and ``phrased`` (grounded, and ``--env.phrasings N``: updates
+``--agent.grounding W``), ``phrased`` (grounded, and ``--env.phrasings N``: updates
 also read training-only phrasings of the instructions, whose words the paraphrase set
-never uses). Each arm trains one run per seed (``lcrl train PRESET --seed S``), two runs
-at a time with one torch thread each, and is evaluated with ``lcrl eval`` (100 episodes
+never uses) and ``reader`` (phrased, and ``--env.text-reader``: the goal vector adds a
+token-level reader's parse of the instruction). Each arm trains one run per seed
+(``lcrl train PRESET --seed S``), two runs at a time with one torch thread each, and is
+evaluated with ``lcrl eval`` (100 episodes
 per set: seen, held-out combinations, paraphrases). Finished runs (their
 ``final-eval.json``) are kept, so an interrupted benchmark goes on where it stopped.
 ``--also ARM`` adds an arm's finished runs to the report without training more.
@@ -48,7 +50,7 @@ TARGETS = {
     "robosuite": {"seen": 0.85, "heldout_ratio": 0.70},
 }
 SETS = ("train", "heldout", "paraphrase")
-ARMS = ("pooled", "attributes", "grounded", "phrased")
+ARMS = ("pooled", "attributes", "grounded", "phrased", "reader")
 
 
 def arm_args(arm: str, grounding: float, phrasings: int = 16) -> list[str]:
@@ -63,9 +65,10 @@ def arm_args(arm: str, grounding: float, phrasings: int = 16) -> list[str]:
         return [*attributes, "--agent.grounding", "0"]
     if arm == "grounded":
         return [*attributes, "--agent.grounding", str(grounding)]
-    if arm == "phrased":
+    if arm in ("phrased", "reader"):
         grounded = [*attributes, "--agent.grounding", str(grounding)]
-        return [*grounded, "--env.phrasings", str(phrasings)]
+        phrased = [*grounded, "--env.phrasings", str(phrasings)]
+        return phrased if arm == "phrased" else [*phrased, "--env.text-reader"]
     raise SystemExit(f"unknown arm {arm!r}; choose from {ARMS}")
 
 

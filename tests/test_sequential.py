@@ -95,13 +95,13 @@ def test_sequential_run_writes_its_matrix(tmp_path, replay, ewc):
     trainer = Trainer(cfg)
     assert trainer.envs[0].unwrapped is not None
     sizes: list[int] = []
-    gradients = trainer.agent.loss_gradients
+    gradients = trainer.agent.output_gradients  # the default Fisher: of the outputs
 
     def per_row(batch):
         sizes.append(len(batch.action))
         return gradients(batch)
 
-    trainer.agent.loss_gradients = per_row
+    trainer.agent.output_gradients = per_row
     trainer.run()
     payload = json.loads((out / "sequential.json").read_text())
     assert [r["after"] for r in payload["rows"]] == ["init", "reach", "push"]
@@ -115,7 +115,7 @@ def test_sequential_run_writes_its_matrix(tmp_path, replay, ewc):
     if ewc:  # the Fisher of both networks, anchored at the end of the first stage
         assert set(trainer.agent.ewc.fisher) == {"critic", "actor"}
         assert trainer.agent.ewc.fisher["critic"].sum() > 0
-        assert sizes == [1] * 12  # the empirical Fisher: one transition per gradient
+        assert sizes == [1] * 12  # one transition per squared gradient
     if replay:
         steps = sum(len(e["action"]) for e in trainer.memory[0])
         assert 0 < steps <= replay

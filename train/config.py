@@ -159,12 +159,13 @@ class SequentialConfig:
     of a whole batch's mean loss would average the per-transition gradients away and
     underestimate the Fisher by about the batch size."""
 
-    ewc_fisher: str = "loss"
-    """What the Fisher information of EWC is the expected squared gradient of: ``loss``
-    (the critic and actor losses on each transition, the empirical Fisher) or ``output``
+    ewc_fisher: str = "output"
+    """What the Fisher information of EWC is the expected squared gradient of: ``output``
     (the networks' outputs: the Q-values as unit-variance Gaussians, the log-likelihood
-    of an action drawn from the policy), which does not vanish on transitions the stage
-    has learned well."""
+    of an action drawn from the policy) or ``loss`` (the critic and actor losses on each
+    transition, the empirical Fisher), which vanishes on transitions the stage has
+    learned well: on lang2d it is about 10^5 times smaller and EWC with it does not lower
+    forgetting (benchmarks/results/forgetting.md)."""
 
     freeze_norm: bool = False
     """Keep the observation normaliser's statistics as the first stage left them: later

@@ -69,6 +69,13 @@ class EnvConfig:
     (:mod:`captioner.phrasings`), are embedded once; in every update half the rows read
     one of them instead of the instruction itself. The grammar's own synonyms stay
     unseen, for the ``paraphrase`` evaluation set. 0: off."""
+    text_reader: bool = False
+    """Language goals: read instructions at the token level as well. A small reader
+    (learned queries over the frozen encoder's token states, :mod:`lcrl.text_reader`) is
+    trained before reinforcement learning to predict each training instruction's meaning
+    (family, colours, shapes, direction, relation) from it and from 16 training-only
+    phrasings of it; the goal vector is then the sentence vector followed by the reader's
+    slot-value probabilities. The reader is frozen and saved with the checkpoints."""
     min_objects: int = 2
     """Fewest objects on the table."""
     max_objects: int = 3

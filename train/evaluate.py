@@ -77,7 +77,11 @@ def build_task(
     else:
         from lcrl.text_encoder import FrozenTextEncoder
 
-        encoder = FrozenTextEncoder(cfg.text_encoder)
+        encoder: Any = FrozenTextEncoder(cfg.text_encoder)
+        if cfg.env.text_reader:
+            from train.text_reading import reading_encoder
+
+            encoder = reading_encoder(encoder, env, ckpt, seed=cfg.seed)
         kwargs: dict[str, Any] = {}
         if ckpt is not None:
             from train.run_meta import instruction_table

@@ -444,6 +444,9 @@ class BaseTrainer(ABC):
         from train.perception import embedded_meta, find_perception
 
         modules = dict(self.agent.modules())
+        reader = getattr(getattr(self, "task", None), "encoder", None)
+        if hasattr(reader, "reader"):  # --env.text-reader: the reader travels with the weights
+            states = {**states, "text_reader": reader.state_dict()}
         perceiving = find_perception(self.env)
         if perceiving is not None:
             modules["perception"] = perceiving.model

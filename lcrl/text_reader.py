@@ -1,0 +1,164 @@
+"""A token-level reader of instructions on top of the frozen text encoder.
+
+The mean-pooled sentence vector of the frozen encoder loses which word says what: a linear
+probe trained on the training instructions (and their training-only phrasings) reads the
+family and direction of unseen paraphrases right 0.79 of the time from it, against 0.91
+when a learned attention over the encoder's token states picks the words first
+(``benchmarks/grounding_probe.py``). :class:`TokenReader` is that attention: a few learned
+queries pool the token states of an instruction, and small heads predict the slot values
+its meaning has (family, colours, shapes, direction, relation), supervised by the parse
+of the training instructions. It is trained once, before reinforcement learning, and
+then frozen. :class:`ReadingEncoder` gives the policy the sentence vector followed by the
+reader's predicted slot-value probabilities: a soft parse that unseen phrasings share
+with the training instructions they mean.
+
+The encoder stays frozen; the reader's weights travel with the checkpoint.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping, Sequence
+from typing import Any
+
+import numpy as np
+import torch
+from torch import nn
+from torch.nn import functional as F
+
+
+class TokenReader(nn.Module):
+    """Learned queries over token states, and one classifier per meaning slot.
+
+    Args:
+        dim: width of the token states.
+        slots: for each meaning slot (``family``, ``colour`` ...), its number of values.
+        queries: attention queries (each pools the tokens once).
+        hidden: width of the layer between the pooled tokens and the classifiers.
+    """
+
+    def __init__(
+        self, dim: int, slots: Mapping[str, int], queries: int = 4, hidden: int = 64
+    ) -> None:
+        super().__init__()
+        self.slots = dict(slots)
+        self.queries, self.width = int(queries), int(hidden)
+        self.query = nn.Linear(dim, queries)
+        self.hidden = nn.Sequential(nn.Linear(queries * dim, hidden), nn.ReLU())
+        self.heads = nn.ModuleDict({k: nn.Linear(hidden, n) for k, n in self.slots.items()})
+        self.register_buffer("mean", torch.zeros(dim))
+        self.register_buffer("std", torch.ones(dim))
+
+    @property
+    def out_dim(self) -> int:
+        """Width of :meth:`probabilities`' rows."""
+        return sum(self.slots.values())
+
+    def forward(self, states: torch.Tensor, mask: torch.Tensor) -> dict[str, torch.Tensor]:
+        """Logits per slot for token states ``(B, T, dim)`` with their mask ``(B, T)``."""
+        x = (states - self.mean) / self.std
+        w = self.query(x).masked_fill(~mask.unsqueeze(-1), -1e9).softmax(1)  # (B, T, Q)
+        pooled = torch.einsum("btq,btd->bqd", w, x).flatten(1)
+        h = self.hidden(pooled)
+        return {k: head(h) for k, head in self.heads.items()}
+
+    def probabilities(self, states: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
+        """Every slot's value probabilities, one slot after another, ``(B, out_dim)``."""
+        return torch.cat([v.softmax(-1) for v in self(states, mask).values()], -1)
+
+
+def fit_reader(
+    states: np.ndarray,
+    mask: np.ndarray,
+    labels: Mapping[str, Sequence[int]],
+    slots: Mapping[str, int],
+    steps: int = 600,
+    seed: int = 0,
+) -> TokenReader:
+    """Train a :class:`TokenReader` on token states and the slot values of each text
+    (cross-entropy summed over slots), full batch, Adam; returned frozen, in eval mode.
+
+    Args:
+        states, mask: :meth:`lcrl.text_encoder.FrozenTextEncoder.encode_tokens` of the texts.
+        labels: per slot, the value index of every text.
+        slots: per slot, its number of values.
+        steps: gradient steps.
+        seed: the initialisation's seed.
+    """
+    gen = torch.Generator().manual_seed(int(seed))
+    with torch.random.fork_rng(devices=[]):
+        torch.manual_seed(int(gen.initial_seed()))
+        reader = TokenReader(states.shape[-1], slots)
+    x, m = torch.as_tensor(states), torch.as_tensor(mask)
+    real = x[m]
+    reader.mean.copy_(real.mean(0))
+    reader.std.copy_(real.std(0) + 1e-6)
+    y = {k: torch.as_tensor(np.asarray(v, np.int64)) for k, v in labels.items()}
+    opt = torch.optim.Adam(reader.parameters(), 1e-3)
+    for _ in range(int(steps)):
+        logits = reader(x, m)
+        loss = sum(F.cross_entropy(logits[k], y[k]) for k in reader.slots)
+        opt.zero_grad()
+        loss.backward()
+        opt.step()
+    reader.eval()
+    reader.requires_grad_(False)
+    return reader
+
+
+class ReadingEncoder:
+    """The frozen encoder's sentence vectors followed by a :class:`TokenReader`'s slot
+    probabilities: a drop-in for :class:`~lcrl.text_encoder.FrozenTextEncoder` where
+    instructions are embedded (``encode``, ``dim``).
+
+    Args:
+        encoder: the frozen text encoder.
+        reader: a trained reader.
+    """
+
+    def __init__(self, encoder: Any, reader: TokenReader) -> None:
+        self.encoder = encoder
+        self.reader = reader
+        self.dim = int(encoder.dim) + reader.out_dim
+        self._cache: dict[str, np.ndarray] = {}
+
+    def encode(self, texts: Sequence[str]) -> np.ndarray:
+        """Rows of ``[sentence vector, slot probabilities]``, float32 ``(len(texts), dim)``."""
+        items = list(texts)
+        missing = [t for t in dict.fromkeys(items) if t not in self._cache]
+        if missing:
+            states, mask = self.encoder.encode_tokens(missing)
+            with torch.no_grad():
+                probs = self.reader.probabilities(torch.as_tensor(states), torch.as_tensor(mask))
+            vectors = np.concatenate(
+                [np.asarray(self.encoder.encode(missing), np.float32), probs.numpy()], 1
+            )
+            self._cache.update(zip(missing, vectors.astype(np.float32), strict=True))
+        if not items:
+            return np.zeros((0, self.dim), np.float32)
+        return np.stack([self._cache[t] for t in items])
+
+    def __getattr__(self, name: str) -> Any:
+        # everything else (the model's name, its cache) is the encoder's
+        return getattr(self.encoder, name)
+
+    def state_dict(self) -> dict[str, Any]:
+        """The reader's weights and slot sizes (what a checkpoint keeps)."""
+        r = self.reader
+        return {
+            "slots": dict(r.slots),
+            "queries": r.queries,
+            "hidden": r.width,
+            "weights": {k: v.clone() for k, v in r.state_dict().items()},
+        }
+
+    @classmethod
+    def from_state(cls, encoder: Any, state: Mapping[str, Any]) -> ReadingEncoder:
+        """Rebuild from :meth:`state_dict`."""
+        slots = {str(k): int(v) for k, v in state["slots"].items()}
+        reader = TokenReader(
+            int(encoder.dim), slots, int(state.get("queries", 4)), int(state.get("hidden", 64))
+        )
+        reader.load_state_dict({k: torch.as_tensor(v) for k, v in state["weights"].items()})
+        reader.eval()
+        reader.requires_grad_(False)
+        return cls(encoder, reader)
