@@ -14,9 +14,9 @@ also read training-only phrasings of the instructions, whose words the paraphras
 never uses) and ``reader`` (phrased, and ``--env.text-reader``: the goal vector adds a
 token-level reader's parse of the instruction). Each arm trains one run per seed
 (``lcrl train PRESET --seed S``), two runs at a time with one torch thread each, and is
-evaluated with ``lcrl eval`` (100 episodes
-per set: seen, held-out combinations, paraphrases). Finished runs (their
-``final-eval.json``) are kept, so an interrupted benchmark goes on where it stopped.
+evaluated with ``lcrl eval`` (100 episodes per set: seen, held-out combinations,
+paraphrases). Finished runs (their ``final-eval.json``) are kept, so an interrupted
+benchmark goes on where it stopped.
 ``--also ARM`` adds an arm's finished runs to the report without training more.
 
 Writes ``benchmarks/results/compositional-<env>.{json,md,png}`` (``compositional-<preset>``
