@@ -1233,3 +1233,36 @@ def test_privileged_keys_are_checked_and_refused_without_a_critic():
     )
     with pytest.raises(LcrlError, match="asymmetric actor-critic needs one of"):
         make_agent("dqn", 0, prob)
+
+
+@pytest.mark.parametrize("clip", [None, 1.0])
+def test_sac_target_clip_bounds_the_td_targets(tmp_path, clip):
+    """Success rewards of 0 or 1 that end the episode bound every value by 1: with
+    ``sac.target_clip`` a target critic that overestimates cannot push targets past it."""
+    import dataclasses
+
+    from helpers import tiny
+
+    from lcrl.buffer import batch_rows
+    from train.loop import Trainer
+
+    cfg = tiny("lang2d", tmp_path / "run", learning_starts=50)
+    cfg.sac = dataclasses.replace(cfg.sac, target_clip=clip)
+    trainer = Trainer(cfg)
+    try:
+        while trainer.buffer.size < 60:
+            trainer.collect_episode()
+        agent = trainer.agent
+        with torch.no_grad():
+            for p in agent.critic_target.parameters():
+                p.add_(1.0)  # every target value far above 1
+        batch = batch_rows(trainer.buffer.sample(32), list(range(32)))
+        _, nobs, goal, _, rew, boot = agent.batch_tensors(batch)
+        y = agent.td_target(nobs, goal, rew, boot, agent.log_alpha.detach().exp())
+        if clip is None:
+            assert y.max() > 1.0
+        else:
+            assert y.max() <= 1.0 and y.min() >= -1.0
+            assert torch.all(y[boot > 0] == 1.0)  # the overestimates are cut at the bound
+    finally:
+        trainer.close()

@@ -52,6 +52,11 @@ class SACConfig:
     (whose goal the episode did achieve later), the squared distance between the policy's
     mean action and the action taken, as in goal-conditioned supervised learning. 0 turns
     it off."""
+    target_clip: float | None = None
+    """Clip the critic's TD targets to ``[-target_clip, target_clip]``. Success rewards of
+    0 or 1 that end the episode bound every value by 1, so 1.0 is exact there; a critic
+    whose values climb past the bound (overestimation feeding on itself) is then held
+    back. ``None``: no clipping."""
 
     def validate(self) -> None:
         """Raise :class:`LcrlError` for settings that cannot train."""
@@ -61,7 +66,7 @@ class SACConfig:
             unit=("gamma", "tau"),
             positive=("actor_lr", "critic_lr", "alpha_lr", "init_alpha"),
             non_negative=("hindsight_bc",),
-            positive_or_none=("max_grad_norm",),
+            positive_or_none=("max_grad_norm", "target_clip"),
             finite_or_none=("target_entropy",),
         )
 
@@ -195,10 +200,7 @@ class SAC(Agent):
         critic_perceives = self.perceiver is not None and not self.problem.privileged
         cfg = self.cfg
         alpha = self.log_alpha.detach().exp()
-        with torch.no_grad():
-            next_a, next_logp = self._policy(nobs, goal)
-            target_q = self.critic_target(nobs, goal, next_a).min(0).values.squeeze(-1)
-            y = rew + boot * (target_q - alpha * next_logp)
+        y = self.td_target(nobs, goal, rew, boot, alpha)
         measure = self._measures()
         parts, coefs, weights = self._parts(batch, measure)
         n = len(batch.reward)
@@ -385,10 +387,7 @@ class SAC(Agent):
         of EWC is estimated from. Plain SAC losses (no task split, no grounding term)."""
         obs, nobs, goal, act, rew, boot = self.batch_tensors(batch)
         alpha = self.log_alpha.detach().exp()
-        with torch.no_grad():
-            next_a, next_logp = self._policy(nobs, goal)
-            target_q = self.critic_target(nobs, goal, next_a).min(0).values.squeeze(-1)
-            y = rew + boot * (target_q - alpha * next_logp)
+        y = self.td_target(nobs, goal, rew, boot, alpha)
         out = {}
         self.critic_opt.zero_grad()
         q = self.critic(obs, goal, act).squeeze(-1)
@@ -406,6 +405,23 @@ class SAC(Agent):
         out["actor"] = self.actor_opt.grad.clone()
         self.actor_opt.zero_grad()
         return out
+
+    def td_target(
+        self,
+        nobs: Mapping[str, torch.Tensor],
+        goal: torch.Tensor,
+        rew: torch.Tensor,
+        boot: torch.Tensor,
+        alpha: torch.Tensor,
+    ) -> torch.Tensor:
+        """The soft TD target ``r + boot * (min Q_target(s', a') - alpha log pi(a'|s'))``
+        with ``a'`` drawn from the policy, clipped to ``sac.target_clip`` when set."""
+        with torch.no_grad():
+            next_a, next_logp = self._policy(nobs, goal)
+            target_q = self.critic_target(nobs, goal, next_a).min(0).values.squeeze(-1)
+            y = rew + boot * (target_q - alpha * next_logp)
+            clip = self.cfg.target_clip
+            return y if clip is None else y.clamp(-clip, clip)
 
     def output_gradients(self, batch: Batch) -> dict[str, torch.Tensor]:
         """Per network, the gradient whose square is the Fisher information of the
