@@ -65,13 +65,18 @@ def has_checkpoint(work: Path) -> bool:
     return any((work / "checkpoints").glob("step_*"))
 
 
+def child_env(args: argparse.Namespace) -> dict[str, str]:
+    """The environment of a child lcrl process: its share of the cores, offscreen MuJoCo."""
+    return side_by_side_env(args.processes, MUJOCO_GL=os.environ.get("MUJOCO_GL", "egl"))
+
+
 def train(args: argparse.Namespace) -> None:
     """Train (or go on training) the run up to ``--steps``."""
     work = Path(args.work)
     cmd = [*LCRL, "train", args.preset, "--out", str(work), "--total-steps", str(args.steps)]
     cmd += ["--no-progress"] + (["--resume"] if has_checkpoint(work) else [])
     print("== " + shlex.join(cmd), flush=True)
-    env = side_by_side_env(args.processes, MUJOCO_GL=os.environ.get("MUJOCO_GL", "egl"))
+    env = child_env(args)
     subprocess.run(cmd, check=True, env=env)
 
 
@@ -81,7 +86,7 @@ def lcrl_eval(args: argparse.Namespace, out: Path, *options: str) -> dict[str, A
     cmd = [*LCRL, "eval", args.work, "--episodes", str(args.episodes), "--num-envs", "1"]
     cmd += [*options, "--no-progress", "--json", str(out)]
     print("== " + shlex.join(cmd), flush=True)
-    env = side_by_side_env(args.processes, MUJOCO_GL=os.environ.get("MUJOCO_GL", "egl"))
+    env = child_env(args)
     done = subprocess.run(cmd, env=env, capture_output=True, text=True)
     if done.returncode != 0:
         print(done.stderr.strip().splitlines()[-1] if done.stderr.strip() else "failed")
@@ -175,7 +180,7 @@ def gifs(args: argparse.Namespace) -> dict[str, str]:
         path = RESULTS_DIR / f"{NAME}-{family}.gif"
         cmd = [*LCRL, "act", args.work, "--instruction", texts[family], "--episodes", "1"]
         cmd += ["--video", str(path), "--fps", "8"]
-        env = side_by_side_env(args.processes, MUJOCO_GL=os.environ.get("MUJOCO_GL", "egl"))
+        env = child_env(args)
         if subprocess.run(cmd, env=env, capture_output=True).returncode == 0:
             out[family] = path.name
     return out
