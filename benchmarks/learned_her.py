@@ -1,8 +1,8 @@
 """Language HER relabelled by the learned captioner and reward model over perception,
 beside the rule captioner's, same preset, seed and budget.
 
-    python benchmarks/learned_her.py --env robosuite --perception data/bench-perception-3k/model \
-        --captioner runs/bench/captioner-robosuite-perception
+    python benchmarks/learned_her.py --env robosuite --perception data/perception-3k/model \
+        --captioner runs/bench/captioner-robosuite-perception --target-clip 1.0
     python benchmarks/learned_her.py --env lang2d --captioner runs/bench/captioner-lang2d-perception
 
 robosuite: the image policy of ``robosuite-image-reach`` (it acts through ``--perception``);
@@ -43,6 +43,8 @@ def run_args(args: argparse.Namespace, name: str) -> list[str]:
     cmd += ["--overwrite", "--no-progress"]
     if args.perception:
         cmd += ["--env.perception", args.perception]
+    if args.target_clip:
+        cmd += ["--sac.target-clip", str(args.target_clip)]
     if name == "learned":
         cmd += ["--relabel.captioner", "learned", "--relabel.reward", "learned"]
         cmd += ["--relabel.checkpoint", args.captioner]
@@ -50,9 +52,10 @@ def run_args(args: argparse.Namespace, name: str) -> list[str]:
     return cmd
 
 
-def reuse(run: Path, into: Path, args: argparse.Namespace) -> float:
-    """Copy a finished run whose config is this benchmark's rule run's (all but ``out``)
-    to ``into``; returns its training seconds (config.json to report.md).
+def reuse(run: Path, into: Path, args: argparse.Namespace, name: str = "rule") -> float:
+    """Take a finished run whose config is this benchmark's ``name`` run's (all but
+    ``out``), copied to ``into`` unless it is there already; returns its training seconds
+    (config.json to report.md).
 
     Raises:
         SystemExit: the run is unfinished or was trained with another config.
@@ -60,17 +63,18 @@ def reuse(run: Path, into: Path, args: argparse.Namespace) -> float:
     import shutil
 
     if not (run / "report.md").is_file():
-        raise SystemExit(f"--reuse-rule {run}: not a finished run (no report.md)")
-    wanted = _config_of(run_args(args, "rule"))
+        raise SystemExit(f"{run}: not a finished run (no report.md)")
+    wanted = _config_of(run_args(args, name))
     have = json.loads((run / "config.json").read_text())
     for cfg in (wanted, have):
         for key in ("out", "overwrite", "progress"):
             cfg.pop(key, None)
     if wanted != have:
-        raise SystemExit(f"--reuse-rule {run}: its config differs from the rule run's")
-    if into.exists():
-        shutil.rmtree(into)
-    shutil.copytree(run, into, symlinks=True)
+        raise SystemExit(f"{run}: its config differs from the {name} run's")
+    if run.resolve() != into.resolve():
+        if into.exists():
+            shutil.rmtree(into)
+        shutil.copytree(run, into, symlinks=True)
     return round((run / "report.md").stat().st_mtime - (run / "config.json").stat().st_mtime, 1)
 
 
@@ -118,6 +122,25 @@ def main(argv: list[str] | None = None) -> int:
         help="reward-model probability that counts as satisfied (--relabel.threshold)",
     )
     parser.add_argument(
+        "--target-clip",
+        type=float,
+        default=0.0,
+        help="--sac.target-clip for both runs (0: none); 1.0 keeps the critics of sparse "
+        "success rewards within their bound",
+    )
+    parser.add_argument(
+        "--commands",
+        action="store_true",
+        help="print the two lcrl train commands (to start them one by one) and exit",
+    )
+    parser.add_argument(
+        "--existing",
+        action="store_true",
+        help="both runs are in WORK already, finished by the commands this benchmark would "
+        "run (started one by one, e.g. the rule run before the captioner is trained): only "
+        "evaluate and report them",
+    )
+    parser.add_argument(
         "--reuse-rule",
         default="",
         help="a finished run of the same preset, seed, budget and perception (e.g. the "
@@ -128,6 +151,10 @@ def main(argv: list[str] | None = None) -> int:
         parser.error("--env robosuite trains the image policy: pass --perception MODEL")
     args.work = args.work or f"runs/bench/learned-her-{args.env}"
 
+    if args.commands:
+        for name in ("rule", "learned"):
+            print(" ".join(run_args(args, name)))
+        return 0
     info = machine()
     Path(args.work).mkdir(parents=True, exist_ok=True)
     procs, seconds = {}, {}
@@ -135,6 +162,10 @@ def main(argv: list[str] | None = None) -> int:
     if args.reuse_rule:
         seconds["rule"] = reuse(Path(args.reuse_rule), Path(args.work) / "rule", args)
         names = ("learned",)
+    if args.existing:
+        for name in names:
+            seconds[name] = reuse(Path(args.work) / name, Path(args.work) / name, args, name)
+        names = ()
     for name in names:
         log = open(Path(args.work) / f"{name}.log", "w")  # noqa: SIM115
         proc = subprocess.Popen(

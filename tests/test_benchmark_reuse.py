@@ -57,3 +57,42 @@ def test_the_captioner_markdown_takes_the_relabelling_figures(tmp_path):
     assert "- learned_her_seen: 0.70 (see learned-relabelling results)." in lines
     assert lines[-1] == "- rule_her_seen: 0.74 (see learned-relabelling results)."
     assert "Command: `x`" in lines and sum("learned_her_seen" in x for x in lines) == 1
+
+
+def test_runs_started_one_by_one_are_taken_only_with_their_own_config(tmp_path):
+    import argparse
+
+    from benchmarks.learned_her import _config_of, reuse, run_args
+
+    args = argparse.Namespace(
+        env="lang2d",
+        work=str(tmp_path),
+        steps=1000,
+        eval_every=500,
+        eval_episodes=5,
+        seed=0,
+        perception="",
+        target_clip=1.0,
+        captioner="runs/cap",
+        threshold=0.7,
+    )
+    for name in ("rule", "learned"):
+        run = tmp_path / name
+        run.mkdir()
+        (run / "config.json").write_text(json.dumps(_config_of(run_args(args, name))))
+    with pytest.raises(SystemExit, match="not a finished run"):
+        reuse(tmp_path / "rule", tmp_path / "rule", args, "rule")
+    for name in ("rule", "learned"):
+        (tmp_path / name / "report.md").write_text("done\n")
+    assert reuse(tmp_path / "rule", tmp_path / "rule", args, "rule") >= 0
+    assert reuse(tmp_path / "learned", tmp_path / "learned", args, "learned") >= 0
+    with pytest.raises(SystemExit, match="differs from the learned run's"):
+        reuse(tmp_path / "rule", tmp_path / "learned", args, "learned")
+    # the target clip is part of the config: a run without it is another run
+    with pytest.raises(SystemExit, match="differs"):
+        reuse(
+            tmp_path / "rule",
+            tmp_path / "rule",
+            argparse.Namespace(**{**vars(args), "target_clip": 0.0}),
+            "rule",
+        )
