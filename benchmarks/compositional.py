@@ -4,7 +4,8 @@ grounding loss, with and without instruction augmentation; same presets, seeds a
 budget.
 
     python benchmarks/compositional.py --env lang2d --arms pooled phrased --also grounded
-    python benchmarks/compositional.py --env robosuite  # reach, privileged state, 100k steps
+    python benchmarks/compositional.py --env robosuite --steps 30000 --arms pooled clipped \
+        --also grounded  # reach, privileged state
     python benchmarks/compositional.py --env lang2d --preset lang2d-quick --steps 8000
 
 Arms (``--arms``): ``pooled`` (``--agent.net.slot-mode select``, no grounding loss),
@@ -12,7 +13,9 @@ Arms (``--arms``): ``pooled`` (``--agent.net.slot-mode select``, no grounding lo
 ``--agent.grounding W``), ``phrased`` (grounded, and ``--env.phrasings N``: updates
 also read training-only phrasings of the instructions, whose words the paraphrase set
 never uses) and ``reader`` (phrased, and ``--env.text-reader``: the goal vector adds a
-token-level reader's parse of the instruction). Each arm trains one run per seed
+token-level reader's parse of the instruction); ``clipped`` is grounded with the critic's
+TD targets clipped to the value bound of success rewards (``--sac.target-clip 1.0``),
+which keeps a critic from diverging past it. Each arm trains one run per seed
 (``lcrl train PRESET --seed S``), two runs at a time with one torch thread each, and is
 evaluated with ``lcrl eval`` (100 episodes per set: seen, held-out combinations,
 paraphrases). Finished runs (their ``final-eval.json``) are kept, so an interrupted
@@ -50,7 +53,7 @@ TARGETS = {
     "robosuite": {"seen": 0.85, "heldout_ratio": 0.70},
 }
 SETS = ("train", "heldout", "paraphrase")
-ARMS = ("pooled", "attributes", "grounded", "phrased", "reader")
+ARMS = ("pooled", "attributes", "grounded", "phrased", "reader", "clipped")
 
 
 def arm_args(arm: str, grounding: float, phrasings: int = 16) -> list[str]:
@@ -65,6 +68,8 @@ def arm_args(arm: str, grounding: float, phrasings: int = 16) -> list[str]:
         return [*attributes, "--agent.grounding", "0"]
     if arm == "grounded":
         return [*attributes, "--agent.grounding", str(grounding)]
+    if arm == "clipped":
+        return [*attributes, "--agent.grounding", str(grounding), "--sac.target-clip", "1.0"]
     if arm in ("phrased", "reader"):
         grounded = [*attributes, "--agent.grounding", str(grounding)]
         phrased = [*grounded, "--env.phrasings", str(phrasings)]

@@ -151,3 +151,18 @@ def test_slot_selection_of_a_trained_run(tmp_path):
     md = selection_table({"grounded": {"0": sel, "1": None}})
     assert md.count("| grounded |") == 1 and f"{sel['train']['accuracy']:.2f}" in md
     assert selection_table({"grounded": {"0": None}}) == ""
+
+
+def test_every_arm_parses_as_train_options():
+    import dataclasses
+
+    from benchmarks.compositional import ARMS, arm_args
+    from train.cli import parse_train_args
+
+    configs = {arm: parse_train_args(["robosuite-reach", *arm_args(arm, 1.0)]) for arm in ARMS}
+    assert configs["clipped"].sac.target_clip == 1.0
+    assert configs["grounded"].sac.target_clip is None
+    # the clipped arm is the grounded arm in every other option
+    same = dataclasses.replace(configs["clipped"], sac=configs["grounded"].sac)
+    assert same == configs["grounded"]
+    assert configs["pooled"].agent.net.slot_mode == "select"
