@@ -60,6 +60,8 @@ class Batch(NamedTuple):
         discount: ``(B,)`` float32 factor of the bootstrapped value, ``gamma ** m`` for a
             row summing ``m`` rewards (``n_step > 1``); ``None`` for one-step returns,
             where learners use their own ``gamma``.
+        demo: ``(B,)`` bool, which transitions a demonstrator acted (the scripted
+            controller, a demonstration file); ``None`` where the buffer does not say.
     """
 
     obs: dict[str, np.ndarray]
@@ -71,6 +73,7 @@ class Batch(NamedTuple):
     relabelled: np.ndarray
     index: np.ndarray
     discount: np.ndarray | None = None
+    demo: np.ndarray | None = None
 
 
 def batch_rows(batch: Batch, rows: Any) -> Batch:
@@ -174,6 +177,8 @@ class HindsightReplayBuffer:
         self.action = np.zeros((self.capacity, *self.action_shape), self.action_dtype)
         self.env_reward = np.zeros(self.capacity, np.float32)
         self.terminated = np.zeros(self.capacity, bool)
+        #: Transitions a demonstrator acted (episode field ``demo``; absent: none).
+        self.demo = np.zeros(self.capacity, bool)
         self.ep_start = np.zeros(self.capacity, np.int64)
         self.ep_end = np.zeros(self.capacity, np.int64)  # slot of the episode's last observation
         self.valid = np.zeros(self.capacity, bool)  # sampleable transition slots
@@ -197,7 +202,8 @@ class HindsightReplayBuffer:
             episode: ``obs`` (dict of ``(T + 1, ...)`` arrays, the first and every next
                 observation), ``action`` ``(T, ...)``, ``reward`` ``(T,)`` (the env's
                 reward, kept for reference), ``terminated`` ``(T,)`` bool (true only where
-                the episode ended for a reason other than a time limit), plus the goal
+                the episode ended for a reason other than a time limit), optionally
+                ``demo`` ``(T,)`` bool (the steps a demonstrator acted), plus the goal
                 space's fields (see :mod:`lcrl.goals`).
         """
         action = np.asarray(episode["action"], self.action_dtype)
@@ -231,6 +237,9 @@ class HindsightReplayBuffer:
         term = np.asarray(episode["terminated"], bool)
         self.terminated[start : end - 1] = term
         self.terminated[end - 1] = False
+        demo = episode.get("demo")
+        self.demo[start : end - 1] = False if demo is None else np.asarray(demo, bool)
+        self.demo[end - 1] = False
         self.ep_start[start:end] = start
         self.ep_end[start:end] = end - 1
         self.goal_space.write(start, episode)
@@ -335,6 +344,7 @@ class HindsightReplayBuffer:
             relabelled=relabelled,
             index=idx,
             discount=discount,
+            demo=self.demo[idx],
         )
 
     def _step_reward(
@@ -385,6 +395,7 @@ class HindsightReplayBuffer:
             action=self.action,
             env_reward=self.env_reward,
             terminated=self.terminated,
+            demo=self.demo,
             ep_start=self.ep_start,
             ep_end=self.ep_end,
             valid=self.valid,
@@ -422,13 +433,21 @@ class HindsightReplayBuffer:
         else:
             high = self.capacity
         # start from fresh storage: the slots past ``high`` were never written
-        for value in (*self.obs.values(), self.action, self.env_reward, self.terminated):
+        for value in (
+            *self.obs.values(),
+            self.action,
+            self.env_reward,
+            self.terminated,
+            self.demo,
+        ):
             value[...] = 0
         self.goal_space.allocate(self.capacity)
         attach = getattr(self.goal_space, "attach", None)
         if callable(attach):
             attach(self.obs)
         expected = self._full_arrays()
+        if "demo" not in arrays:  # saved before demonstrations were flagged: none
+            expected.pop("demo")
         missing = sorted(set(expected) - set(arrays))
         if missing:
             raise LcrlError(f"saved replay buffer lacks {missing}")
@@ -451,6 +470,8 @@ class HindsightReplayBuffer:
         self.action[...] = full["action"]
         self.env_reward[...] = full["env_reward"]
         self.terminated[...] = full["terminated"]
+        if "demo" in full:
+            self.demo[...] = full["demo"]
         self.ep_start[...] = full["ep_start"]
         self.ep_end[...] = full["ep_end"]
         self.valid[...] = full["valid"]

@@ -1115,6 +1115,61 @@ def test_hindsight_bc_pulls_the_mean_action_to_relabelled_actions() -> None:
     assert "bc_loss" not in no_rel.update(batch._replace(relabelled=np.zeros(32, bool)))
 
 
+def test_demo_bc_clones_demonstration_rows_alone() -> None:
+    """With a large weight and no Q-filter, the actor imitates the demonstrator's actions
+    on demonstration rows; rows the policy acted are left alone."""
+    prob = problem(False)
+    base = make_batch(prob, np.random.default_rng(7), size=32)
+    target = np.tile(np.array([[0.6, -0.4]], np.float32), (32, 1))
+    demo = np.arange(32) < 16
+    batch = base._replace(action=np.where(demo[:, None], target, -target), demo=demo)
+    agent = make_agent("sac", config=algos.SACConfig(demo_bc=50.0, q_filter=False))
+    for _ in range(150):
+        metrics = agent.update(batch)
+    assert metrics["demo_rows"] == 0.5 and metrics["demo_cloned"] == 1.0
+    with torch.no_grad():
+        o, g = agent.obs_tensors(batch.obs), agent.goal_tensor(batch.goal)
+        mean = torch.tanh(agent.actor(o, g).chunk(2, -1)[0]).numpy()
+    np.testing.assert_allclose(mean[demo], target[demo], atol=0.15)
+    # no demonstration rows, or no flags at all: no term
+    for b in (batch._replace(demo=np.zeros(32, bool)), batch._replace(demo=None)):
+        assert "demo_rows" not in make_agent("sac", config=algos.SACConfig(demo_bc=50.0)).update(b)
+
+
+class ValuedAround(nn.Module):
+    """A critic plus ``sign * 100 * |a - centre|^2``: with ``sign`` -1 the centre is the
+    best action, with +1 the worst."""
+
+    def __init__(self, critic: nn.Module, centre: torch.Tensor, sign: float) -> None:
+        super().__init__()
+        self.critic, self.centre, self.sign = critic, centre, sign
+
+    def forward(self, obs, goal, action):
+        bonus = self.sign * 100.0 * (action - self.centre).pow(2).sum(-1, keepdim=True)
+        return self.critic(obs, goal, action) + bonus
+
+
+@pytest.mark.parametrize("sign", [-1.0, 1.0])
+def test_the_q_filter_clones_only_where_the_demonstration_is_valued_higher(sign) -> None:
+    """Demonstrations valued above the policy's actions are all cloned; valued below,
+    none is, and the update is the one without the term, bit for bit."""
+    prob = problem(False)
+    base = make_batch(prob, np.random.default_rng(3), size=24)
+    centre = np.array([0.5, 0.5], np.float32)
+    batch = base._replace(action=np.tile(centre, (24, 1)), demo=np.ones(24, bool))
+    agents = []
+    for weight in (10.0, 0.0):
+        agent = make_agent("sac", config=algos.SACConfig(demo_bc=weight))
+        agent.critic = ValuedAround(agent.critic, torch.as_tensor(centre), sign)
+        agents.append(agent)
+    for _ in range(3):
+        metrics, plain = agents[0].update(batch), agents[1].update(batch)
+    assert metrics["demo_rows"] == 1.0 and "demo_rows" not in plain
+    assert metrics["demo_cloned"] == (1.0 if sign < 0 else 0.0)
+    if sign > 0:
+        assert_identical(snapshot(agents[0]), snapshot(agents[1]))
+
+
 # --- the SAC update over per-row weights ---------------------------------------------------
 def tasks_problem() -> Problem:
     """Three-dimensional observations, one-hot ids of five tasks as goals."""

@@ -1089,3 +1089,28 @@ def test_checkpoint_of_a_little_used_buffer_is_small(tmp_path) -> None:
     fresh = label_buffer(100_000, LabelGoals(9))
     fresh.load_arrays(load_checkpoint(path).arrays())
     assert fresh.size == buf.size and fresh.high == buf.high
+
+
+def test_demonstration_flags_are_sampled_with_their_rows_and_saved() -> None:
+    """Even episodes are all demonstration, odd ones only their first two steps; a batch
+    row carries its transition's flag, through a save and a load; a buffer saved before
+    the flags existed loads with none."""
+    rng = np.random.default_rng(5)
+    buf = state_buffer(200, seed=3)
+    for e in range(8):
+        episode = state_episode(e, 9, rng)
+        episode["demo"] = np.arange(9) < (9 if e % 2 == 0 else 2)
+        buf.add_episode(episode)
+    buf.add_episode(state_episode(8, 9, rng))  # no flags: the policy's
+    batch = buf.sample(512)
+    ep, j = batch.obs["state"][:, 0], batch.obs["state"][:, 1]
+    expected = (ep < 8) & ((ep % 2 == 0) | (j < 2))
+    np.testing.assert_array_equal(batch.demo, expected)
+    assert 0 < batch.demo.mean() < 1
+    saved = buf.arrays()
+    fresh = state_buffer(200, seed=3)
+    fresh.load_arrays(saved)
+    np.testing.assert_array_equal(fresh.demo, buf.demo)
+    older = state_buffer(200, seed=3)
+    older.load_arrays({k: v for k, v in saved.items() if k != "demo"})
+    assert not older.demo.any() and older.size == buf.size

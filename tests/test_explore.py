@@ -127,6 +127,10 @@ def test_handover_episodes_begin_with_the_scripted_controller(tmp_path, monkeypa
             np.testing.assert_array_equal(a, marker)  # the controller's steps ...
         for a in ep.actions[prefix:]:
             assert not np.array_equal(a, marker)  # ... then the policy's
+        # the controller's steps are stored as demonstration steps (sac.demo_bc)
+        assert ep.demo == [t < prefix for t in range(len(ep.actions))]
+    flags = trainer.buffer.demo[trainer.buffer.valid]
+    assert flags.sum() == sum(min(ep.handover, len(ep.actions)) for ep in eps)
     # they are not the policy's alone: the live success rate leaves them out
     assert not trainer.recent
     assert trainer.explorer.handovers == len(eps)

@@ -399,6 +399,8 @@ def test_finetuning_pretrains_a_cloning_actor_before_the_first_episode(push_demo
             ep = data.episode(0)
         trainer.advance()  # loads the file, then the first block of offline updates
         assert trainer.buffer.size == steps and trainer.step == 0 and trainer.episodes == 0
+        # scripted demonstrations are demonstration steps (sac.demo_bc), every one
+        assert trainer.buffer.demo[trainer.buffer.valid].all()
         assert trainer.pretrained == 500 and trainer.agent.q_weight == 0.0
         obs = trainer.task.training_obs
         rows = [{k: v[i] for k, v in ep["obs"].items()} for i in range(ep["length"])]

@@ -135,6 +135,10 @@ def check_dataset(data: DemoDataset, path: str, problem: Any, task: Any, env: An
             )
 
 
+#: Episode sources whose actions are no demonstrator's (``sac.demo_bc`` leaves them out).
+NOT_DEMONSTRATIONS = ("random", "policy")
+
+
 def buffer_episode(data: DemoDataset, e: int, path: str, task: Any, env: Any) -> dict[str, Any]:
     """Episode ``e`` of a dataset as the replay buffer stores it, labelled like a training
     episode: the task's observations, and what the rule captioner says each step achieved
@@ -172,6 +176,8 @@ def buffer_episode(data: DemoDataset, e: int, path: str, task: Any, env: Any) ->
         "reward": np.zeros(t, np.float32),
         # successes end episodes through the goal space (terminate_on_success), from labels
         "terminated": np.zeros(t, bool),
+        # a demonstrator's actions (scripted, robomimic, LIBERO), not random play's
+        "demo": np.full(t, ep["source"] not in NOT_DEMONSTRATIONS, bool),
         **task.episode_fields(records, goal, env),
     }
 

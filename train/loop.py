@@ -128,6 +128,8 @@ class _Episode:
     actions: list[Any] = dataclasses.field(default_factory=list)
     rewards: list[float] = dataclasses.field(default_factory=list)
     terms: list[bool] = dataclasses.field(default_factory=list)
+    #: Per step: whether the scripted controller acted it (a demonstration step).
+    demo: list[bool] = dataclasses.field(default_factory=list)
     succeeded: bool = False  # at any step (episodes may go on after success)
     done: bool = False
     t: int = 0
@@ -208,6 +210,7 @@ def start_episode(
 
 def step_episode(task: Any, ep: _Episode) -> None:
     """Step an episode's env with its action (``ep.action``) and record what happened."""
+    ep.demo.append(ep.scripted_now)
     obs, reward, terminated, truncated, info = ep.env.step(task.scale_action(ep.action))
     ep.t += 1
     ep.obs = obs
@@ -229,6 +232,7 @@ def episode_record(task: Any, ep: _Episode) -> dict[str, Any]:
         "action": np.asarray(ep.actions),
         "reward": np.asarray(ep.rewards, np.float32),
         "terminated": np.asarray(ep.terms, bool),
+        "demo": np.asarray(ep.demo, bool),
         **task.episode_fields(ep.records, ep.goal, ep.env),
     }
 

@@ -52,6 +52,15 @@ class SACConfig:
     (whose goal the episode did achieve later), the squared distance between the policy's
     mean action and the action taken, as in goal-conditioned supervised learning. 0 turns
     it off."""
+    demo_bc: float = 0.0
+    """Weight of a behaviour-cloning term on demonstration rows (transitions the scripted
+    controller or a demonstration file acted, with their recorded or relabelled goals):
+    the squared distance between the policy's mean action and the demonstrator's, as in
+    Nair et al. 2018. 0 turns it off."""
+    q_filter: bool = True
+    """Clone a demonstration row only where the critic values the demonstrator's action
+    above the policy's (the Q-filter of Nair et al. 2018), so a policy that has learned
+    to do better is not pulled back."""
     target_clip: float | None = None
     """Clip the critic's TD targets to ``[-target_clip, target_clip]``. Success rewards of
     0 or 1 that end the episode bound every value by 1, so 1.0 is exact there; a critic
@@ -65,7 +74,7 @@ class SACConfig:
             "sac",
             unit=("gamma", "tau"),
             positive=("actor_lr", "critic_lr", "alpha_lr", "init_alpha"),
-            non_negative=("hindsight_bc",),
+            non_negative=("hindsight_bc", "demo_bc"),
             positive_or_none=("max_grad_norm", "target_clip"),
             finite_or_none=("target_entropy",),
         )
@@ -206,6 +215,9 @@ class SAC(Agent):
         n = len(batch.reward)
         relabelled = np.asarray(batch.relabelled, bool)
         n_rel = int(relabelled.sum())
+        demo = np.zeros(n, bool) if batch.demo is None else np.asarray(batch.demo, bool)
+        n_demo = int(demo.sum()) if cfg.demo_bc > 0.0 else 0
+        demo_stats = {"rows": 0, "cloned": 0}
 
         def take(rows: np.ndarray | None, o: Any = obs) -> tuple[Any, ...]:
             """Observations, goals, actions, targets and row weights of a part."""
@@ -272,6 +284,26 @@ class SAC(Agent):
                 if rows is not None:  # the task's share of the mean over relabelled rows
                     bc_loss = bc_loss * (int(rel.sum()) / n_rel * n / len(rows))
                 loss = loss + bc_weight * bc_loss
+            dem = (demo if rows is None else demo[rows]) if n_demo else None
+            if dem is not None and dem.any():
+                mask = torch.as_tensor(dem, device=self.device)
+                if cfg.q_filter:  # clone where the demonstrator's action is valued higher
+                    with torch.no_grad():
+                        q_demo = (
+                            self.critic({k: v[mask] for k, v in o.items()}, g[mask], a_taken[mask])
+                            .min(0)
+                            .values.squeeze(-1)
+                        )
+                    keep = q_demo > q_pi.detach()[mask]
+                else:
+                    keep = torch.ones(int(mask.sum()), dtype=torch.bool, device=self.device)
+                demo_rows = (mean_action[mask] - a_taken[mask]).pow(2).sum(-1) * keep
+                demo_loss = demo_rows.mean()
+                if rows is not None:  # the task's share of the mean over demonstration rows
+                    demo_loss = demo_loss * (int(dem.sum()) / n_demo * n / len(rows))
+                loss = loss + cfg.demo_bc * demo_loss
+                demo_stats["rows"] += int(dem.sum())
+                demo_stats["cloned"] += int(keep.sum())
             losses.append(loss + ground(self.actor, o, g, rows, "actor"))
             bc_losses.append(bc_loss)
             logps.append(logp)
@@ -299,6 +331,9 @@ class SAC(Agent):
         }
         if any(x is not None for x in bc_losses):
             out["bc_loss"] = _weighted(coefs, bc_losses)
+        if n_demo:  # share of the batch from demonstrations, share of those cloned
+            out["demo_rows"] = n_demo / n
+            out["demo_cloned"] = demo_stats["cloned"] / max(demo_stats["rows"], 1)
         for name, values in grounding.items():
             if values:  # cross-entropy of the slots picked against the slots named
                 out[f"grounding_{name}"] = float(np.mean(values))
