@@ -214,16 +214,25 @@ def run_config(
 
 
 #: Config fields that do not change what a run learns up to a given step.
-NOT_LEARNING = ("out", "total_steps", "progress", "overwrite", "resume", "tensorboard")
+NOT_LEARNING = (
+    "out",
+    "total_steps",
+    "progress",
+    "overwrite",
+    "resume",
+    "tensorboard",
+    "checkpoint_every",
+    "keep_checkpoints",
+    "save_buffer",
+)
 
 
-def reusable(cfg: TrainConfig, folder: Path) -> list[dict[str, float]] | None:
-    """The evaluation curve of a finished run in ``folder`` trained with the same config
-    as ``cfg`` (apart from :data:`NOT_LEARNING`) for at least ``cfg.total_steps`` steps,
-    cut at that budget; None if there is no such run."""
-    saved_path, eval_path = folder / "config.json", folder / "eval.csv"
-    if not saved_path.exists() or not eval_path.exists():
-        return None
+def same_config(cfg: TrainConfig, folder: Path) -> bool:
+    """Whether the run in ``folder`` was trained with ``cfg`` (apart from
+    :data:`NOT_LEARNING`; options added since it was saved count as their defaults)."""
+    saved_path = folder / "config.json"
+    if not saved_path.exists():
+        return False
     saved = json.loads(saved_path.read_text())
     wanted = json.loads(json.dumps(dataclasses.asdict(cfg)))
     for key in NOT_LEARNING:
@@ -231,7 +240,30 @@ def reusable(cfg: TrainConfig, folder: Path) -> list[dict[str, float]] | None:
         wanted.pop(key, None)
     saved = {k: v for k, v in saved.items() if k in wanted}  # derived fields (resolved_algo)
     _fill_defaults(saved, wanted, json.loads(json.dumps(dataclasses.asdict(TrainConfig()))))
-    if saved != wanted or int(json.loads(saved_path.read_text())["total_steps"]) < cfg.total_steps:
+    return saved == wanted
+
+
+def resumable(cfg: TrainConfig, folder: Path) -> bool:
+    """Whether ``folder`` holds a checkpoint of a run trained with ``cfg`` that stopped
+    before ``cfg.total_steps``: training it goes on from there (``--resume``)."""
+    from lcrl.checkpoint import CheckpointError, find_latest
+
+    try:
+        latest = find_latest(folder)
+        step = int(json.loads((latest / "meta.json").read_text())["step"]) if latest else None
+    except (CheckpointError, OSError, KeyError, ValueError):
+        return False
+    return step is not None and step < cfg.total_steps and same_config(cfg, folder)
+
+
+def reusable(cfg: TrainConfig, folder: Path) -> list[dict[str, float]] | None:
+    """The evaluation curve of a finished run in ``folder`` trained with the same config
+    as ``cfg`` (apart from :data:`NOT_LEARNING`) for at least ``cfg.total_steps`` steps,
+    cut at that budget; None if there is no such run."""
+    saved_path, eval_path = folder / "config.json", folder / "eval.csv"
+    if not saved_path.exists() or not eval_path.exists() or not same_config(cfg, folder):
+        return None
+    if int(json.loads(saved_path.read_text())["total_steps"]) < cfg.total_steps:
         return None
     curve = read_eval(folder)
     if not curve or curve[-1]["step"] < cfg.total_steps:

@@ -37,7 +37,10 @@ The table gives, for the final evaluation (episodes run round robin over the tas
 layouts), the success of every task and the mean over all episodes with 95% Wilson
 intervals. Results go to ``benchmarks/results/multitask.{json,md,png}``; the runs
 themselves to ``runs/bench/multitask-<run>/`` (not kept in the repository). ``--reuse``
-reads a finished run there instead of training it again when its config is the same.
+reads a finished run there instead of training it again when its config is the same. Runs
+write a checkpoint with their replay buffer at every evaluation, and a run stopped before
+its budget (the machine shut down) goes on from its last checkpoint when the same command
+runs again; its time is the training seconds of all its parts (``train_s`` of eval.csv).
 """
 
 from __future__ import annotations
@@ -71,7 +74,7 @@ from benchmarks.common import (
     save_json,
     save_markdown,
 )
-from benchmarks.learning_curves import reusable
+from benchmarks.learning_curves import resumable, reusable
 from train.config import PRESETS, TrainConfig
 from train.eval_suite import wilson_interval
 from train.loop import Trainer
@@ -121,8 +124,11 @@ def run_config(
         learning_starts=learning_starts,
         eval_every=eval_every,
         eval_episodes=eval_episodes,
-        checkpoint_every=0,
-        save_buffer=False,
+        # a checkpoint with the replay buffer at every evaluation: a run stopped with the
+        # session goes on from there next time (train_one)
+        checkpoint_every=eval_every,
+        keep_checkpoints=1,
+        save_buffer=True,
         progress=False,
         seed=seed,
     )
@@ -142,9 +148,14 @@ def _one_thread() -> None:
 
 
 def train_one(cfg: TrainConfig) -> float:
-    """Train one run from scratch; returns its wall-clock seconds."""
-    shutil.rmtree(cfg.out, ignore_errors=True)
+    """Train one run: from its last checkpoint when the folder holds the same run stopped
+    before its budget, from scratch otherwise; returns this process's wall-clock seconds."""
     t0 = time.perf_counter()
+    if resumable(cfg, Path(cfg.out)):
+        print(f"== resuming {cfg.out}", flush=True)
+        cfg = dataclasses.replace(cfg, resume=True)
+    else:
+        shutil.rmtree(cfg.out, ignore_errors=True)
     Trainer(cfg).run()
     return time.perf_counter() - t0
 
@@ -205,7 +216,8 @@ def summarise(name: str, cfg: TrainConfig, seconds: float | None) -> dict[str, A
         "weighting": cfg.agent.multitask.weighting,
         "seed": cfg.seed,
         "total_steps": int(final["step"]),
-        "seconds": seconds,
+        # training seconds over every session the run took, evaluations excluded
+        "seconds": final["train_s"] if not math.isnan(final.get("train_s", math.nan)) else seconds,
         "final": {"mean": _interval(total, sum(counts)), "tasks": per_task},
         "conflict": conflict,
         "curve": [
@@ -250,7 +262,7 @@ def markdown(results: dict[str, Any], tasks: tuple[str, ...], episodes: int) -> 
     """The two tables: runs (mean success, conflict, time) and success per task."""
     lines = [
         "| run | goals | balancing | steps | mean success [95% CI] | critic cos | critic conflict "
-        "| actor cos | actor conflict | time |",
+        "| actor cos | actor conflict | train time |",
         "|---|---|---|---:|---|---:|---:|---:|---:|---:|",
     ]
     for name, r in results.items():

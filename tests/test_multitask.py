@@ -695,3 +695,26 @@ def test_benchmark_configs():
         assert cfg.learning_starts == 250 and cfg.eval_every == 500
         assert (cfg.env.goal_type == "task") is (preset == "lang2d-tasks")
         assert cfg.buffer.k == (0 if preset == "lang2d-tasks" else 4)
+
+
+def test_benchmark_runs_stopped_midway_go_on_from_their_checkpoint(tmp_path):
+    import dataclasses
+
+    from benchmarks.learning_curves import resumable
+    from benchmarks.multitask import run_config, summarise, train_one
+
+    cfg = dataclasses.replace(run_config("ids", 600, 0, 8, "cpu"), out=str(tmp_path / "ids"))
+    assert cfg.checkpoint_every == cfg.eval_every == 300 and cfg.save_buffer
+    assert not resumable(cfg, tmp_path / "ids")  # nothing there yet
+    train_one(dataclasses.replace(cfg, total_steps=300))  # a session ends at step 300
+    assert resumable(cfg, tmp_path / "ids")
+    assert not resumable(dataclasses.replace(cfg, total_steps=300), tmp_path / "ids")
+    pcgrad = run_config("ids-pcgrad", 600, 0, 8, "cpu")
+    assert not resumable(dataclasses.replace(pcgrad, out=cfg.out), tmp_path / "ids")
+    first = read_csv(tmp_path / "ids" / "eval.csv")[1]
+    train_one(cfg)  # goes on from 300: the first evaluation is kept
+    rows = read_csv(tmp_path / "ids" / "eval.csv")[1]
+    assert rows[0] == first[0] and int(rows[-1]["step"]) >= 600
+    assert not resumable(cfg, tmp_path / "ids")
+    summary = summarise("ids", cfg, None)
+    assert summary["seconds"] == float(rows[-1]["train_s"]) > float(first[-1]["train_s"])
