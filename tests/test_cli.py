@@ -67,3 +67,31 @@ def test_demo_writes_report(tmp_path):
 def test_demo_bad_option_exits_2(tmp_path):
     r = run("demo", "--out", str(tmp_path / "x"), "--episodes", "1")
     assert r.returncode == 2 and "episodes" in r.stderr and "Traceback" not in r.stderr
+
+
+def test_resume_warns_of_options_the_saved_config_overrides(tmp_path, capsys):
+    import dataclasses
+    import json
+
+    from train.cli import ignored_on_resume, main, parse_train_args
+
+    out = tmp_path / "run"
+    out.mkdir()
+    saved = parse_train_args(["lang2d-quick", "--out", str(out)])
+    (out / "config.json").write_text(json.dumps(dataclasses.asdict(saved)))
+    argv = ["lang2d-quick", "--out", str(out), "--resume", "--total-steps", "9000"]
+    argv += ["--no-progress", "--sac.demo-bc", "1.0", "--sac.no-q-filter", "--seed", "0"]
+    argv += [f"--batch-size={saved.batch_size}"]
+    ignored = ignored_on_resume(argv, parse_train_args(argv))
+    # what differs from the saved run, and only that (the seed and batch size are the same)
+    assert ignored == [
+        "--sac.demo-bc 1.0 (the run has 0.0)",
+        "--sac.no-q-filter False (the run has True)",
+    ]
+    # without --resume, or without a saved run, nothing is ignored
+    assert ignored_on_resume(argv[:3] + argv[4:], parse_train_args(argv[:3] + argv[4:])) == []
+    # the command says so before it fails for want of a checkpoint
+    with pytest.raises(SystemExit):
+        main(["train", *argv])
+    err = capsys.readouterr().err
+    assert "ignored: --sac.demo-bc 1.0 (the run has 0.0)" in err

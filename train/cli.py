@@ -424,11 +424,53 @@ def _saved_offline(cfg: Any) -> bool:
     return True
 
 
+#: Options a resumed run takes from the command line (the rest come from its saved config).
+RESUME_KEEPS = ("resume", "out", "total_steps", "progress", "torch_threads", "overwrite")
+
+
+def ignored_on_resume(argv: Sequence[str], cfg: Any) -> list[str]:
+    """The options on a ``--resume`` command line that differ from the run's saved config
+    (which the resumed run keeps), as ``--name value (the run has saved)``."""
+    path = Path(cfg.out) / "config.json"
+    if not cfg.resume or not path.is_file():
+        return []
+    try:
+        saved = json.loads(path.read_text())
+    except (OSError, ValueError):
+        return []
+    out = []
+    for token in argv:
+        if not token.startswith("--"):
+            continue
+        name = token[2:].split("=", 1)[0]
+        parts = name.replace("-", "_").split(".")
+        if parts[-1].startswith("no_"):  # --no-x / --a.no-x of a boolean flag
+            parts[-1] = parts[-1][3:]
+        if parts[0] in RESUME_KEEPS:
+            continue
+        value, old, found = cfg, saved, True
+        for part in parts:
+            if not hasattr(value, part) or not isinstance(old, dict) or part not in old:
+                found = False
+                break
+            value, old = getattr(value, part), old[part]
+        if found and json.loads(json.dumps(value, default=str)) != old:
+            out.append(f"--{name} {value} (the run has {old})")
+    return out
+
+
 def _train(argv: Sequence[str]) -> None:
     from lcrl.algos import ALGOS
     from train.loop import Trainer
 
     cfg = parse_train_args(argv)
+    ignored = ignored_on_resume(argv, cfg)
+    if ignored:
+        print(
+            "lcrl: warning: --resume goes on with the run's saved config; ignored: "
+            + "; ".join(ignored),
+            file=sys.stderr,
+        )
     spec = ALGOS.get(cfg.algo)
     if cfg.offline or _saved_offline(cfg):  # offline RL / GCBC through the replay buffer
         from train.offline import OfflineTrainer

@@ -205,6 +205,8 @@ def open_run(cfg: TrainConfig) -> tuple[TrainConfig, Any]:
 
     Returns:
         The config to run with and the checkpoint to resume from (None for a new run).
+        A resumed run keeps its saved config, apart from ``total_steps``, ``out``,
+        ``progress`` and ``torch_threads``.
 
     Raises:
         RunAlreadyDone: ``--resume`` with ``total_steps`` at or below the checkpoint's step.
@@ -230,6 +232,8 @@ def open_run(cfg: TrainConfig) -> tuple[TrainConfig, Any]:
         saved.total_steps = cfg.total_steps
         saved.resume = True
         saved.out = cfg.out
+        # how this process shows and paces its work, not what the run learns
+        saved.progress, saved.torch_threads = cfg.progress, cfg.torch_threads
         for name in ("progress.csv", "eval.csv"):
             truncate_log(out / name, meta.step)
         return saved, ckpt
