@@ -60,18 +60,20 @@ def arm_args(arm: str, grounding: float, phrasings: int = 16) -> list[str]:
     """The ``lcrl train`` options of an arm."""
     from train.config import SLOT_ATTRIBUTES
 
+    # only the clipped arm clips its TD targets, whatever the preset does
     attributes = ["--agent.net.slot-mode", "attributes", "--agent.net.slot-attributes"]
     attributes += [str(v) for v in SLOT_ATTRIBUTES]
+    unclipped = ["--sac.target-clip", "None"]
     if arm == "pooled":
-        return ["--agent.net.slot-mode", "select", "--agent.grounding", "0"]
+        return ["--agent.net.slot-mode", "select", "--agent.grounding", "0", *unclipped]
     if arm == "attributes":
-        return [*attributes, "--agent.grounding", "0"]
+        return [*attributes, "--agent.grounding", "0", *unclipped]
     if arm == "grounded":
-        return [*attributes, "--agent.grounding", str(grounding)]
+        return [*attributes, "--agent.grounding", str(grounding), *unclipped]
     if arm == "clipped":
         return [*attributes, "--agent.grounding", str(grounding), "--sac.target-clip", "1.0"]
     if arm in ("phrased", "reader"):
-        grounded = [*attributes, "--agent.grounding", str(grounding)]
+        grounded = [*attributes, "--agent.grounding", str(grounding), *unclipped]
         phrased = [*grounded, "--env.phrasings", str(phrasings)]
         return phrased if arm == "phrased" else [*phrased, "--env.text-reader"]
     raise SystemExit(f"unknown arm {arm!r}; choose from {ARMS}")
