@@ -49,6 +49,8 @@ def run_args(args: argparse.Namespace, name: str) -> list[str]:
         cmd += ["--relabel.captioner", "learned", "--relabel.reward", "learned"]
         cmd += ["--relabel.checkpoint", args.captioner]
         cmd += ["--relabel.threshold", str(args.threshold)]
+        if getattr(args, "agree", False):
+            cmd += ["--relabel.agree"]
     return cmd
 
 
@@ -120,6 +122,12 @@ def main(argv: list[str] | None = None) -> int:
         type=float,
         default=0.5,
         help="reward-model probability that counts as satisfied (--relabel.threshold)",
+    )
+    parser.add_argument(
+        "--agree",
+        action="store_true",
+        help="the learned run counts a reward only where the captioner reads the "
+        "instruction too (--relabel.agree)",
     )
     parser.add_argument(
         "--target-clip",

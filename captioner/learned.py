@@ -1583,6 +1583,8 @@ class LearnedLabeller:
         min_logprob: captions less likely than this are skipped.
         beam: beam width (0 or 1: greedy, one caption per observation).
         threshold: reward-model probability that counts as satisfied.
+        agree: count an instruction as achieved at an observation only where the
+            captioner's labels of that observation hold it too (both models agree).
     """
 
     def __init__(
@@ -1596,6 +1598,7 @@ class LearnedLabeller:
         min_logprob: float = -1.0,
         beam: int = 3,
         threshold: float = 0.5,
+        agree: bool = False,
     ) -> None:
         if captioner and models.captioner is None:
             raise LcrlError("learned relabelling needs a checkpoint with a captioner")
@@ -1609,6 +1612,9 @@ class LearnedLabeller:
         self.use_captioner, self.use_reward = captioner, reward
         self.captioner_rewards = captioner_rewards
         self.min_logprob, self.beam, self.threshold = float(min_logprob), int(beam), threshold
+        if agree and not (captioner and reward):
+            raise LcrlError("agreement needs both the learned captioner and the reward model")
+        self.agree = bool(agree)
         self.skipped = 0  # captions dropped by the threshold
         self.kept = 0
         self._agreement: dict[str, list[int]] = {}
@@ -1659,9 +1665,14 @@ class LearnedLabeller:
         return out
 
     def achieved(
-        self, frames: np.ndarray, proprio: np.ndarray, candidates: Sequence[int]
+        self,
+        frames: np.ndarray,
+        proprio: np.ndarray,
+        candidates: Sequence[int],
+        labels: Sequence[Sequence[int]] | None = None,
     ) -> list[list[int]]:
-        """For each observation, the candidate ids the reward model judges satisfied."""
+        """For each observation, the candidate ids the reward model judges satisfied
+        (with ``agree``, only those among that observation's ``labels`` too)."""
         cands = sorted(set(int(c) for c in candidates))
         if not cands:
             return [[] for _ in range(len(frames))]
@@ -1670,4 +1681,9 @@ class LearnedLabeller:
         probs = self.models.score_matrix([self.table[c] for c in cands], first, frames, p0, proprio)
         hit = probs >= self.threshold
         hit[0] = False
-        return [[cands[k] for k in np.flatnonzero(row)] for row in hit]
+        out = [[cands[k] for k in np.flatnonzero(row)] for row in hit]
+        if self.agree:
+            if labels is None:
+                raise LcrlError("agreement needs each observation's captioner labels")
+            out = [[c for c in row if c in set(lab)] for row, lab in zip(out, labels, strict=True)]
+        return out

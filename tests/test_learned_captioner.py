@@ -236,6 +236,20 @@ def test_labeller_thresholds_and_candidates(trained, dataset):
         assert achieved[0] == [] and all(set(a) <= set(cands) for a in achieved)
         strict = LearnedLabeller(lc, table, num_train, threshold=1.01)
         assert not any(strict.achieved(frames, proprio, cands))
+        # agreement: what the reward model judges achieved where the captioner reads it too
+        both = LearnedLabeller(lc, table, num_train, min_logprob=-1e9, beam=3, agree=True)
+        agreed = both.achieved(frames, proprio, cands, labels)
+        assert agreed == [
+            [c for c in a if c in lab] for a, lab in zip(achieved, labels, strict=True)
+        ]
+        # an observation whose labels are cleared keeps nothing
+        cleared = [[] if t % 2 else lab for t, lab in enumerate(labels)]
+        assert any(achieved[1::2])  # the reward model alone judges some of those achieved
+        assert all(not a for a in both.achieved(frames, proprio, cands, cleared)[1::2])
+        with pytest.raises(LcrlError, match="captioner labels"):
+            both.achieved(frames, proprio, cands)
+        with pytest.raises(LcrlError, match="both the learned captioner"):
+            LearnedLabeller(lc, table, num_train, reward=False, agree=True)
 
 
 def test_learned_relabelling_settings_are_checked(trained, tmp_path):
@@ -248,6 +262,8 @@ def test_learned_relabelling_settings_are_checked(trained, tmp_path):
         Trainer(_small_run(tmp_path / "a", "", captioner="learned"))
     with pytest.raises(LcrlError, match=r"relabel\.reward"):
         Trainer(_small_run(tmp_path / "b", trained, reward="clip"))
+    with pytest.raises(LcrlError, match=r"relabel\.agree"):
+        Trainer(_small_run(tmp_path / "g", trained, reward="rule", agree=True))
     state = dataclasses.replace(
         PRESETS["state2d"][1],
         out=str(tmp_path / "c"),

@@ -79,6 +79,11 @@ class RelabelConfig:
     ``min_logprob``; 0 or 1: one greedy caption)."""
     threshold: float = 0.5
     """Reward-model probability that counts as satisfied."""
+    agree: bool = False
+    """With the learned captioner and reward model: an instruction counts as achieved at
+    an observation only where both say so (the reward model's probability reaches
+    ``threshold`` and the captioner's beam reads the instruction there); fewer false
+    rewards, at the cost of the ones the captioner misses."""
 
     @property
     def learned(self) -> bool:
@@ -500,6 +505,14 @@ class TrainConfig:
             raise LcrlError(
                 "relabel.reward=captioner takes the rewards from the learned captioner's "
                 "captions: it needs relabel.captioner=learned"
+            )
+        if self.relabel.agree and (self.relabel.captioner, self.relabel.reward) != (
+            "learned",
+            "learned",
+        ):
+            raise LcrlError(
+                "relabel.agree asks the learned captioner and reward model to agree: it needs "
+                "relabel.captioner=learned and relabel.reward=learned"
             )
         if self.relabel.learned and not self.relabel.checkpoint:
             raise LcrlError(

@@ -284,6 +284,7 @@ class Trainer(BaseTrainer):
                 min_logprob=r.min_logprob,
                 beam=r.beam,
                 threshold=r.threshold,
+                agree=r.agree,
             )
         self.problem = self.task.problem()
         self.algo = cfg.resolved_algo(self.problem.discrete)

@@ -778,7 +778,7 @@ class LanguageTask(Task):
             lab.compare("labels", out["labels"], labels)
         if lab.use_reward:
             cands = sorted({i for ids in out["labels"] for i in ids} | {int(goal)})
-            out["achieved"] = lab.achieved(frames, proprio, cands)
+            out["achieved"] = lab.achieved(frames, proprio, cands, out["labels"])
             lab.compare("rewards", out["achieved"], labels, among=cands)
         elif lab.use_captioner and not lab.captioner_rewards:
             out["achieved"] = labels  # learned candidates, rule rewards
