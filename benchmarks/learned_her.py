@@ -66,11 +66,18 @@ def reuse(run: Path, into: Path, args: argparse.Namespace, name: str = "rule") -
 
     if not (run / "report.md").is_file():
         raise SystemExit(f"{run}: not a finished run (no report.md)")
+    import dataclasses
+
+    from benchmarks.learning_curves import _fill_defaults
+    from train.config import TrainConfig
+
     wanted = _config_of(run_args(args, name))
     have = json.loads((run / "config.json").read_text())
     for cfg in (wanted, have):
         for key in ("out", "overwrite", "progress"):
             cfg.pop(key, None)
+    # options added since the run was saved count as the defaults it ran with
+    _fill_defaults(have, wanted, json.loads(json.dumps(dataclasses.asdict(TrainConfig()))))
     if wanted != have:
         raise SystemExit(f"{run}: its config differs from the {name} run's")
     if run.resolve() != into.resolve():

@@ -88,6 +88,12 @@ def test_runs_started_one_by_one_are_taken_only_with_their_own_config(tmp_path):
     assert reuse(tmp_path / "learned", tmp_path / "learned", args, "learned") >= 0
     with pytest.raises(SystemExit, match="differs from the learned run's"):
         reuse(tmp_path / "rule", tmp_path / "learned", args, "learned")
+    # a run saved before an option existed ran with its default
+    saved = json.loads((tmp_path / "rule" / "config.json").read_text())
+    del saved["relabel"]["agree"]
+    (tmp_path / "rule" / "config.json").write_text(json.dumps(saved))
+    (tmp_path / "rule" / "report.md").write_text("done\n")  # written at the end of a run
+    assert reuse(tmp_path / "rule", tmp_path / "rule", args, "rule") >= 0
     # the target clip is part of the config: a run without it is another run
     with pytest.raises(SystemExit, match="differs"):
         reuse(
