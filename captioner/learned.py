@@ -1526,6 +1526,116 @@ def evaluate_models(
     return results
 
 
+def relabel_agreement(
+    lc: LearnedCaptioner,
+    data: CaptionDataset,
+    thresholds: Sequence[float],
+    families: Sequence[str] = (),
+    episodes: np.ndarray | None = None,
+    beam: int = 3,
+    min_logprob: float = -1.0,
+) -> dict[str, Any]:
+    """How learned relabelling agrees with the rule captioner on whole episodes, scored as
+    a training loop's :class:`LearnedLabeller` scores them: the candidates of an episode are
+    the captioner's beam captions among the training instructions (of ``families``, if
+    given) plus the episode's own instruction; the reward model judges every candidate at
+    every step. Precision and recall count (step, candidate) pairs against the dataset's
+    rule labels, at each reward threshold; the labels' precision and recall need none.
+    Far more pairs are negative here than in :func:`evaluate_models`' balanced pairs, so
+    this is the figure a threshold for ``--relabel.threshold`` is chosen on.
+
+    Returns:
+        ``{"episodes", "labels": {precision, recall}, "rewards": [{threshold, precision,
+        recall, f1}, ...], "best_threshold"}`` (best: the highest F1).
+    """
+    lc.check_dataset(data)
+    if lc.captioner is None or lc.reward is None:
+        raise LcrlError(
+            "relabelling agreement needs a checkpoint with a captioner and a reward model"
+        )
+    if episodes is None:
+        same = lc.meta.get("dataset_meta") == data.meta and "val_episodes" in lc.meta
+        episodes = (
+            np.asarray(lc.meta["val_episodes"], np.int64) if same else np.arange(data.num_episodes)
+        )
+    texts = list(data.instructions)
+    known = sorted({t.split()[0] for t in texts})
+    unknown = [f for f in families if f not in known]
+    if unknown:
+        raise LcrlError(f"no instruction of family {unknown[0]!r} in the dataset; it has {known}")
+    train = [
+        t
+        for t, kind in zip(texts, data.instruction_set, strict=True)
+        if kind == "train" and (not families or t.split()[0] in families)
+    ]
+    # the loop's table: its training instructions first, the rest after
+    table = train + [t for t in texts if t not in set(train)]
+    lab = LearnedLabeller(lc, table, len(train), min_logprob=min_logprob, beam=beam)
+    thresholds = sorted(float(x) for x in thresholds)
+    counts = np.zeros((len(thresholds), 3), np.int64)  # tp, fp, fn per threshold
+    for e in episodes:
+        ep = data.episode(int(e))
+        frames, proprio = ep["frames"], ep["proprio"]
+        labels = lab.labels(frames, proprio)
+        rule = [[table.index(texts[i]) for i in ids] for ids in ep["labels"]]
+        rule = [[i for i in ids if i < len(train)] for ids in rule]
+        lab.compare("labels", labels, rule)
+        own = [table.index(texts[ep["instruction"]])] if ep["instruction"] >= 0 else []
+        cands = sorted({i for ids in labels for i in ids} | {i for i in own if i < len(train)})
+        if not cands:
+            continue
+        first = np.repeat(frames[:1], len(frames), 0)
+        p0 = np.repeat(proprio[:1], len(proprio), 0)
+        probs = lc.score_matrix([table[c] for c in cands], first, frames, p0, proprio)
+        truth = np.zeros_like(probs, bool)
+        for t, ids in enumerate(rule):
+            for i in ids:
+                if i in cands:
+                    truth[t, cands.index(i)] = True
+        truth[0] = False
+        for k, thr in enumerate(thresholds):
+            hit = probs >= thr
+            hit[0] = False
+            counts[k] += [(hit & truth).sum(), (hit & ~truth).sum(), (~hit & truth).sum()]
+    agreement = lab.agreement()
+    rows = []
+    for thr, (tp, fp, fn) in zip(thresholds, counts, strict=True):
+        precision = tp / (tp + fp) if tp + fp else float("nan")
+        recall = tp / (tp + fn) if tp + fn else float("nan")
+        f1 = 2 * precision * recall / (precision + recall) if tp else 0.0
+        rows.append({"threshold": thr, "precision": precision, "recall": recall, "f1": f1})
+    best = max(rows, key=lambda r: r["f1"])["threshold"] if rows else None
+    return {
+        "episodes": len(episodes),
+        "families": list(families),
+        "labels": {
+            "precision": agreement["labels_precision"],
+            "recall": agreement["labels_recall"],
+        },
+        "rewards": rows,
+        "best_threshold": best,
+    }
+
+
+def format_agreement(result: dict[str, Any]) -> str:
+    """:func:`relabel_agreement` as a few lines of text."""
+    lab = result["labels"]
+    lines = [
+        f"learned relabelling against the rule captioner, {result['episodes']} whole episodes"
+        + (f" ({', '.join(result['families'])})" if result["families"] else ""),
+        f"labels: precision {lab['precision']:.2f}, recall {lab['recall']:.2f}",
+        "rewards (every candidate at every step):",
+    ]
+    for r in result["rewards"]:
+        lines.append(
+            f"  threshold {r['threshold']:.2f}: precision {r['precision']:.2f}, recall "
+            f"{r['recall']:.2f}, F1 {r['f1']:.2f}"
+        )
+    if result["best_threshold"] is not None:
+        lines.append(f"best F1 at --relabel.threshold {result['best_threshold']:.2f}")
+    return "\n".join(lines)
+
+
 def format_results(results: dict[str, Any]) -> str:
     """A few lines for the terminal."""
     lines = [f"episodes evaluated: {results['episodes']}"]

@@ -452,3 +452,50 @@ def test_models_over_perception_refuse_another_camera(dataset, tmp_path):
         train_models(cfg)
     with pytest.raises(LcrlError, match="--perception MODEL"):
         train_models(dataclasses.replace(cfg, perception=""))
+
+
+def test_relabel_agreement_counts_pairs_as_the_training_loop_does(trained, dataset, capsys):
+    from captioner.learned import LearnedLabeller, relabel_agreement
+    from train.cli import main
+
+    lc = LearnedCaptioner.load(trained)
+    with CaptionDataset(dataset) as data:
+        result = relabel_agreement(lc, data, [0.9, 0.5, 0.2], families=("reach",))
+        rows = result["rewards"]
+        assert [r["threshold"] for r in rows] == [0.2, 0.5, 0.9]
+        recalls = [r["recall"] for r in rows]
+        assert all(np.isfinite(recalls)) and recalls[0] > 0  # there were pairs to find
+        assert recalls == sorted(recalls, reverse=True)  # a higher bar accepts fewer pairs
+        assert result["best_threshold"] in (0.2, 0.5, 0.9) and result["episodes"] > 0
+        # the same counts by hand, through the labeller the loop uses, at threshold 0.5
+        texts = data.instructions
+        train = [
+            t
+            for t, k in zip(texts, data.instruction_set, strict=True)
+            if k == "train" and t.startswith("reach")
+        ]
+        table = train + [t for t in texts if t not in train]
+        lab = LearnedLabeller(lc, table, len(train), beam=3)
+        for e in np.asarray(lc.meta["val_episodes"]):
+            ep = data.episode(int(e))
+            labels = lab.labels(ep["frames"], ep["proprio"])
+            rule = [[table.index(texts[i]) for i in ids] for ids in ep["labels"]]
+            rule = [[i for i in ids if i < len(train)] for ids in rule]
+            own = table.index(texts[ep["instruction"]]) if ep["instruction"] >= 0 else -1
+            cands = sorted(
+                {i for ids in labels for i in ids} | ({own} if 0 <= own < len(train) else set())
+            )
+            if cands:
+                got = lab.achieved(ep["frames"], ep["proprio"], cands)
+                lab.compare("rewards", got, rule, among=cands)
+        by_hand = lab.agreement()
+        assert rows[1]["precision"] == pytest.approx(by_hand["rewards_precision"], nan_ok=True)
+        assert rows[1]["recall"] == pytest.approx(by_hand["rewards_recall"], nan_ok=True)
+        with pytest.raises(LcrlError, match="no instruction of family 'stack'"):
+            relabel_agreement(lc, data, [0.5], families=("stack",))
+    main(["caption", "eval", str(trained), "--thresholds", "0.5", "0.9", "--families", "reach"])
+    out = capsys.readouterr().out
+    assert "threshold 0.90: precision" in out and "best F1 at --relabel.threshold" in out
+    with pytest.raises(SystemExit):
+        main(["caption", "eval", str(trained), "--thresholds", "1.5"])
+    assert "--thresholds are probabilities in (0, 1), got 1.5" in capsys.readouterr().err

@@ -518,6 +518,13 @@ class CaptionEvalCommand:
     """Observations per group at most."""
     json: str = ""
     """Also write every figure to this JSON file."""
+    thresholds: tuple[float, ...] = ()
+    """Also score learned relabelling as a training loop does, on whole episodes, at each
+    of these reward thresholds: precision and recall of the rewards and the labels against
+    the rule captioner (the figures to choose ``--relabel.threshold`` on)."""
+    families: tuple[str, ...] = ()
+    """With ``thresholds``: the families the run trains on (default: every training
+    instruction of the dataset)."""
 
     def run(self) -> None:
         check_json_path(self.json)
@@ -525,17 +532,28 @@ class CaptionEvalCommand:
         from captioner.learned import (
             LearnedCaptioner,
             evaluate_models,
+            format_agreement,
             format_results,
+            relabel_agreement,
             save_results,
         )
 
+        bad = [t for t in self.thresholds if not 0.0 < t < 1.0]
+        if bad:
+            raise LcrlError(f"--thresholds are probabilities in (0, 1), got {bad[0]}")
         lc = LearnedCaptioner.load(self.checkpoint)
         path = self.data or lc.meta.get("dataset", "")
         if not path:
             raise LcrlError("pass --data: the checkpoint does not name its dataset")
         with CaptionDataset(path) as data:
             results = evaluate_models(lc, data, max_pairs=self.max_pairs, beam=self.beam)
+            if self.thresholds:
+                results["relabelling"] = relabel_agreement(
+                    lc, data, self.thresholds, self.families, beam=max(self.beam, 3)
+                )
         print(format_results(results))
+        if self.thresholds:
+            print(format_agreement(results["relabelling"]))
         if self.json:
             print(f"saved {save_results(results, self.json)}")
 
