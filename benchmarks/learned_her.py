@@ -64,21 +64,16 @@ def reuse(run: Path, into: Path, args: argparse.Namespace, name: str = "rule") -
     """
     import shutil
 
+    from benchmarks.learning_curves import same_config
+    from train.cli import parse_train_args
+
     if not (run / "report.md").is_file():
         raise SystemExit(f"{run}: not a finished run (no report.md)")
-    import dataclasses
-
-    from benchmarks.learning_curves import _fill_defaults
-    from train.config import TrainConfig
-
-    wanted = _config_of(run_args(args, name))
-    have = json.loads((run / "config.json").read_text())
-    for cfg in (wanted, have):
-        for key in ("out", "overwrite", "progress"):
-            cfg.pop(key, None)
+    cmd = run_args(args, name)
+    wanted = parse_train_args(cmd[cmd.index("train") + 1 :])
+    saved_steps = json.loads((run / "config.json").read_text()).get("total_steps")
     # options added since the run was saved count as the defaults it ran with
-    _fill_defaults(have, wanted, json.loads(json.dumps(dataclasses.asdict(TrainConfig()))))
-    if wanted != have:
+    if not same_config(wanted, run) or saved_steps != wanted.total_steps:
         raise SystemExit(f"{run}: its config differs from the {name} run's")
     if run.resolve() != into.resolve():
         if into.exists():
@@ -101,16 +96,6 @@ def update_captioner_markdown(path: Path, headline: dict) -> None:
         else:
             lines.append(line)
     path.write_text("\n".join(lines) + "\n")
-
-
-def _config_of(cmd: list[str]) -> dict:
-    """The resolved config a ``lcrl train`` command line would write to config.json."""
-    import dataclasses
-
-    from train.cli import parse_train_args
-
-    cfg = parse_train_args(cmd[cmd.index("train") + 1 :])
-    return json.loads(json.dumps({**dataclasses.asdict(cfg), "resolved_algo": "sac"}))
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -1569,7 +1569,10 @@ def relabel_agreement(
         if kind == "train" and (not families or t.split()[0] in families)
     ]
     # the loop's table: its training instructions first, the rest after
-    table = train + [t for t in texts if t not in set(train)]
+    in_train = set(train)
+    table = train + [t for t in texts if t not in in_train]
+    at = {t: i for i, t in enumerate(table)}
+    to_table = [at[t] for t in texts]  # dataset instruction id -> table id
     lab = LearnedLabeller(lc, table, len(train), min_logprob=min_logprob, beam=beam)
     thresholds = sorted(float(x) for x in thresholds)
     counts = np.zeros((len(thresholds), 3), np.int64)  # tp, fp, fn per threshold
@@ -1577,21 +1580,21 @@ def relabel_agreement(
         ep = data.episode(int(e))
         frames, proprio = ep["frames"], ep["proprio"]
         labels = lab.labels(frames, proprio)
-        rule = [[table.index(texts[i]) for i in ids] for ids in ep["labels"]]
-        rule = [[i for i in ids if i < len(train)] for ids in rule]
+        rule = [[to_table[i] for i in ids if to_table[i] < len(train)] for ids in ep["labels"]]
         lab.compare("labels", labels, rule)
-        own = [table.index(texts[ep["instruction"]])] if ep["instruction"] >= 0 else []
+        own = [to_table[ep["instruction"]]] if ep["instruction"] >= 0 else []
         cands = sorted({i for ids in labels for i in ids} | {i for i in own if i < len(train)})
         if not cands:
             continue
         first = np.repeat(frames[:1], len(frames), 0)
         p0 = np.repeat(proprio[:1], len(proprio), 0)
         probs = lc.score_matrix([table[c] for c in cands], first, frames, p0, proprio)
+        column = {c: k for k, c in enumerate(cands)}
         truth = np.zeros_like(probs, bool)
         for t, ids in enumerate(rule):
             for i in ids:
-                if i in cands:
-                    truth[t, cands.index(i)] = True
+                if i in column:
+                    truth[t, column[i]] = True
         truth[0] = False
         for k, thr in enumerate(thresholds):
             hit = probs >= thr
@@ -1795,5 +1798,8 @@ class LearnedLabeller:
         if self.agree:
             if labels is None:
                 raise LcrlError("agreement needs each observation's captioner labels")
-            out = [[c for c in row if c in set(lab)] for row, lab in zip(out, labels, strict=True)]
+            out = [
+                [c for c in row if c in keep]
+                for row, keep in zip(out, map(set, labels), strict=True)
+            ]
         return out

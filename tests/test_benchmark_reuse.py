@@ -62,7 +62,12 @@ def test_the_captioner_markdown_takes_the_relabelling_figures(tmp_path):
 def test_runs_started_one_by_one_are_taken_only_with_their_own_config(tmp_path):
     import argparse
 
-    from benchmarks.learned_her import _config_of, reuse, run_args
+    from benchmarks.learned_her import reuse, run_args
+    from train.cli import parse_train_args
+
+    def _config_of(cmd):
+        cfg = parse_train_args(cmd[cmd.index("train") + 1 :])
+        return json.loads(json.dumps({**dataclasses.asdict(cfg), "resolved_algo": "sac"}))
 
     args = argparse.Namespace(
         env="lang2d",
