@@ -3,7 +3,7 @@
 Run from the repository root::
 
     python benchmarks/multitask.py --parallel   # the 4 runs, 2 side by side, 30k steps each
-    python benchmarks/multitask.py --runs ids ids-pcgrad ids-gradnorm --seeds 0 1 2 --parallel
+    python benchmarks/multitask.py --runs ids ids-pcgrad ids-gradnorm --seeds 0 1 2 --reuse
     python benchmarks/multitask.py --steps 1000 --eval-episodes 16   # a quick check
     python benchmarks/multitask.py --report-only   # rebuild the results from runs/bench/
 
@@ -41,6 +41,8 @@ reads a finished run there instead of training it again when its config is the s
 write a checkpoint with their replay buffer at every evaluation, and a run stopped before
 its budget (the machine shut down) goes on from its last checkpoint when the same command
 runs again; its time is the training seconds of all its parts (``train_s`` of eval.csv).
+With ``--reuse`` the runs already finished are kept, so the 9 task-balancing runs (about
+an hour each at one thread) may span several sessions of the same command.
 """
 
 from __future__ import annotations

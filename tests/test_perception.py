@@ -72,6 +72,37 @@ def test_perception_learns_against_the_mean_and_majority(trained, dataset):
     assert saved["position_error_cm"] == pytest.approx(learned["position_error_cm"])
 
 
+def test_evaluation_reports_frames_near_an_object_apart():
+    """Frames with the agent within 5 cm of an object (where reach and push are judged)
+    get their own error and presence figures; a frame counts as right only when every
+    object's presence is."""
+    from types import SimpleNamespace
+
+    layout = SlotLayout(2, 2, 3, 2)
+    state = np.zeros((4, layout.dim), np.float32)
+    state[:, 2:5] = [0.5, 0.5, 1.0]  # object 0 at (0.5, 0.5)
+    state[:, 5:8] = [0.0, 0.0, 1.0]  # object 1 at (0, 0)
+    state[:, :2] = [[0.51, 0.5], [0.3, 0.3], [0.3, 0.3], [0.02, 0.0]]  # frames 0 and 3 near
+    estimate = state.copy()
+    estimate[0, 2] += 0.03  # 3 cm off, near
+    estimate[1, 7] = 0.0  # object 1 missed, far
+
+    class Model:
+        def observation(self, frames, proprio):
+            return estimate[: len(frames)]
+
+    data = SimpleNamespace(
+        frames=np.zeros((4, 1, 1, 3), np.uint8), proprio=state[:, :2], state=state
+    )
+    res = evaluate(Model(), data, layout)
+    assert res["near_frames"] == 2
+    assert res["near_position_error_cm"] == pytest.approx(1.5, abs=1e-4)  # (3 + 0) / 2
+    assert res["near_within_reach_margin"] == 0.5
+    assert res["near_frames_all_present_right"] == 1.0
+    assert res["frames_all_present_right"] == 0.75
+    assert res["presence_accuracy"] == 7 / 8
+
+
 def test_the_estimate_has_the_observation_layout(trained, dataset):
     model, _ = load_model(trained)
     data, _ = read_dataset(str(dataset), np.arange(3))
@@ -166,6 +197,17 @@ def test_a_policy_reads_the_estimate_not_the_privileged_state(trained, tmp_path)
     policy = lcrl.load(tmp_path / "run", device="cpu")
     o, _ = policy.make_env().reset(seed=0)
     assert policy.act(o, "reach the red cube", initial=o).shape == (2,)
+
+    # its episodes collected for a caption dataset store the true state, not the estimate
+    out = tmp_path / "policy.h5"
+    args = ["caption", "collect", "--env", "lang2d", "--sources", "policy", "--episodes", "2"]
+    args += ["--policy", str(tmp_path / "run"), "--max-episode-steps", "5"]
+    assert cli(*args, "--out", str(out), "--no-progress") == 0
+    data, _ = read_dataset(str(out))
+    again = model.observation(data.frames, data.proprio)
+    assert not np.allclose(again, data.state, atol=1e-3)
+    _, _, present = model.layout.split(data.state)
+    assert set(np.unique(present)) <= {0.0, 1.0}  # the simulator's flags
 
 
 def test_perception_that_does_not_fit_the_env_is_refused(trained, tmp_path, capsys):

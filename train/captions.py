@@ -86,10 +86,12 @@ class PolicyEpisodes:
 def base_observation(obs: dict[str, Any], env: Any) -> np.ndarray:
     """The simulator's own ``observation`` inside one widened by
     :class:`envs.features.SlotFeatures`: the agent values, then each slot's original
-    values (the features come after them in every slot)."""
+    values (the features come after them in every slot). A policy that acts through
+    perception sees estimated slots; the true state beside them (``"privileged"``) is the
+    one stored."""
     from envs.features import slot_layout
 
-    vec = np.asarray(obs["observation"], np.float32)
+    vec = np.asarray(obs.get("privileged", obs["observation"]), np.float32)
     start, count, width = env.unwrapped.slot_layout
     _, _, wide, _ = slot_layout(env)
     slots = vec[start : start + count * wide].reshape(count, wide)[:, :width]
