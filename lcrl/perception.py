@@ -281,16 +281,23 @@ def _stat(stats: Mapping[str, Any], name: str, shape: tuple[int, ...], fill: flo
     return arr
 
 
+#: Smallest position spread a normaliser divides by (metres). Objects resting on the table
+#: barely vary in height over short episodes; dividing by that spread would turn a lifted
+#: object's 10 cm into a hundred standard deviations and swamp the loss.
+MIN_POSITION_STD = 0.01
+
+
 def fit_stats(layout: SlotLayout, state: np.ndarray) -> dict[str, np.ndarray]:
-    """Normalisers of positions (over frames where each object is present) and of the
-    proprioception, from privileged observations ``(N, dim)``."""
+    """Normalisers of positions (over frames where each object is present; spreads at
+    least :data:`MIN_POSITION_STD`) and of the proprioception, from privileged
+    observations ``(N, dim)``."""
     proprio, pos, present = layout.split(state)
     counts = present.sum(0)[:, None]
     mean = np.where(counts > 0, (pos * present[..., None]).sum(0) / np.maximum(counts, 1), 0.0)
     var = (((pos - mean) ** 2) * present[..., None]).sum(0) / np.maximum(counts, 1)
     return {
         "pos_mean": mean.astype(np.float32),
-        "pos_std": np.maximum(np.sqrt(var), 1e-3).astype(np.float32),
+        "pos_std": np.maximum(np.sqrt(var), MIN_POSITION_STD).astype(np.float32),
         "proprio_mean": proprio.mean(0).astype(np.float32),
         "proprio_std": np.maximum(proprio.std(0), 1e-3).astype(np.float32),
     }

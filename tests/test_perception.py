@@ -103,6 +103,32 @@ def test_evaluation_reports_frames_near_an_object_apart():
     assert res["presence_accuracy"] == 7 / 8
 
 
+def test_position_spreads_have_a_floor_and_init_widens_them(capsys):
+    """Objects resting on the table barely vary in height: the normaliser divides by at
+    least MIN_POSITION_STD, and an --init model's spreads grow to its new data's where
+    those are wider (lifted objects), never shrink."""
+    from lcrl.perception import MIN_POSITION_STD, PerceptionConfig
+    from train.perception import widen_normalisers
+
+    layout = SlotLayout(2, 2, 3, 2)
+    state = np.zeros((50, layout.dim), np.float32)
+    state[:, 2:5] = [0.1, 0.2, 1.0]
+    state[:, 5] = np.linspace(-0.3, 0.3, 50)  # object 1 moves along x only
+    state[:, 7] = 1.0
+    stats = fit_stats(layout, state)
+    assert (stats["pos_std"] >= MIN_POSITION_STD).all()
+    assert stats["pos_std"][1, 0] == pytest.approx(np.linspace(-0.3, 0.3, 50).std(), rel=1e-5)
+
+    model = Perception((8, 8, 3), layout, PerceptionConfig(channels=(4,), strides=(1,)), stats)
+    wider = {"pos_std": stats["pos_std"].copy()}
+    wider["pos_std"][0, 1] = 0.5
+    wider["pos_std"][1, 0] = 0.01  # narrower: kept
+    widen_normalisers(model, wider)
+    got = model.pos_std.numpy()
+    assert got[0, 1] == pytest.approx(0.5) and got[1, 0] == pytest.approx(stats["pos_std"][1, 0])
+    assert "widened in 1 of 4" in capsys.readouterr().out
+
+
 def test_the_estimate_has_the_observation_layout(trained, dataset):
     model, _ = load_model(trained)
     data, _ = read_dataset(str(dataset), np.arange(3))

@@ -29,6 +29,7 @@ from lcrl.checkpoint import save_checkpoint
 from lcrl.errors import LcrlError
 from lcrl.perception import (
     FORMAT,
+    MIN_POSITION_STD,
     Perception,
     PerceptionConfig,
     SlotLayout,
@@ -168,6 +169,7 @@ def train(cfg: PerceptionTrainConfig) -> dict[str, Any]:
     torch.manual_seed(cfg.seed)
     if cfg.init:
         model = initial_model(cfg, data.frames.shape[1:], layout, held_eps)
+        widen_normalisers(model, fit_stats(layout, data.state))
     else:
         stats = fit_stats(layout, data.state)
         model = Perception(data.frames.shape[1:], layout, cfg.model, stats)
@@ -257,6 +259,24 @@ def initial_model(
             )
     cfg.model = model.cfg
     return model
+
+
+def widen_normalisers(model: Perception, stats: dict[str, np.ndarray]) -> None:
+    """Widen the position spreads of an ``--init`` model to those of its new training
+    data where they are larger (objects lifted in long episodes, never in short ones), and
+    to at least :data:`lcrl.perception.MIN_POSITION_STD`: a target a hundred spreads away
+    would swamp the loss. The network's outputs for the widened coordinates then mean
+    larger moves; the training that follows refits them."""
+    wide = np.maximum(stats["pos_std"], MIN_POSITION_STD)
+    with torch.no_grad():
+        before = model.pos_std.detach().cpu().numpy().copy()
+        after = np.maximum(before, wide)
+        if (after > before).any():
+            model.pos_std.copy_(torch.as_tensor(after, dtype=model.pos_std.dtype))
+            print(
+                f"--init: position spreads widened in {int((after > before).sum())} of "
+                f"{after.size} slot coordinates to fit the new data"
+            )
 
 
 def save_model(
