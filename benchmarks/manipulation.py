@@ -5,6 +5,13 @@ Run from the repository root::
     python benchmarks/manipulation.py                  # train robosuite-manip to 300k, evaluate
     python benchmarks/manipulation.py --steps 60000    # train up to 60k steps now, evaluate
     python benchmarks/manipulation.py --eval-only      # evaluate the run as it stands
+    python benchmarks/manipulation.py --work runs/bench/robosuite-manip-demos \
+        --demos data/demos-robosuite-manip.h5 --extra "--sac.demo-bc 1.0"
+
+The last starts from scripted demonstrations of all five families (``lcrl demos record
+--preset robosuite-manip --episodes 2000 --out data/demos-robosuite-manip.h5``): the
+actor is cloned from them and the critic pretrained on them before the first episode, and
+they stay in the replay buffer with a Q-filtered BC loss on them.
 
 The run (``lcrl train robosuite-manip``, privileged state: all five families in one policy,
 starts handed over by the scripted controller, chains of instructions, a curriculum over
@@ -74,7 +81,13 @@ def train(args: argparse.Namespace) -> None:
     """Train (or go on training) the run up to ``--steps``."""
     work = Path(args.work)
     cmd = [*LCRL, "train", args.preset, "--out", str(work), "--total-steps", str(args.steps)]
-    cmd += ["--no-progress"] + (["--resume"] if has_checkpoint(work) else [])
+    if has_checkpoint(work):
+        cmd += ["--resume"]  # the run's own settings, its demonstrations included
+    else:
+        if args.demos:
+            cmd += ["--finetune.demos", args.demos]
+        cmd += shlex.split(args.extra)
+    cmd += ["--no-progress"]
     print("== " + shlex.join(cmd), flush=True)
     env = child_env(args)
     subprocess.run(cmd, check=True, env=env)
@@ -239,6 +252,15 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--episodes", type=int, default=100, help="per family and set")
     parser.add_argument(
         "--families", nargs="+", default=list(MANIPULATION_FAMILIES), choices=MANIPULATION_FAMILIES
+    )
+    parser.add_argument(
+        "--demos",
+        default="",
+        help="start from these scripted demonstrations (lcrl demos record): BC-pretrained "
+        "actor and critic, then online language HER (--finetune.demos)",
+    )
+    parser.add_argument(
+        "--extra", default="", help="more lcrl train options for a new run, as one string"
     )
     parser.add_argument("--eval-only", action="store_true", help="evaluate without training")
     parser.add_argument("--gifs", action="store_true", help="an lcrl act GIF per family")

@@ -36,3 +36,22 @@ def test_targets_are_the_issue_targets():
     assert manipulation.TARGETS == {
         "reach": 0.90, "push": 0.80, "lift": 0.70, "put": 0.50, "stack": 0.30, "chain2": 0.60
     }  # fmt: skip
+
+
+def test_a_new_run_starts_from_the_demonstrations_and_a_resumed_one_keeps_its_settings(
+    tmp_path, monkeypatch
+):
+    calls = []
+    monkeypatch.setattr(manipulation.subprocess, "run", lambda cmd, **kw: calls.append(cmd))
+    args = manipulation.argparse.Namespace(
+        preset="robosuite-manip", work=str(tmp_path / "run"), steps=5000, processes=1,
+        demos="d.h5", extra="--sac.demo-bc 1",
+    )  # fmt: skip
+    manipulation.train(args)
+    new = calls[-1]
+    assert new[new.index("--finetune.demos") + 1] == "d.h5"
+    assert new[new.index("--sac.demo-bc") + 1] == "1" and "--resume" not in new
+    (tmp_path / "run" / "checkpoints" / "step_000001000").mkdir(parents=True)
+    manipulation.train(args)
+    again = calls[-1]
+    assert "--resume" in again and "--finetune.demos" not in again and "--sac.demo-bc" not in again
