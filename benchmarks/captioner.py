@@ -47,7 +47,14 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
-from benchmarks.common import RESULTS_DIR, machine, save_figure, save_json, save_markdown
+from benchmarks.common import (
+    RESULTS_DIR,
+    die_with_parent,
+    machine,
+    save_figure,
+    save_json,
+    save_markdown,
+)
 from captioner.dataset import CaptionDataset, CollectConfig
 from captioner.learned import (
     CaptionModelConfig,
@@ -244,7 +251,7 @@ def train_side_by_side(cfg: CaptionTrainConfig) -> Path:
         m: dataclasses.replace(cfg, models=(m,), out=f"{cfg.out}-{m}", progress=False, threads=1)
         for m in cfg.models
     }
-    with ProcessPoolExecutor(len(parts), mp_context=ctx) as pool:
+    with ProcessPoolExecutor(len(parts), mp_context=ctx, initializer=die_with_parent) as pool:
         done = dict(zip(parts, pool.map(_train_one, parts.values()), strict=True))
     return merge_checkpoints(done, cfg)
 

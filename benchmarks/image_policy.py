@@ -33,6 +33,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
 from benchmarks.common import (
     command,
+    die_with_parent,
     machine,
     save_figure,
     save_json,
@@ -152,7 +153,13 @@ def main(argv: list[str] | None = None) -> int:
         logs[family] = open(Path(args.work) / f"{family}.log", "w")  # noqa: SIM115
         cmd = train_args(args, model, family)
         procs[family] = (
-            subprocess.Popen(cmd, stdout=logs[family], stderr=subprocess.STDOUT, env=child_env()),
+            subprocess.Popen(
+                cmd,
+                stdout=logs[family],
+                stderr=subprocess.STDOUT,
+                env=child_env(),
+                preexec_fn=die_with_parent,
+            ),
             time.perf_counter(),
         )
         if not args.parallel:

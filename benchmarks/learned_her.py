@@ -29,7 +29,15 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
-from benchmarks.common import RESULTS_DIR, command, machine, save_figure, save_json, save_markdown
+from benchmarks.common import (
+    RESULTS_DIR,
+    command,
+    die_with_parent,
+    machine,
+    save_figure,
+    save_json,
+    save_markdown,
+)
 from benchmarks.image_policy import LCRL, child_env, evaluate
 
 TARGET_GAP = 0.10
@@ -169,7 +177,11 @@ def main(argv: list[str] | None = None) -> int:
     for name in names:
         log = open(Path(args.work) / f"{name}.log", "w")  # noqa: SIM115
         proc = subprocess.Popen(
-            run_args(args, name), stdout=log, stderr=subprocess.STDOUT, env=child_env()
+            run_args(args, name),
+            stdout=log,
+            stderr=subprocess.STDOUT,
+            env=child_env(),
+            preexec_fn=die_with_parent,
         )
         procs[name] = (proc, log, time.perf_counter())
     for name, (proc, log, t0) in procs.items():

@@ -66,7 +66,7 @@ import matplotlib.pyplot as plt
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
-from benchmarks.common import caption, machine, save_json, save_markdown
+from benchmarks.common import caption, die_with_parent, machine, save_json, save_markdown
 from train.config import PRESETS, BufferConfig, RelabelConfig, TrainConfig
 from train.loop import Trainer
 from train.tasks import EnvConfig
@@ -183,9 +183,11 @@ SUITES: dict[str, dict[str, Any]] = {
 
 
 def _one_thread() -> None:
+    """Initializer of a worker process: one torch thread; it dies with the benchmark."""
     import torch
 
     torch.set_num_threads(1)
+    die_with_parent()
 
 
 def run_config(

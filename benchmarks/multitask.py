@@ -71,6 +71,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 from benchmarks.common import (
     RESULTS_DIR,
     command,
+    die_with_parent,
     machine,
     save_figure,
     save_json,
@@ -144,9 +145,11 @@ def run_config(
 
 
 def _one_thread() -> None:
+    """Initializer of a worker process: one torch thread; it dies with the benchmark."""
     import torch
 
     torch.set_num_threads(1)
+    die_with_parent()
 
 
 def train_one(cfg: TrainConfig) -> float:
