@@ -35,6 +35,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
 from benchmarks.common import (
     RESULTS_DIR,
+    die_with_parent,
     machine,
     save_figure,
     save_json,
@@ -59,7 +60,9 @@ def lcrl(*args: str, log: Path | None = None) -> None:
     cmd = [sys.executable, "-m", "train.cli", *args]
     print("== lcrl " + " ".join(args), flush=True)
     with open(log or os.devnull, "w") as f:
-        done = subprocess.run(cmd, cwd=ROOT, env=env, stdout=f, stderr=subprocess.STDOUT)
+        done = subprocess.run(
+            cmd, cwd=ROOT, env=env, stdout=f, stderr=subprocess.STDOUT, preexec_fn=die_with_parent
+        )
     if done.returncode != 0:
         tail = log.read_text()[-2000:] if log else ""
         raise SystemExit(f"lcrl {' '.join(args)} failed ({done.returncode}):\n{tail}")

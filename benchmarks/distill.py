@@ -24,6 +24,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
 from benchmarks.common import (
     command,
+    die_with_parent,
     machine,
     save_figure,
     save_json,
@@ -60,7 +61,9 @@ def main(argv: list[str] | None = None) -> int:
         t0 = time.perf_counter()
         cmd = [*LCRL, "train", "robosuite-reach", "--out", str(teacher), "--overwrite"]
         cmd += ["--total-steps", str(args.teacher_steps), "--seed", str(args.seed)]
-        subprocess.run([*cmd, "--no-progress"], check=True, env=child_env())
+        subprocess.run(
+            [*cmd, "--no-progress"], check=True, env=child_env(), preexec_fn=die_with_parent
+        )
         times["teacher_train_s"] = round(time.perf_counter() - t0, 1)
     student = work / "student"
     t0 = time.perf_counter()
@@ -68,7 +71,7 @@ def main(argv: list[str] | None = None) -> int:
     cmd += ["--rounds", str(args.rounds), "--episodes-per-round", str(args.episodes_per_round)]
     cmd += ["--updates-per-round", str(args.updates_per_round), "--seed", str(args.seed)]
     cmd += ["--beta-decay", str(args.beta_decay), "--eval-every", "2", "--overwrite"]
-    subprocess.run([*cmd, "--no-progress"], check=True, env=child_env())
+    subprocess.run([*cmd, "--no-progress"], check=True, env=child_env(), preexec_fn=die_with_parent)
     times["student_distill_s"] = round(time.perf_counter() - t0, 1)
 
     results = {

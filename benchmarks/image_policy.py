@@ -102,7 +102,7 @@ def evaluate(run: Path, episodes: int, sets: tuple[str, ...]) -> dict:
     path = run / "final-eval.json"
     cmd = [*LCRL, "eval", str(run), "--episodes", str(episodes), "--json", str(path)]
     cmd += ["--sets", *sets, "--no-progress"]
-    subprocess.run(cmd, check=True, env=child_env())
+    subprocess.run(cmd, check=True, env=child_env(), preexec_fn=die_with_parent)
     return json.loads(path.read_text())["sets"]
 
 

@@ -50,6 +50,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 from benchmarks.common import (
     RESULTS_DIR,
     command,
+    die_with_parent,
     machine,
     save_figure,
     save_json,
@@ -90,7 +91,7 @@ def train(args: argparse.Namespace) -> None:
     cmd += ["--no-progress"]
     print("== " + shlex.join(cmd), flush=True)
     env = child_env(args)
-    subprocess.run(cmd, check=True, env=env)
+    subprocess.run(cmd, check=True, env=env, preexec_fn=die_with_parent)
 
 
 def lcrl_eval(args: argparse.Namespace, out: Path, *options: str) -> dict[str, Any] | None:
@@ -100,7 +101,7 @@ def lcrl_eval(args: argparse.Namespace, out: Path, *options: str) -> dict[str, A
     cmd += [*options, "--no-progress", "--json", str(out)]
     print("== " + shlex.join(cmd), flush=True)
     env = child_env(args)
-    done = subprocess.run(cmd, env=env, capture_output=True, text=True)
+    done = subprocess.run(cmd, env=env, capture_output=True, text=True, preexec_fn=die_with_parent)
     if done.returncode != 0:
         print(done.stderr.strip().splitlines()[-1] if done.stderr.strip() else "failed")
         return None
@@ -194,7 +195,10 @@ def gifs(args: argparse.Namespace) -> dict[str, str]:
         cmd = [*LCRL, "act", args.work, "--instruction", texts[family], "--episodes", "1"]
         cmd += ["--video", str(path), "--fps", "8"]
         env = child_env(args)
-        if subprocess.run(cmd, env=env, capture_output=True).returncode == 0:
+        if (
+            subprocess.run(cmd, env=env, capture_output=True, preexec_fn=die_with_parent).returncode
+            == 0
+        ):
             out[family] = path.name
     return out
 

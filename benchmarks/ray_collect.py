@@ -30,7 +30,14 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
-from benchmarks.common import command, machine, save_figure, save_json, save_markdown
+from benchmarks.common import (
+    command,
+    die_with_parent,
+    machine,
+    save_figure,
+    save_json,
+    save_markdown,
+)
 
 NAME = "ray_collect"
 LCRL = [sys.executable, "-m", "train.cli"]
@@ -50,7 +57,7 @@ def run_args(args: argparse.Namespace, arm: str) -> list[str]:
 def evaluate(run: Path, episodes: int) -> dict:
     path = run / "final-eval.json"
     cmd = [*LCRL, "eval", str(run), "--episodes", str(episodes), "--json", str(path)]
-    subprocess.run([*cmd, "--sets", *SETS, "--no-progress"], check=True)
+    subprocess.run([*cmd, "--sets", *SETS, "--no-progress"], check=True, preexec_fn=die_with_parent)
     return json.loads(path.read_text())["sets"]
 
 
@@ -124,7 +131,12 @@ def main(argv: list[str] | None = None) -> int:
         print("== " + shlex.join(cmd), flush=True)
         t0 = time.perf_counter()
         with open(work / f"{arm}.log", "w") as log:
-            if subprocess.run(cmd, stdout=log, stderr=subprocess.STDOUT).returncode != 0:
+            if (
+                subprocess.run(
+                    cmd, stdout=log, stderr=subprocess.STDOUT, preexec_fn=die_with_parent
+                ).returncode
+                != 0
+            ):
                 raise SystemExit(f"the {arm} run failed: see {log.name}")
         (work / arm / "seconds.txt").write_text(f"{time.perf_counter() - t0:.1f}")
     final = {arm: evaluate(work / arm, args.episodes) for arm in ("local", "ray")}

@@ -31,7 +31,14 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
-from benchmarks.common import command, machine, save_figure, save_json, save_markdown
+from benchmarks.common import (
+    command,
+    die_with_parent,
+    machine,
+    save_figure,
+    save_json,
+    save_markdown,
+)
 
 NAME = "time_to_success"
 PRESET = "lang2d"
@@ -88,7 +95,12 @@ def main(argv: list[str] | None = None) -> int:
         shutil.rmtree(run, ignore_errors=True)
         print("== " + shlex.join(cmd), flush=True)
         with open(work / f"{arm}.log", "w") as log:
-            if subprocess.run(cmd, stdout=log, stderr=subprocess.STDOUT).returncode != 0:
+            if (
+                subprocess.run(
+                    cmd, stdout=log, stderr=subprocess.STDOUT, preexec_fn=die_with_parent
+                ).returncode
+                != 0
+            ):
                 raise SystemExit(f"the {arm} run failed: see {log.name}")
         (run / "command.txt").write_text(shlex.join(cmd))
 
