@@ -343,4 +343,7 @@ def main(argv: list[str] | None = None) -> int:
 
 
 if __name__ == "__main__":
-    raise SystemExit(main())
+    try:
+        raise SystemExit(main())
+    except subprocess.CalledProcessError as e:  # its log says why; a stopped run is kept
+        raise SystemExit(f"the lcrl run stopped (exit status {e.returncode})") from None

@@ -458,4 +458,9 @@ def main(argv: list[str] | None = None) -> int:
 
 
 if __name__ == "__main__":
-    raise SystemExit(main())
+    from train.trainer import RunInterrupted
+
+    try:
+        raise SystemExit(main())
+    except RunInterrupted as stop:  # the run saved its checkpoint; the same command goes on
+        raise SystemExit(f"stopped ({stop}); run the same command to go on") from None
