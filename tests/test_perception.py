@@ -403,3 +403,48 @@ def test_perceived_slots_match_the_env_features(trained):
             origin,
         )
     np.testing.assert_allclose(x[0].numpy(), obs["observation"], atol=1e-5)
+
+
+def test_demonstrations_recorded_through_perception_fill_a_perception_run(
+    trained, tmp_path, capsys
+):
+    """``lcrl demos record --perception``: the file holds perception's estimate as the
+    observation and the true state beside it; a run acting through the same model loads it
+    (``--finetune.demos``), and runs that read the other one are refused in one line."""
+    import h5py
+    from helpers import tiny
+
+    from train.loop import Trainer
+
+    demos = tmp_path / "demos.h5"
+    args = ["demos", "record", "--preset", "lang2d-quick", "--perception", str(trained)]
+    args += ["--families", "reach", "--episodes", "3", "--out", str(demos), "--no-progress"]
+    assert cli(*args) == 0
+    with h5py.File(demos) as f:
+        keys = set(f["obs"])
+        observation, privileged = f["obs/observation"][:], f["obs/privileged"][:]
+    assert {"observation", "privileged"} <= keys
+    assert observation.shape == privileged.shape
+    assert not np.allclose(observation, privileged, atol=1e-3)  # estimate beside the truth
+    np.testing.assert_allclose(observation[:, :2], privileged[:, :2])  # same proprioception
+
+    cfg = tiny("lang2d-quick", tmp_path / "run", total_steps=60, learning_starts=40)
+    cfg.env.perception = str(trained)
+    cfg.env.families = ("reach",)
+    cfg.finetune.demos, cfg.finetune.pretrain_updates = str(demos), 10
+    trainer = Trainer(cfg)
+    trainer.run()
+    assert trainer.step == 60 and trainer.buffer.high > 60  # the demonstrations are stored
+
+    out = tmp_path / "state"
+    assert cli("train", "lang2d-quick", "--finetune.demos", str(demos), "--out", str(out)) == 2
+    line = error_line(capsys.readouterr().err)
+    assert "stores a perception model's estimate" in line and "without --perception" in line
+
+    plain = tmp_path / "plain.h5"
+    args = ["demos", "record", "--preset", "lang2d-quick", "--families", "reach"]
+    assert cli(*args, "--episodes", "2", "--out", str(plain), "--no-progress") == 0
+    args = ["train", "lang2d-quick", "--env.perception", str(trained)]
+    assert cli(*args, "--finetune.demos", str(plain), "--out", str(tmp_path / "p")) == 2
+    line = error_line(capsys.readouterr().err)
+    assert "stores the true state" in line and "--perception MODEL" in line

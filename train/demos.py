@@ -23,6 +23,7 @@ from __future__ import annotations
 import dataclasses
 import json
 import os
+import time
 from collections.abc import Mapping, Sequence
 from dataclasses import asdict, dataclass
 from pathlib import Path
@@ -125,6 +126,7 @@ def check_dataset(data: DemoDataset, path: str, problem: Any, task: Any, env: An
             f"{path}: offline runs relabel instructions (from the stored scene) or state "
             f"goals (from stored achieved_goal), not {task.goal_kind} goals"
         )
+    _check_perception(data, path, env)
     episode = buffer_episode(data, 0, path, task, env)  # names a missing key
     for key, shape in problem.obs_shapes.items():
         got = tuple(episode["obs"][key].shape[1:])
@@ -133,6 +135,26 @@ def check_dataset(data: DemoDataset, path: str, problem: Any, task: Any, env: An
                 f"{path}: observation {key!r} has shape {got}, this run's policy reads "
                 f"{tuple(shape)}: record the file with this run's preset"
             )
+
+
+def _check_perception(data: DemoDataset, path: str, env: Any) -> None:
+    """A run acting through perception reads its estimate: the file must hold one (and a
+    run reading the true state must not be given an estimate as its state)."""
+    from train.perception import find_perception
+
+    acts = env is not None and find_perception(env) is not None
+    recorded = (data.meta.get("env") or {}).get("perception") or ""
+    has_estimate = bool(recorded) and "privileged" in data.obs_shapes
+    if acts and not has_estimate:
+        raise LcrlError(
+            f"{path} stores the true state, and this run acts through a perception model: "
+            "record the file through it (lcrl demos record --perception MODEL)"
+        )
+    if not acts and has_estimate:
+        raise LcrlError(
+            f"{path} stores a perception model's estimate ({recorded}) as its observation, and "
+            "this run reads the true state: record it without --perception"
+        )
 
 
 #: Episode sources whose actions are no demonstrator's (``sac.demo_bc`` leaves them out).
@@ -261,6 +283,11 @@ class RecordConfig:
     """Camera image side in pixels (0: the preset's; robosuite renders 64 or 84)."""
     max_episode_steps: int = 0
     """Time limit of an episode (0: the preset's)."""
+    perception: str = ""
+    """A perception model (``lcrl perception train --out``): record what a policy acting
+    through it reads (its estimate as ``observation``, the true state as ``privileged``),
+    for ``--finetune.demos`` of a run with ``--env.perception`` (default: the preset's
+    own, for presets that act through perception)."""
     keep_failures: bool = True
     """Store episodes whose instruction was not achieved (without a segment for it:
     ``lcrl demos relabel`` labels what they did achieve)."""
@@ -307,6 +334,13 @@ class RecordConfig:
             changes["max_episode_steps"] = self.max_episode_steps
         if self.image_size and env.image_obs:
             changes["image_size"] = self.image_size
+        if self.perception:
+            if env.image_obs:
+                raise LcrlError(
+                    f"preset {self.preset!r} acts from camera frames itself: --perception "
+                    "is for presets that read state"
+                )
+            changes["perception"] = self.perception
         return dataclasses.replace(env, **changes)
 
     def validate(self) -> None:
@@ -429,6 +463,7 @@ def record(cfg: RecordConfig) -> Path:
     won: dict[str, int] = {f: 0 for f in env_cfg.families}
     stats = {"sim_errors": 0, "dropped_failures": 0, "steps": 0}
     bar = tqdm(total=cfg.episodes, disable=not cfg.progress, desc="record", unit="ep")
+    started = time.perf_counter()
     try:
         for i in range(cfg.episodes):
             ep = _record_episode(
@@ -457,6 +492,7 @@ def record(cfg: RecordConfig) -> Path:
         raise LcrlError(
             "no episode to store: every episode failed and --no-keep-failures drops them"
         )
+    stats["record_s"] = round(time.perf_counter() - started, 1)
     writer.update_meta({"per_family": _rates(tried, won), **stats})
     stored = writer.num_episodes
     path = writer.close()
@@ -586,6 +622,8 @@ def _record_episode(
     if info.get("sim_error"):
         return None
     out_obs = {"observation": np.stack([np.asarray(r["observation"], np.float32) for r in rows])}
+    if "privileged" in rows[0]:  # acting through perception: the true state beside it
+        out_obs["privileged"] = np.stack([np.asarray(r["privileged"], np.float32) for r in rows])
     if images:
         out_obs["image"] = np.stack([np.asarray(r["image"], np.uint8) for r in rows])
         out_obs["proprio"] = out_obs["observation"][:, :proprio_dim].copy()
