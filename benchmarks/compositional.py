@@ -34,7 +34,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import shlex
 import subprocess
 import sys
 import time
@@ -43,7 +42,14 @@ from typing import Any
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
-from benchmarks.common import command, machine, save_figure, save_json, save_markdown
+from benchmarks.common import (
+    command,
+    die_with_parent,
+    machine,
+    save_figure,
+    save_json,
+    save_markdown,
+)
 from benchmarks.image_policy import LCRL, child_env
 from train.report import spread
 
@@ -231,7 +237,15 @@ def run_all(args: argparse.Namespace) -> dict[str, float]:
     todo = [(arm, seed) for seed in args.seeds for arm in args.arms]
     todo = [(a, s) for a, s in todo if not (run_dir(args, a, s) / "final-eval.json").is_file()]
     seconds: dict[str, float] = {}
-    running: list[tuple[str, subprocess.Popen, float, Any]] = []
+    # each running (arm, seed): its name, the process now running, the start, the log, and
+    # the commands still to run after it (training, then lcrl eval)
+    running: list[tuple[str, subprocess.Popen, float, Any, list[list[str]]]] = []
+
+    def start(cmd: list[str], log: Any) -> subprocess.Popen:
+        return subprocess.Popen(
+            cmd, stdout=log, stderr=subprocess.STDOUT, env=child_env(), preexec_fn=die_with_parent
+        )
+
     while todo or running:
         while todo and len(running) < args.parallel:
             arm, seed = todo.pop(0)
@@ -242,21 +256,22 @@ def run_all(args: argparse.Namespace) -> dict[str, float]:
             train += arm_args(arm, args.grounding, args.phrasings)
             ev = [*LCRL, "eval", str(out), "--episodes", str(args.episodes), "--num-envs", "1"]
             ev += ["--sets", *SETS, "--no-progress", "--json", str(out / "final-eval.json")]
-            script = " && ".join(shlex.join(cmd) for cmd in (train, ev))
             log = open(out.parent / f"{out.name}.log", "w")  # noqa: SIM115
-            proc = subprocess.Popen(
-                ["bash", "-c", script], stdout=log, stderr=subprocess.STDOUT, env=child_env()
-            )
-            running.append((f"{arm}-s{seed}", proc, time.perf_counter(), log))
+            running.append((f"{arm}-s{seed}", start(train, log), time.perf_counter(), log, [ev]))
         time.sleep(5)
         for item in list(running):
-            name, proc, t0, log = item
+            name, proc, t0, log, rest = item
             if proc.poll() is None:
                 continue
             running.remove(item)
-            log.close()
             if proc.returncode != 0:
+                log.close()
                 raise SystemExit(f"{name} failed: see {log.name}")
+            if rest:  # its next command
+                log.flush()
+                running.append((name, start(rest[0], log), t0, log, rest[1:]))
+                continue
+            log.close()
             seconds[name] = round(time.perf_counter() - t0, 1)
             print(f"{name} done in {seconds[name]:.0f} s", flush=True)
     return seconds

@@ -166,3 +166,56 @@ def test_every_arm_parses_as_train_options():
     same = dataclasses.replace(configs["clipped"], sac=configs["grounded"].sac)
     assert same == configs["grounded"]
     assert configs["pooled"].agent.net.slot_mode == "select"
+
+
+FAKE_LCRL = """
+import json, sys, time
+from pathlib import Path
+argv = sys.argv[1:]
+with open({calls!r}, "a") as f:
+    f.write(argv[0] + " " + argv[argv.index("--out") + 1 if "--out" in argv else 1] + "\\n")
+if argv[0] == "train" and "--seed" in argv and argv[argv.index("--seed") + 1] == "9":
+    sys.exit(3)
+if argv[0] == "train":
+    Path(argv[argv.index("--out") + 1]).mkdir(parents=True)
+if argv[0] == "eval":
+    Path(argv[argv.index("--json") + 1]).write_text(json.dumps({{"sets": {{}}}}))
+"""
+
+
+def test_each_run_trains_then_evaluates_and_a_failure_stops_the_rest(tmp_path, monkeypatch):
+    """run_all starts lcrl train, then lcrl eval of the same run, each a child that dies
+    with the benchmark; a run that fails is named and its evaluation never starts."""
+    import argparse
+    import sys
+
+    import benchmarks.compositional as comp
+
+    calls = tmp_path / "calls.txt"
+    fake = tmp_path / "fake_lcrl.py"
+    fake.write_text(FAKE_LCRL.format(calls=str(calls)))
+    monkeypatch.setattr(comp, "LCRL", [sys.executable, str(fake)])
+    monkeypatch.setattr(comp.time, "sleep", lambda s: None)
+    args = argparse.Namespace(
+        seeds=[0, 1],
+        arms=["pooled"],
+        work=str(tmp_path / "w"),
+        preset="lang2d",
+        steps=10,
+        grounding=1.0,
+        phrasings=16,
+        episodes=2,
+        parallel=2,
+    )
+    seconds = comp.run_all(args)
+    assert sorted(seconds) == ["pooled-s0", "pooled-s1"]
+    lines = calls.read_text().split("\n")
+    for seed in (0, 1):
+        run = tmp_path / "w" / f"pooled-s{seed}"
+        assert lines.index(f"train {run}") < lines.index(f"eval {run}")
+        assert (run / "final-eval.json").is_file()
+
+    args.seeds, args.work = [9], str(tmp_path / "bad")
+    with pytest.raises(SystemExit, match="pooled-s9 failed"):
+        comp.run_all(args)
+    assert "eval " + str(tmp_path / "bad" / "pooled-s9") not in calls.read_text()
