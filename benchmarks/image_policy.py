@@ -73,12 +73,11 @@ def perception_stage(args: argparse.Namespace) -> tuple[Path, dict[str, float]]:
 
 
 #: How push starts from demonstrations (docs/training.md): episodes as long as the
-#: scripted ones, chains and starts along them, a BC term on the demonstrators' actions.
+#: scripted ones, starts along them, a BC term on the demonstrators' actions (chains of
+#: instructions are not available through perception).
 PUSH_DEMO_RECIPE = [
     "--env.max-episode-steps",
     "100",
-    "--explore.chain",
-    "0.5",
     "--explore.handover",
     "0.3",
     "--explore.handover-steps",
@@ -404,7 +403,7 @@ def render(payload: dict, info: dict) -> None:
             "",
             f"Push starts from {headline['push_demo_episodes']} scripted episodes recorded "
             "through the same perception model (`lcrl demos record --perception`), with a BC "
-            "term on their actions, chains and starts along them (`--finetune.demos`, "
+            "term on their actions and starts along them (`--finetune.demos`, "
             "`--sac.demo-bc 1.0`; docs/training.md). The push wall clock counts perception, "
             "the recording and the training.",
         ]
