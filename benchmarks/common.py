@@ -134,27 +134,29 @@ def save_json(name: str, payload: dict[str, Any]) -> Path:
     return path
 
 
-def save_markdown(name: str, title: str, body: str, info: dict[str, Any]) -> Path:
-    """Write ``results/<name>.md`` with the command and machine above ``body``."""
+def save_markdown(
+    name: str, title: str, body: str, info: dict[str, Any], cmd: str | None = None
+) -> Path:
+    """Write ``results/<name>.md`` with the command (``cmd``, default this process's) and
+    machine above ``body``."""
     RESULTS_DIR.mkdir(parents=True, exist_ok=True)
     path = RESULTS_DIR / f"{name}.md"
-    path.write_text(
-        f"# {title}\n\nCommand: `{command()}`\n\nMachine: {machine_line(info)}\n\n{body}\n"
-    )
+    cmd = cmd or command()
+    path.write_text(f"# {title}\n\nCommand: `{cmd}`\n\nMachine: {machine_line(info)}\n\n{body}\n")
     return path
 
 
-def caption(fig: Any, info: dict[str, Any]) -> None:
+def caption(fig: Any, info: dict[str, Any], cmd: str | None = None) -> None:
     """Put the command and machine under a matplotlib figure."""
-    fig.text(0.01, 0.01, f"{command()}\n{machine_line(info)}", fontsize=6, va="bottom")
+    fig.text(0.01, 0.01, f"{cmd or command()}\n{machine_line(info)}", fontsize=6, va="bottom")
 
 
-def save_figure(name: str, fig: Any, info: dict[str, Any]) -> Path:
-    """Caption a matplotlib figure with the command and machine, write
-    ``results/<name>.png`` and close it."""
+def save_figure(name: str, fig: Any, info: dict[str, Any], cmd: str | None = None) -> Path:
+    """Caption a matplotlib figure with the command (default this process's) and machine,
+    write ``results/<name>.png`` and close it."""
     import matplotlib.pyplot as plt
 
-    caption(fig, info)
+    caption(fig, info, cmd)
     RESULTS_DIR.mkdir(parents=True, exist_ok=True)
     path = RESULTS_DIR / f"{name}.png"
     fig.savefig(path, dpi=120)

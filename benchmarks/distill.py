@@ -22,6 +22,7 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
+from benchmarks import common
 from benchmarks.common import (
     command,
     die_with_parent,
@@ -38,6 +39,39 @@ TARGET_GAP = 0.05
 SETS = ("train", "heldout", "paraphrase")
 
 
+def distill(args: argparse.Namespace, teacher: Path, student: Path) -> float:
+    """``lcrl distill`` of ``teacher`` into ``student``; the seconds it took."""
+    t0 = time.perf_counter()
+    cmd = [*LCRL, "distill", str(teacher), "--perception", args.perception, "--out", str(student)]
+    cmd += ["--rounds", str(args.rounds), "--episodes-per-round", str(args.episodes_per_round)]
+    cmd += ["--updates-per-round", str(args.updates_per_round), "--seed", str(args.seed)]
+    cmd += ["--beta-decay", str(args.beta_decay), "--eval-every", "2", "--overwrite"]
+    subprocess.run([*cmd, "--no-progress"], check=True, env=child_env(), preexec_fn=die_with_parent)
+    return round(time.perf_counter() - t0, 1)
+
+
+def rows(path: Path) -> list[dict[str, float]]:
+    with open(path) as f:
+        return [{k: float(v) for k, v in r.items() if v != ""} for r in csv.DictReader(f)]
+
+
+def push_stage(args: argparse.Namespace) -> dict:
+    """The push teacher distilled too: both evaluated on seen push instructions."""
+    teacher, student = Path(args.push_teacher), Path(args.work) / "push-student"
+    seconds = distill(args, teacher, student)
+    t = evaluate(teacher, args.final_episodes, ("train",))["train"]
+    s = evaluate(student, args.final_episodes, ("train",))["train"]
+    return {
+        "teacher": str(teacher),
+        "student_distill_s": seconds,
+        "final": {
+            "teacher": {"success": t["success"], "ci": t["ci"]},
+            "student": {"success": s["success"], "ci": s["ci"]},
+        },
+        "rounds": rows(student / "progress.csv"),
+    }
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--teacher", default="", help="a privileged-state reach run")
@@ -50,11 +84,33 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--beta-decay", type=float, default=0.5)
     parser.add_argument("--final-episodes", type=int, default=100)
     parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument(
+        "--push-teacher", default="", help="a privileged-state push run, distilled the same way"
+    )
+    parser.add_argument(
+        "--push-only",
+        action="store_true",
+        help="distil the push teacher alone; reach's figures stay those of the result file",
+    )
     args = parser.parse_args(argv)
+    if args.push_only and not args.push_teacher:
+        parser.error("--push-only distils --push-teacher RUN")
 
     info = machine()
     work = Path(args.work)
     work.mkdir(parents=True, exist_ok=True)
+    if args.push_only:
+        path = common.RESULTS_DIR / f"{NAME}.json"
+        if not path.is_file():
+            parser.error(f"--push-only keeps reach's figures from {path}, which is missing")
+        payload = json.loads(path.read_text())
+        payload["push"] = {**push_stage(args), "command": command(), "machine": info}
+        payload["command"] = f"{payload['command']} && {command()}"
+        add_push(payload)
+        save_json(NAME, payload)
+        render(payload, info)
+        print(json.dumps(payload["headline"], indent=1))
+        return 0
     times = {}
     teacher = Path(args.teacher) if args.teacher else work / "teacher"
     if not args.teacher:
@@ -66,22 +122,13 @@ def main(argv: list[str] | None = None) -> int:
         )
         times["teacher_train_s"] = round(time.perf_counter() - t0, 1)
     student = work / "student"
-    t0 = time.perf_counter()
-    cmd = [*LCRL, "distill", str(teacher), "--perception", args.perception, "--out", str(student)]
-    cmd += ["--rounds", str(args.rounds), "--episodes-per-round", str(args.episodes_per_round)]
-    cmd += ["--updates-per-round", str(args.updates_per_round), "--seed", str(args.seed)]
-    cmd += ["--beta-decay", str(args.beta_decay), "--eval-every", "2", "--overwrite"]
-    subprocess.run([*cmd, "--no-progress"], check=True, env=child_env(), preexec_fn=die_with_parent)
-    times["student_distill_s"] = round(time.perf_counter() - t0, 1)
+    times["student_distill_s"] = distill(args, teacher, student)
 
     results = {
         name: evaluate(run, args.final_episodes, SETS)
         for name, run in (("teacher", teacher), ("student", student))
     }
-    with open(student / "progress.csv") as f:
-        rounds = [{k: float(v) for k, v in r.items() if v != ""} for r in csv.DictReader(f)]
-    with open(student / "eval.csv") as f:
-        evals = [{k: float(v) for k, v in r.items() if v != ""} for r in csv.DictReader(f)]
+    rounds, evals = rows(student / "progress.csv"), rows(student / "eval.csv")
     t, s = results["teacher"], results["student"]
     headline = {
         "teacher_seen": round(t["train"]["success"], 3),
@@ -94,61 +141,123 @@ def main(argv: list[str] | None = None) -> int:
         "labelled_states": int(rounds[-1]["rows"]),
         "student_distill_s": times["student_distill_s"],
     }
-    reached = {"within_5_points": headline["gap"] <= TARGET_GAP}
     teacher_cfg = json.loads((teacher / "config.json").read_text())
-    save_json(
-        NAME,
-        {
-            "headline": headline,
-            "target": f"student_seen >= teacher_seen - {TARGET_GAP}",
-            "reached": reached,
-            "command": command(),
-            "machine": info,
-            "settings": vars(args),
-            "teacher_config": {k: teacher_cfg[k] for k in ("env", "total_steps", "seed")},
-            "times": times,
-            "final": {
-                who: {k: {"success": v["success"], "ci": v["ci"]} for k, v in r.items()}
-                for who, r in results.items()
-            },
-            "rounds": rounds,
-            "student_evals": evals,
+    payload = {
+        "headline": headline,
+        "target": f"student_seen >= teacher_seen - {TARGET_GAP}",
+        "reached": {"within_5_points": headline["gap"] <= TARGET_GAP},
+        "command": command(),
+        "machine": info,
+        "settings": vars(args),
+        "teacher_config": {k: teacher_cfg[k] for k in ("env", "total_steps", "seed")},
+        "times": times,
+        "final": {
+            who: {k: {"success": v["success"], "ci": v["ci"]} for k, v in r.items()}
+            for who, r in results.items()
         },
+        "rounds": rounds,
+        "student_evals": evals,
+    }
+    if args.push_teacher:
+        payload["push"] = push_stage(args)
+        add_push(payload)
+    save_json(NAME, payload)
+    render(payload, info)
+    print(json.dumps(headline, indent=1))
+    return 0
+
+
+def add_push(payload: dict) -> None:
+    """The push figures into the headline and the verdicts."""
+    final = payload["push"]["final"]
+    teacher, student = final["teacher"]["success"], final["student"]["success"]
+    payload["headline"].update(
+        push_teacher_seen=round(teacher, 3),
+        push_student_seen=round(student, 3),
+        push_gap=round(teacher - student, 3),
     )
+    payload["reached"]["push_within_5_points"] = teacher - student <= TARGET_GAP
+
+
+def render(payload: dict, info: dict) -> None:
+    """The Markdown table and the figure of a result payload."""
+    final, rounds, headline = payload["final"], payload["rounds"], payload["headline"]
+    t, s = final["teacher"], final["student"]
+    episodes = payload["settings"]["final_episodes"]
+
+    def cell(v: dict) -> str:
+        return f"{v['success']:.2f} [{v['ci'][0]:.2f}, {v['ci'][1]:.2f}]"
+
     lines = [
         "| set | teacher (privileged state) | student (camera, perception) |",
         "|---|---:|---:|",
+        *(f"| reach, {k} | {cell(t[k])} | {cell(s[k])} |" for k in SETS),
     ]
-    for k in SETS:
-        a, b = t[k], s[k]
-        lines.append(
-            f"| {k} | {a['success']:.2f} [{a['ci'][0]:.2f}, {a['ci'][1]:.2f}] | "
-            f"{b['success']:.2f} [{b['ci'][0]:.2f}, {b['ci'][1]:.2f}] |"
-        )
+    push = payload.get("push")
+    if push is not None:
+        pt, ps = push["final"]["teacher"], push["final"]["student"]
+        lines.append(f"| push, train | {cell(pt)} | {cell(ps)} |")
+
+    def round_table(rounds: list[dict]) -> list[str]:
+        return [
+            "| round | teacher's share | student loss | mixed-policy success | labelled states |",
+            "|---:|---:|---:|---:|---:|",
+            *(
+                f"| {int(r['step'])} | {r['teacher_share']:.2f} | {r['loss']:.4f} | "
+                f"{r['success']:.2f} | {int(r['rows'])} |"
+                for r in rounds
+            ),
+        ]
+
+    gap, reached = headline["gap"], payload["reached"]
     lines += [
         "",
-        "| round | teacher's share | student loss | mixed-policy success | labelled states |",
-        "|---:|---:|---:|---:|---:|",
-        *(
-            f"| {int(r['step'])} | {r['teacher_share']:.2f} | {r['loss']:.4f} | "
-            f"{r['success']:.2f} | {int(r['rows'])} |"
-            for r in rounds
-        ),
+        "Reach:",
+        "",
+        *round_table(rounds),
         "",
         f"Target: student within {TARGET_GAP:.2f} of the teacher on seen instructions: "
-        f"{'reached' if reached['within_5_points'] else 'NOT reached'} (gap "
-        f"{headline['gap']:+.2f}). Distillation took {times['student_distill_s']:.0f} s.",
+        f"{'reached' if reached['within_5_points'] else 'NOT reached'} (gap {gap:+.2f}). "
+        f"Distillation took {headline['student_distill_s']:.0f} s.",
     ]
-    save_markdown(
-        NAME, "Teacher -> student distillation (DAgger), robosuite reach", "\n".join(lines), info
+    if push is not None:
+        lines += [
+            "",
+            f"Push (teacher `{push['teacher']}`, privileged state, started from scripted "
+            "demonstrations; the student acts through the same perception model as for "
+            "reach):",
+            "",
+            *round_table(push["rounds"]),
+            "",
+            f"Push: student within {TARGET_GAP:.2f} of the teacher: "
+            f"{'reached' if reached['push_within_5_points'] else 'NOT reached'} (gap "
+            f"{headline['push_gap']:+.2f}). Distillation took {push['student_distill_s']:.0f} s.",
+        ]
+        if push.get("command"):
+            lines += [
+                "",
+                f"Push was distilled by `{push['command']}` (on {push['machine']['date']}); "
+                f"reach's figures are those of the first command (on "
+                f"{payload['machine']['date']}).",
+            ]
+    title = "Teacher -> student distillation (DAgger), robosuite reach" + (
+        " and push" if push else ""
     )
+    save_markdown(NAME, title, "\n".join(lines), payload["machine"], payload["command"])
 
     import matplotlib.pyplot as plt
 
     fig, (ax1, ax2) = plt.subplots(1, 2, figsize=(10, 4))
     steps = [r["step"] for r in rounds]
-    ax1.plot(steps, [r["loss"] for r in rounds], "o-", label="student loss (teacher labels)")
-    ax1.set(xlabel="DAgger round", ylabel="squared action error", yscale="log")
+    ax1.plot(steps, [r["loss"] for r in rounds], "o-", label="reach: student loss")
+    if push is not None:
+        ax1.plot(
+            [r["step"] for r in push["rounds"]],
+            [r["loss"] for r in push["rounds"]],
+            "^-",
+            label="push: student loss",
+        )
+    ax1.set(xlabel="DAgger round", ylabel="squared action error (teacher labels)", yscale="log")
     ax1b = ax1.twinx()
     ax1b.plot(
         steps, [r["teacher_share"] for r in rounds], "s--", c="tab:orange", label="teacher share"
@@ -156,13 +265,14 @@ def main(argv: list[str] | None = None) -> int:
     ax1b.set(ylabel="teacher's share of the actions", ylim=(0, 1.05))
     ax1.legend(loc="upper right")
     names = [f"{who}\n{k}" for k in SETS for who in ("teacher", "student")]
-    vals = [results[who][k] for k in SETS for who in ("teacher", "student")]
-    colors = ["tab:grey", "tab:blue"] * len(SETS)
-    success_bars(ax2, names, vals, args.final_episodes, color=colors)
+    vals = [final[who][k] for k in SETS for who in ("teacher", "student")]
+    if push is not None:
+        names += ["teacher\npush", "student\npush"]
+        vals += [push["final"]["teacher"], push["final"]["student"]]
+    colors = ["tab:grey", "tab:blue"] * (len(names) // 2)
+    success_bars(ax2, names, vals, episodes, color=colors)
     fig.tight_layout(rect=(0, 0.06, 1, 1))
-    save_figure(NAME, fig, info)
-    print(json.dumps(headline, indent=1))
-    return 0
+    save_figure(NAME, fig, info, payload["command"])
 
 
 if __name__ == "__main__":

@@ -31,6 +31,7 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
+from benchmarks import common
 from benchmarks.common import (
     command,
     die_with_parent,
@@ -198,7 +199,7 @@ def main(argv: list[str] | None = None) -> int:
         parser.error("--push-only and --no-push exclude each other")
     previous = None
     if args.push_only:
-        path = Path(__file__).parent / "results" / f"{NAME}.json"
+        path = common.RESULTS_DIR / f"{NAME}.json"
         if not path.is_file():
             parser.error(f"--push-only keeps reach's figures from {path}, which is missing")
         previous = json.loads(path.read_text())
@@ -307,7 +308,8 @@ def main(argv: list[str] | None = None) -> int:
         "headline": headline,
         "targets": TARGETS,
         "reached": reached,
-        "command": command() if previous is None else previous["command"],
+        # merged: the command that made reach's figures, then the one that made push's
+        "command": command() if previous is None else f"{previous['command']} && {command()}",
         "machine": info,
         "settings": settings,
         "times": times,
@@ -393,7 +395,7 @@ def render(payload: dict, info: dict) -> None:
         lines += [
             "",
             f"Push was trained and evaluated again by `{payload['push_command']}` "
-            f"(on {info['date']}); reach's figures are those of the command above "
+            f"(on {info['date']}); reach's figures are those of the first command "
             f"(on {payload['reach_machine']['date']}).",
         ]
     if headline.get("push_seen_without_demos") is not None:
@@ -407,9 +409,8 @@ def render(payload: dict, info: dict) -> None:
             "`--sac.demo-bc 1.0`; docs/training.md). The push wall clock counts perception, "
             "the recording and the training.",
         ]
-    save_markdown(
-        NAME, "Robosuite tabletop from camera images: reach (and push)", "\n".join(lines), info
-    )
+    title = "Robosuite tabletop from camera images: reach (and push)"
+    save_markdown(NAME, title, "\n".join(lines), info, payload["command"])
 
     import matplotlib.pyplot as plt
 
@@ -425,7 +426,7 @@ def render(payload: dict, info: dict) -> None:
     success_bars(ax2, names, values, episodes, color="tab:blue")
     ax2.set_title(f"final policy; {wall:.0f} s to the reach policy")
     fig.tight_layout(rect=(0, 0.06, 1, 1))
-    save_figure(NAME, fig, info)
+    save_figure(NAME, fig, info, payload["command"])
 
 
 if __name__ == "__main__":

@@ -116,3 +116,25 @@ def test_students_and_teachers_that_cannot_work_are_refused(teacher, perception,
     assert cli("distill", str(teacher), "--perception", str(other), *out) == 2
     line = error_line(capsys.readouterr().err)
     assert "the perception model reads [4, 8, 4, 3]" in line and "[2, 8, 3, 2]" in line
+
+
+def test_the_student_does_not_inherit_how_the_teacher_explored(tmp_path):
+    """A teacher trained with chains, hand-overs and demonstrations (robosuite-push from
+    demos) gives a student config without them: DAgger collects its own episodes, and
+    chains are not available through perception."""
+    import dataclasses
+
+    from train.config import ExploreConfig, FinetuneConfig
+    from train.distill import student_config
+
+    base = tiny("lang2d-quick", tmp_path / "teacher")
+    teacher_cfg = dataclasses.replace(
+        base,
+        explore=ExploreConfig(chain=0.5, handover=0.3),
+        finetune=FinetuneConfig(demos=str(tmp_path / "demos.h5")),
+    )
+    cfg = student_config(teacher_cfg, perception=str(tmp_path / "p"), out=str(tmp_path / "s"))
+    assert cfg.explore == ExploreConfig() and cfg.finetune == FinetuneConfig()
+    assert cfg.env.perception == str(tmp_path / "p") and cfg.algo == "bc"
+    assert cfg.env.families == teacher_cfg.env.families
+    cfg.validate()  # chains with perception would be refused

@@ -34,7 +34,7 @@ import numpy as np
 
 from lcrl.buffer import Batch
 from lcrl.errors import LcrlError
-from train.config import BCConfig, TrainConfig
+from train.config import BCConfig, ExploreConfig, FinetuneConfig, TrainConfig
 from train.evaluate import build_agent, build_task, load_policy, resolve_checkpoint
 from train.loop import attach_grounding, checkpoint_meta
 from train.tasks import make_env
@@ -54,7 +54,10 @@ def student_config(
 ) -> TrainConfig:
     """The student's run config: the teacher's environment and networks, acting through
     ``perception`` (or from ``image_obs``), cloned with ``algo="bc"``; ``overrides`` set
-    any other :class:`TrainConfig` field (``distill``, ``total_steps`` ...).
+    any other :class:`TrainConfig` field (``distill``, ``total_steps`` ...). How the
+    teacher's own episodes were shaped (``explore``: chains, hand-overs, a curriculum) and
+    the demonstrations it started from (``finetune``) are not the student's: DAgger
+    collects its episodes itself.
 
     Raises:
         LcrlError: neither a perception model nor image observations, or both.
@@ -75,6 +78,8 @@ def student_config(
         algo="bc",
         bc=BCConfig(loss="mse", hindsight=False),
         demos="",
+        explore=ExploreConfig(),
+        finetune=FinetuneConfig(),
         resume=False,
         overwrite=False,
         **overrides,

@@ -1,0 +1,78 @@
+"""Benchmarks that add push to a reach result (``--push-only``): reach's figures stay as
+the result file has them, push's are added, and the file's command reproduces both."""
+
+from __future__ import annotations
+
+import json
+import shutil
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parent.parent
+
+
+@pytest.fixture
+def results(tmp_path, monkeypatch):
+    import benchmarks.common as common
+
+    out = tmp_path / "results"
+    out.mkdir()
+    monkeypatch.setattr(common, "RESULTS_DIR", out)
+    return out
+
+
+def test_distill_push_only_keeps_reach_and_adds_push(results, tmp_path, monkeypatch):
+    import benchmarks.distill as distill
+
+    shutil.copy(ROOT / "benchmarks/results/distill-robosuite.json", results)
+    before = json.loads((results / "distill-robosuite.json").read_text())
+    rounds = [{"step": 1.0, "teacher_share": 1.0, "loss": 0.1, "success": 0.5, "rows": 90.0}]
+    fake = {
+        "teacher": "runs/push-teacher",
+        "student_distill_s": 12.0,
+        "final": {
+            "teacher": {"success": 0.98, "ci": [0.93, 0.99]},
+            "student": {"success": 0.9, "ci": [0.83, 0.94]},
+        },
+        "rounds": rounds,
+    }
+    monkeypatch.setattr(distill, "push_stage", lambda args: dict(fake))
+    argv = ["--perception", "p", "--push-teacher", "runs/push-teacher", "--push-only"]
+    monkeypatch.setattr("sys.argv", ["benchmarks/distill.py", *argv])
+    assert distill.main(argv) == 0
+    after = json.loads((results / "distill-robosuite.json").read_text())
+    h = after["headline"]
+    assert h["student_seen"] == before["headline"]["student_seen"]  # reach kept
+    assert (h["push_teacher_seen"], h["push_student_seen"], h["push_gap"]) == (0.98, 0.9, 0.08)
+    assert after["reached"]["push_within_5_points"] is False
+    push_cmd = "python benchmarks/distill.py " + " ".join(argv)
+    assert after["command"] == f"{before['command']} && {push_cmd}"
+    md = (results / "distill-robosuite.md").read_text()
+    assert "| push, train | 0.98 [0.93, 0.99] | 0.90 [0.83, 0.94] |" in md
+    assert "NOT reached (gap +0.08)" in md and (results / "distill-robosuite.png").is_file()
+
+    with pytest.raises(SystemExit):  # push-only needs the push teacher
+        distill.main(["--perception", "p", "--push-only"])
+
+
+def test_image_policy_renders_push_from_demonstrations(results):
+    import benchmarks.image_policy as ip
+
+    payload = json.loads((ROOT / "benchmarks/results/robosuite-image-reach.json").read_text())
+    payload["headline"].update(
+        push_seen=0.9,
+        push_demo_episodes=600,
+        push_wall_clock_s=5000.0,
+        push_seen_without_demos=0.05,
+    )
+    payload["times"].update(push_demos_record_s=544.0, push_train_s=2000.0)
+    payload["command"] = "python a.py && python b.py --push-only"
+    payload["push_command"] = "python b.py --push-only"
+    payload["reach_machine"] = payload["machine"]
+    ip.render(payload, payload["machine"])
+    md = (results / "robosuite-image-reach.md").read_text()
+    assert "Command: `python a.py && python b.py --push-only`" in md
+    assert "| push: record 600 demonstrations through perception | 544 |" in md
+    assert "| **to a push policy** | **5000** |" in md
+    assert "Push without demonstrations: 0.05." in md
