@@ -391,6 +391,14 @@ def render(payload: dict, info: dict) -> None:
             else ""
         ),
     ]
+    if payload.get("push_command"):  # the sentences above are about the first command
+        lines[-1] = lines[-1].replace(
+            "Reach and push trained",
+            "The first command trained reach and push (without demonstrations)",
+        )
+        lines[-1] = lines[-1].replace(
+            "by this command without --eval-only; this pass", "without --eval-only; its pass"
+        )
     if payload.get("push_command"):
         lines += [
             "",
