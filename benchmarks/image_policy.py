@@ -332,6 +332,7 @@ def render(payload: dict, info: dict) -> None:
     reach, push = final["reach"], final["push"]
     wall = headline["wall_clock_s"]
     episodes = settings["final_episodes"]
+    merged = bool(payload.get("push_command"))  # sentences on settings: the first command
 
     def row(name: str, v: dict) -> str:
         return f"| {name} | {v['success']:.2f} | [{v['ci'][0]:.2f}, {v['ci'][1]:.2f}] |"
@@ -380,25 +381,27 @@ def render(payload: dict, info: dict) -> None:
         f"{TARGETS['wall_clock_s']:.0f} s ({verdict(reached['wall_clock_s'])}; "
         f"{GOAL_WALL_CLOCK_S:.0f} s: {verdict(reached['wall_clock_goal_3600_s'])})."
         + (
-            " Reach and push trained side by side, one torch thread each."
+            (
+                " The first command trained reach and push (without demonstrations) side by "
+                "side, one torch thread each."
+                if merged
+                else " Reach and push trained side by side, one torch thread each."
+            )
             if settings.get("parallel")
             else ""
         )
         + (
-            " The runs were trained by this command without --eval-only; this pass evaluated "
-            "them (training time: from each run's config.json to its report.md)."
+            (
+                " The runs were trained without --eval-only; its pass evaluated "
+                if merged
+                else " The runs were trained by this command without --eval-only; this pass "
+                "evaluated "
+            )
+            + "them (training time: from each run's config.json to its report.md)."
             if settings.get("eval_only")
             else ""
         ),
     ]
-    if payload.get("push_command"):  # the sentences above are about the first command
-        lines[-1] = lines[-1].replace(
-            "Reach and push trained",
-            "The first command trained reach and push (without demonstrations)",
-        )
-        lines[-1] = lines[-1].replace(
-            "by this command without --eval-only; this pass", "without --eval-only; its pass"
-        )
     if payload.get("push_command"):
         lines += [
             "",
