@@ -248,6 +248,23 @@ def _keep_timings(results: dict[str, Any]) -> None:
             res["seconds"] = prev["seconds"]
 
 
+def carry_over(results: dict[str, Any], names: set[str], path: Path | None = None) -> None:
+    """Runs of the previous results that this invocation does not train (another run
+    name, e.g. ``lang`` beside a task-balancing invocation) stay in the file, each with
+    the command and date that produced it (``kept_from``), so a partial invocation never
+    drops figures that the rest of the documentation quotes."""
+    path = path or RESULTS_DIR / f"{NAME}.json"
+    if not path.exists():
+        return
+    old = json.loads(path.read_text())
+    source = {"command": old.get("command"), "date": old.get("machine", {}).get("date")}
+    for key, res in old.get("runs", {}).items():
+        name = res.get("run", key)
+        if key in results or name in names:
+            continue
+        results[key] = {"run": name, **res, "kept_from": res.get("kept_from", source)}
+
+
 def balance(r: dict[str, Any]) -> str:
     """How a run balanced its tasks."""
     if r.get("weighting") == "gradnorm":
@@ -295,6 +312,10 @@ def markdown(results: dict[str, Any], tasks: tuple[str, ...], episodes: int) -> 
         cells = [_cell(r["final"]["tasks"][i]) for r in results.values()]
         lines.append(f"| {i}: {text} | " + " | ".join(cells) + " |")
     lines += ["", "Success per task with 95% Wilson intervals over that task's episodes."]
+    kept = {k: r["kept_from"] for k, r in results.items() if r.get("kept_from")}
+    for key, src in kept.items():
+        cmd = src.get("command") or "an earlier version of this benchmark"
+        lines.append(f"\n`{key}` is kept from an earlier invocation ({src.get('date')}): {cmd}.")
     return "\n".join(lines)
 
 
@@ -426,6 +447,7 @@ def main(argv: list[str] | None = None) -> int:
     for (name, _), key in keys.items():
         results[key] = {"run": name, **summarise(name, configs[key], seconds[key])}
     _keep_timings(results)
+    carry_over(results, set(args.runs))
     any_cfg = next(iter(configs.values()))
     tasks = task_texts(any_cfg.env)
     payload: dict[str, Any] = {"suite": NAME}
