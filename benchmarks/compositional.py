@@ -7,6 +7,8 @@ budget.
     python benchmarks/compositional.py --env robosuite --steps 30000 --arms pooled clipped \
         --also grounded  # reach, privileged state
     python benchmarks/compositional.py --env lang2d --preset lang2d-quick --steps 8000
+    python benchmarks/compositional.py --env lang2d --arms pooled phrased --canonical phrased \
+        --headline-arm phrased-canonical  # the phrased policies behind a canonical reader
 
 Arms (``--arms``): ``pooled`` (``--agent.net.slot-mode select``, no grounding loss),
 ``attributes`` (``--agent.net.slot-mode attributes``), ``grounded`` (attributes and
@@ -15,7 +17,12 @@ also read training-only phrasings of the instructions, whose words the paraphras
 never uses) and ``reader`` (phrased, and ``--env.text-reader``: the goal vector adds a
 token-level reader's parse of the instruction); ``clipped`` is grounded with the critic's
 TD targets clipped to the value bound of success rewards (``--sac.target-clip 1.0``),
-which keeps a critic from diverging past it. Each arm trains one run per seed
+which keeps a critic from diverging past it; ``canonical`` is grounded with
+``--env.canonical-reader`` (a token-level reader turns each instruction into the canonical
+sentence of the meaning it reads, and the policy reads that). ``--canonical ARM``
+evaluates an arm's finished runs again with ``lcrl eval --canonical-reader``, reported as
+``ARM-canonical`` (the same policies, a reader fitted in front of them; its figures go to
+``canonical-eval.json`` beside ``final-eval.json``). Each arm trains one run per seed
 (``lcrl train PRESET --seed S``), two runs at a time with one torch thread each, and is
 evaluated with ``lcrl eval`` (100 episodes per set: seen, held-out combinations,
 paraphrases). Finished runs (their ``final-eval.json``) are kept, so an interrupted
@@ -59,7 +66,9 @@ TARGETS = {
     "robosuite": {"seen": 0.85, "heldout_ratio": 0.70},
 }
 SETS = ("train", "heldout", "paraphrase")
-ARMS = ("pooled", "attributes", "grounded", "phrased", "reader", "clipped")
+ARMS = ("pooled", "attributes", "grounded", "phrased", "reader", "clipped", "canonical")
+#: The suffix of an arm's runs evaluated through a canonical reader (``--canonical``).
+READ = "-canonical"
 
 
 def arm_args(arm: str, grounding: float, phrasings: int = 16) -> list[str]:
@@ -82,6 +91,10 @@ def arm_args(arm: str, grounding: float, phrasings: int = 16) -> list[str]:
         grounded = [*attributes, "--agent.grounding", str(grounding), *unclipped]
         phrased = [*grounded, "--env.phrasings", str(phrasings)]
         return phrased if arm == "phrased" else [*phrased, "--env.text-reader"]
+    if arm == "canonical":
+        return [*attributes, "--agent.grounding", str(grounding), *unclipped]
+    if arm.endswith(READ):  # the same training; the reader comes in at evaluation
+        return arm_args(arm.removesuffix(READ), grounding, phrasings)
     raise SystemExit(f"unknown arm {arm!r}; choose from {ARMS}")
 
 
@@ -131,11 +144,12 @@ def reached(env: str, h: dict[str, Any]) -> dict[str, bool]:
     return {k: h[k] >= v for k, v in TARGETS[env].items()}
 
 
-def slot_selection(run: Path) -> dict[str, Any] | None:
+def slot_selection(run: Path, canonical: bool = False) -> dict[str, Any] | None:
     """What the trained actor's slot reader picks for each instruction of the run's split
     (its first head's top slot against the object the instruction names), per set: the
-    fraction right and the sentences it gets wrong. None for a run without checkpoints or
-    without a ``select`` or ``attributes`` slot reader (those pick from the goal alone)."""
+    fraction right and the sentences it gets wrong; with ``canonical``, through a
+    canonical reader. None for a run without checkpoints or without a ``select`` or
+    ``attributes`` slot reader (those pick from the goal alone)."""
     if not (run / "checkpoints").is_dir():
         return None
     import numpy as np
@@ -145,7 +159,7 @@ def slot_selection(run: Path) -> dict[str, Any] | None:
     from captioner.grammar import try_parse
     from envs.scene import OBJECT_KINDS
 
-    policy = lcrl.load(run)
+    policy = lcrl.load(run, env_overrides={"canonical_reader": True} if canonical else None)
     agent, task = policy.agent, policy.task
     if not agent.options.net.slots or agent.options.net.slot_mode == "attention":
         return None
@@ -278,7 +292,38 @@ def run_all(args: argparse.Namespace) -> dict[str, float]:
 
 
 def run_dir(args: argparse.Namespace, arm: str, seed: int) -> Path:
-    return Path(args.work) / f"{arm}-s{seed}"
+    return Path(args.work) / f"{arm.removesuffix(READ)}-s{seed}"
+
+
+def eval_file(args: argparse.Namespace, arm: str, seed: int) -> Path:
+    """An (arm, seed)'s evaluation: ``final-eval.json``, or ``canonical-eval.json`` for
+    an arm's runs read through a canonical reader."""
+    name = "canonical-eval.json" if arm.endswith(READ) else "final-eval.json"
+    return run_dir(args, arm, seed) / name
+
+
+def eval_canonical(args: argparse.Namespace, arm: str) -> dict[int, Path]:
+    """Evaluate the finished runs of ``arm`` with ``lcrl eval --canonical-reader`` (those
+    without the file yet, one after another); their files by seed."""
+    found: dict[int, Path] = {}
+    for seed in args.seeds:
+        run = run_dir(args, arm, seed)
+        if not (run / "final-eval.json").is_file():
+            continue
+        out = eval_file(args, arm + READ, seed)
+        if not out.is_file():
+            ev = [*LCRL, "eval", str(run), "--episodes", str(args.episodes), "--num-envs", "1"]
+            ev += ["--sets", *SETS, "--no-progress", "--canonical-reader", "--json", str(out)]
+            print(f"== {arm}{READ}-s{seed}: {' '.join(ev[2:])}", flush=True)
+            with open(run.parent / f"{run.name}{READ}.log", "w") as log:
+                done = subprocess.run(
+                    ev, stdout=log, stderr=subprocess.STDOUT, env=child_env(),
+                    preexec_fn=die_with_parent, check=False,
+                )  # fmt: skip
+            if done.returncode != 0:
+                raise SystemExit(f"{arm}{READ}-s{seed} failed: see {log.name}")
+        found[seed] = out
+    return found
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -295,8 +340,16 @@ def main(argv: list[str] | None = None) -> int:
         help="arms reported with the seeds they have finished, never trained",
     )
     parser.add_argument(
-        "--headline-arm",
+        "--canonical",
+        nargs="+",
         choices=ARMS,
+        default=[],
+        help="evaluate these arms' finished runs again through a canonical reader (lcrl eval "
+        f"--canonical-reader), reported as ARM{READ}",
+    )
+    parser.add_argument(
+        "--headline-arm",
+        choices=(*ARMS, *(a + READ for a in ARMS)),
         default="",
         help="the arm the headline reports (default: the last of --arms)",
     )
@@ -325,6 +378,10 @@ def main(argv: list[str] | None = None) -> int:
         runs = {int(f.parent.name.rsplit("-s", 1)[1]): f for f in found}
         if runs and arm not in per_arm:
             per_arm[arm] = {s: json.loads(runs[s].read_text())["sets"] for s in sorted(runs)}
+    for arm in args.canonical:
+        runs = eval_canonical(args, arm)
+        if runs:
+            per_arm[arm + READ] = {s: json.loads(f.read_text())["sets"] for s, f in runs.items()}
     arms = {arm: summarise(runs) for arm, runs in per_arm.items()}
     new = args.headline_arm or args.arms[-1]
     head = headline(args.env, arms, new)
@@ -343,7 +400,7 @@ def main(argv: list[str] | None = None) -> int:
     }
     per_combo = {k: combination_success(per_arm, k) for k in ("heldout", "train")}
     selection = {
-        arm: {str(s): slot_selection(run_dir(args, arm, s)) for s in runs}
+        arm: {str(s): slot_selection(run_dir(args, arm, s), arm.endswith(READ)) for s in runs}
         for arm, runs in per_arm.items()
     }
     save_json(
@@ -356,6 +413,7 @@ def main(argv: list[str] | None = None) -> int:
             "machine": info,
             "settings": vars(args),
             "arm_options": {arm: arm_args(arm, args.grounding, args.phrasings) for arm in arms},
+            "eval_options": {arm: ["--canonical-reader"] for arm in arms if arm.endswith(READ)},
             "arms": arms,
             "per_seed": per_seed,
             "heldout_family_object": combos,

@@ -27,15 +27,52 @@ from captioner.grammar import (
 
 #: Shape synonyms the grammar does not know.
 EXTRA_SHAPE_WORDS: dict[str, tuple[str, ...]] = {
-    "cube": ("brick", "square", "cuboid", "crate"),
-    "cylinder": ("barrel", "drum", "pillar", "tin", "pipe"),
+    "cube": ("brick", "square", "cuboid", "crate", "dice", "carton", "cubic object"),
+    "cylinder": (
+        "barrel",
+        "drum",
+        "pillar",
+        "tin",
+        "pipe",
+        "canister",
+        "jar",
+        "column",
+        "round object",
+        "cylindrical object",
+    ),
 }
 #: Direction phrases the grammar does not know (viewer frame, as the grammar's).
 EXTRA_DIRECTION_WORDS: dict[str, tuple[str, ...]] = {
-    "left": ("towards the left", "in the left direction", "sideways left"),
-    "right": ("towards the right", "in the right direction", "sideways right"),
-    "forward": ("further away", "away from the camera", "ahead"),
-    "backward": ("closer", "towards the camera", "nearer"),
+    "left": (
+        "towards the left",
+        "in the left direction",
+        "sideways left",
+        "to my left",
+        "toward the left-hand side",
+    ),
+    "right": (
+        "towards the right",
+        "in the right direction",
+        "sideways right",
+        "to my right",
+        "toward the right-hand side",
+    ),
+    "forward": (
+        "further away",
+        "away from the camera",
+        "ahead",
+        "away from me",
+        "toward the far side",
+        "farther off",
+    ),
+    "backward": (
+        "closer",
+        "towards the camera",
+        "nearer",
+        "toward me",
+        "closer to me",
+        "toward the near side",
+    ),
 }
 #: Relation phrases the grammar does not know.
 EXTRA_RELATION_WORDS: dict[str, tuple[str, ...]] = {
@@ -46,8 +83,36 @@ EXTRA_RELATION_WORDS: dict[str, tuple[str, ...]] = {
 }
 #: Templates the grammar does not know, per family.
 EXTRA_TEMPLATES: dict[str, tuple[str, ...]] = {
-    "reach": ("get to {obj}", "approach {obj}", "go near {obj}", "reach for {obj}"),
-    "push": ("drag {obj} {dir}", "shift {obj} {dir}", "displace {obj} {dir}", "send {obj} {dir}"),
+    "reach": (
+        "get to {obj}",
+        "approach {obj}",
+        "go near {obj}",
+        "reach for {obj}",
+        "put the hand on {obj}",
+        "bring the gripper to {obj}",
+        "poke {obj}",
+        "press {obj}",
+        "contact {obj}",
+        "head for {obj}",
+        "travel to {obj}",
+        "proceed to {obj}",
+        "come to {obj}",
+        "navigate to {obj}",
+        "head over to {obj}",
+        "drive the gripper to {obj}",
+    ),
+    "push": (
+        "drag {obj} {dir}",
+        "shift {obj} {dir}",
+        "displace {obj} {dir}",
+        "send {obj} {dir}",
+        "propel {obj} {dir}",
+        "roll {obj} {dir}",
+        "bump {obj} {dir}",
+        "relocate {obj} {dir}",
+        "budge {obj} {dir}",
+        "carry {obj} {dir}",
+    ),
     "put": ("set {obj} {rel} {obj2}", "bring {obj} {rel} {obj2}", "drag {obj} {rel} {obj2}"),
     "lift": ("hoist {obj}", "elevate {obj}", "get {obj} off the table"),
     "stack": ("pile {obj} onto {obj2}", "heap {obj} onto {obj2}", "rest {obj} upon {obj2}"),

@@ -219,3 +219,46 @@ def test_each_run_trains_then_evaluates_and_a_failure_stops_the_rest(tmp_path, m
     with pytest.raises(SystemExit, match="pooled-s9 failed"):
         comp.run_all(args)
     assert "eval " + str(tmp_path / "bad" / "pooled-s9") not in calls.read_text()
+
+
+def test_canonical_arms_reuse_the_runs_and_add_their_own_evaluation(tmp_path, monkeypatch):
+    """``--canonical phrased`` evaluates the phrased runs again with ``lcrl eval
+    --canonical-reader`` into canonical-eval.json (never retraining), reports them as
+    ``phrased-canonical`` and can head the results; evaluations already there are kept."""
+    import json
+
+    import benchmarks.common as common
+    import benchmarks.compositional as comp
+
+    monkeypatch.setattr(common, "RESULTS_DIR", tmp_path / "results")
+    work = tmp_path / "work"
+    for seed in (0, 1):
+        run = work / f"phrased-s{seed}"
+        run.mkdir(parents=True)
+        (run / "final-eval.json").write_text(json.dumps({"sets": _sets(0.9, 0.9, 0.6)}))
+    calls = []
+
+    def fake_run(cmd, **kwargs):  # what lcrl eval --canonical-reader would write
+        calls.append(cmd)
+        out = cmd[cmd.index("--json") + 1]
+        with open(out, "w") as f:
+            json.dump({"sets": _sets(0.9, 0.9, 0.85)}, f)
+
+        class Done:
+            returncode = 0
+
+        return Done()
+
+    monkeypatch.setattr(comp.subprocess, "run", fake_run)
+    args = ["--work", str(work), "--seeds", "0", "1", "--arms", "phrased"]
+    args += ["--canonical", "phrased", "--headline-arm", "phrased-canonical"]
+    assert comp.main(args) == 0
+    assert len(calls) == 2 and all("--canonical-reader" in c for c in calls)
+    assert all(c[c.index("eval") + 1].endswith(("phrased-s0", "phrased-s1")) for c in calls)
+    out = json.loads((tmp_path / "results" / "compositional-lang2d.json").read_text())
+    assert out["headline"]["paraphrase_ratio"] == round(0.85 / 0.9, 3)
+    assert out["arms"]["phrased"]["paraphrase"]["mean"] == pytest.approx(0.6)
+    assert out["eval_options"] == {"phrased-canonical": ["--canonical-reader"]}
+    assert out["arm_options"]["phrased-canonical"] == out["arm_options"]["phrased"]
+    calls.clear()
+    assert comp.main(args) == 0 and calls == []  # kept, not evaluated again

@@ -119,3 +119,129 @@ def test_a_checkpoint_without_a_reader_is_a_clear_error(tmp_path):
             )
     finally:
         trainer.close()
+
+
+def _canonical_on_split(seed: int = 0):
+    """A canonical reader fitted (as a run fits it) on the lang2d reach and push split."""
+    from captioner.splits import make_split
+    from lcrl.text_encoder import FrozenTextEncoder
+    from train.text_reading import CanonicalEncoder, train_reading_encoder
+
+    split = make_split(0, ("reach", "push"))
+    reading = train_reading_encoder(FrozenTextEncoder(), list(split.instructions("train")), seed)
+    return split, CanonicalEncoder(reading)
+
+
+def test_the_canonical_reader_keeps_canonical_sentences_and_canonicalises_phrasings():
+    """Training sentences read as themselves; held-out combinations (seen words, unseen
+    pairs) as themselves; most unseen phrasings of the grammar as their meaning's
+    canonical sentence; the vectors are the frozen encoder's of those sentences."""
+    from captioner.grammar import parse
+
+    split, canonical = _canonical_on_split()
+    train = [m.text for m in split.instructions("train")]
+    assert canonical.canonical(train) == train
+    heldout = [m.text for m in split.instructions("heldout")]
+    assert canonical.canonical(heldout) == heldout
+    para = list(split.paraphrase)
+    right = [c == parse(t).text for t, c in zip(para, canonical.canonical(para), strict=True)]
+    assert np.mean(right) >= 0.8, np.mean(right)
+    rows = canonical.encode(para[:3])
+    assert rows.shape == (3, canonical.dim) and canonical.dim == canonical.encoder.dim
+    np.testing.assert_allclose(rows, canonical.encoder.encode(canonical.canonical(para[:3])))
+    # families, colours and directions the training labels never use are never answered
+    assert {m.family for m in canonical.meanings(["stack the red cube on the blue cube"])} <= {
+        "reach",
+        "push",
+    }
+
+
+def test_the_canonical_decoder_gives_valid_meanings():
+    """Scores that favour an invalid meaning (a reference object equal to the object)
+    decode to the best valid one."""
+    from train.text_reading import CanonicalEncoder
+
+    enc = _Encoder()
+    slots = {k: len(v) for k, v in SLOT_VALUES.items()}
+    states, mask = enc.encode_tokens(["a b", "c d"])
+    reader = fit_reader(states, mask, {k: [0, 0] for k in slots}, slots, steps=1)
+    canonical = CanonicalEncoder(ReadingEncoder(enc, reader))
+    scores = {k: np.zeros(n, np.float32) for k, n in slots.items()}
+
+    def favour(slot: str, value) -> None:
+        scores[slot][SLOT_VALUES[slot].index(value)] = 5.0
+
+    favour("family", "stack")
+    favour("colour", "red")
+    favour("shape", "cube")
+    favour("target_colour", "red")  # the object itself: refused
+    favour("target_shape", "cube")
+    scores["target_colour"][SLOT_VALUES["target_colour"].index("blue")] = 4.0
+    scores["target_colour"][SLOT_VALUES["target_colour"].index(None)] = 9.0  # never None
+    meaning = canonical._decode(scores)
+    assert meaning.text == "stack the red cube on the blue cube"
+    favour("family", "push")
+    scores["family"][SLOT_VALUES["family"].index("stack")] = 0.0
+    scores["direction"][SLOT_VALUES["direction"].index(None)] = 9.0
+    favour("direction", "left")
+    assert canonical._decode(scores).text == "push the red cube left"
+    # the state keeps the values it may answer
+    state = canonical.state_dict()
+    assert state["output"] == "canonical" and set(state["seen"]) == set(SLOT_VALUES)
+
+
+def test_a_run_with_the_canonical_reader_saves_it_and_eval_can_add_one(tmp_path):
+    """Training with --env.canonical-reader keeps the policy's goal width and saves the
+    reader; queries read through it. A checkpoint without a reader gets one fitted by
+    ``lcrl eval --canonical-reader``; a --env.text-reader checkpoint cannot swap readers."""
+    from train.cli import EvalCommand
+    from train.environments import check_env_config
+    from train.text_reading import CanonicalEncoder
+
+    out = tmp_path / "run"
+    cfg = tiny("lang2d-grounded", out, total_steps=200)
+    cfg.env.canonical_reader = True
+    trainer = Trainer(cfg)
+    try:
+        encoder = trainer.task.encoder
+        assert isinstance(encoder, CanonicalEncoder)
+        assert trainer.task.embeddings.shape[1] == encoder.encoder.dim
+        trainer.run()
+    finally:
+        trainer.close()
+    ckpt = load_checkpoint(resolve_checkpoint(out))
+    assert ckpt.state("text_reader")["output"] == "canonical"
+    import lcrl
+
+    policy = lcrl.load(out)
+    text = "shove the red block to the left"
+    assert policy.task.encoder.canonical([text]) == encoder.canonical([text])
+    with pytest.raises(LcrlError, match="canonical-reader; evaluate"):  # saved: canonical
+        reading_encoder(encoder.encoder, trainer.env, ckpt, canonical=False)
+    # both readers at once, or a reader without language goals: one-line errors
+    cfg.env.text_reader = True
+    with pytest.raises(LcrlError, match="choose one"):
+        check_env_config(cfg.env)
+    cfg.env.text_reader = cfg.env.canonical_reader = False
+    plain = tmp_path / "plain"
+    trainer = Trainer(tiny("lang2d", plain, total_steps=200))
+    try:
+        trainer.run()
+    finally:
+        trainer.close()
+    doc = tmp_path / "eval.json"
+    EvalCommand(
+        str(plain),
+        episodes=4,
+        sets=("paraphrase",),
+        canonical_reader=True,
+        json=str(doc),
+        progress=False,
+        num_envs=1,
+    ).run()
+    import json
+
+    saved = json.loads(doc.read_text())
+    assert saved["settings"]["canonical_reader"] is True
+    assert saved["settings"]["command"].endswith("--canonical-reader")
+    assert saved["sets"]["paraphrase"]["episodes"] == 4

@@ -105,6 +105,24 @@ class TrainStub:
         _train(["--help"])
 
 
+def canonical_override(saved: Any) -> dict[str, Any]:
+    """The env override of ``--canonical-reader`` for a checkpoint whose env config is
+    ``saved``; refused in one line where no reader can stand in front of its policy."""
+    from train.tasks import is_language
+
+    if saved.text_reader:
+        raise LcrlError(
+            "this checkpoint reads instructions through its --env.text-reader; "
+            "--canonical-reader cannot replace it"
+        )
+    if not is_language(saved):
+        raise LcrlError(
+            f"--canonical-reader reads language goals; this checkpoint has {saved.goal_type!r} "
+            "goals"
+        )
+    return {"canonical_reader": True}
+
+
 @dataclass
 class EvalCommand:
     """Evaluate a checkpoint: success with 95% confidence intervals per instruction set
@@ -139,6 +157,12 @@ class EvalCommand:
     (async on robosuite, whose steps are slow, sync otherwise)."""
     device: str | None = None
     """Run the policy on this device (default: the one it was trained on)."""
+    canonical_reader: bool = False
+    """Put an instruction reader in front of the policy (``--env.canonical-reader``):
+    every instruction reaches it as the canonical sentence of the meaning the reader
+    reads. A checkpoint trained with one uses its own; for one without, a reader is fitted
+    first on the run's training instructions and their training-only phrasings (about a
+    minute), the same way training fits it."""
     out: str = ""
     """Write eval.json (every figure), eval.md and PNG figures to this folder; inside a
     run folder (e.g. RUN/evals/NAME) ``lcrl report RUN`` includes them."""
@@ -185,8 +209,10 @@ class EvalCommand:
                 f"{len(tasks)} tasks (families {tuple(saved.families)}): drop "
                 "it; the figures are broken down per family and per task anyway"
             )
-        overrides = {"families": tuple(self.families)} if self.families else None
-        policy = load_policy(self.checkpoint, overrides, self.device)
+        overrides: dict[str, Any] = {"families": tuple(self.families)} if self.families else {}
+        if self.canonical_reader:
+            overrides.update(canonical_override(saved))
+        policy = load_policy(self.checkpoint, overrides or None, self.device)
         extra = self.episodes % len(tasks) if tasks else 0
         if extra and (not self.sets or "train" in self.sets):
             which = "task 0 gets" if extra == 1 else f"tasks 0 to {extra - 1} get"
@@ -229,6 +255,7 @@ class EvalCommand:
             "families": list(policy.cfg.env.families),
             "tasks": list(tasks),
             "num_envs": num_envs,
+            "canonical_reader": bool(policy.cfg.env.canonical_reader),
             "command": self._command(),
         }
         doc = evaluation_document(policy.checkpoint.path, step, policy.cfg, results, settings)
@@ -256,6 +283,8 @@ class EvalCommand:
             parts.append(f"--instructions {self.instructions}")
         if self.chain:
             parts.append(f"--chain {self.chain}")
+        if self.canonical_reader:
+            parts.append("--canonical-reader")
         return " ".join(parts)
 
 
@@ -320,10 +349,17 @@ class ActCommand:
     """Frames per second of the video."""
     hold: float = 1.0
     """Seconds each episode's last frame stays in the video, with its outcome."""
+    canonical_reader: bool = False
+    """Read instructions through a canonical reader (as ``lcrl eval --canonical-reader``):
+    each instruction reaches the policy as the canonical sentence of the meaning the reader
+    reads, printed before its episodes (a checkpoint trained with one always does)."""
 
     def run(self) -> None:
+        from lcrl.checkpoint import load_checkpoint
         from train.act import ActSession, check_video_path, read_lines
+        from train.evaluate import resolve_checkpoint
         from train.policy import load
+        from train.run_meta import run_meta
 
         video = check_video_path(self.video) if self.video else None
         given = [
@@ -337,7 +373,11 @@ class ActCommand:
         ]
         if len(given) > 1:
             raise LcrlError(f"give either {given[0]} or {given[1]}, not both")
-        policy = load(self.checkpoint)
+        overrides = None
+        if self.canonical_reader:
+            saved = run_meta(load_checkpoint(resolve_checkpoint(self.checkpoint))).config.env
+            overrides = canonical_override(saved)
+        policy = load(self.checkpoint, env_overrides=overrides)
         if self.task.strip() and not policy.tasks:
             raise LcrlError(
                 "--task runs a task of a checkpoint trained on a fixed task set (env.tasks); "

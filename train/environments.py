@@ -76,6 +76,15 @@ class EnvConfig:
     (family, colours, shapes, direction, relation) from it and from 16 training-only
     phrasings of it; the goal vector is then the sentence vector followed by the reader's
     slot-value probabilities. The reader is frozen and saved with the checkpoints."""
+    canonical_reader: bool = False
+    """Language goals: the same reader, trained the same way, turns every instruction into
+    the canonical sentence of the meaning it reads ("nudge the red block left" -> "push the
+    red cube left"), and the policy reads that sentence's vector: unseen phrasings of a
+    meaning reach the policy as the sentence it trained on. The policy is the one a run
+    without a reader trains (canonical captions read as themselves), so ``lcrl eval
+    --canonical-reader`` can put a reader in front of any language checkpoint. Every
+    instruction becomes some meaning of the grammar, within the values the run's training
+    instructions use. Not with ``text_reader``."""
     min_objects: int = 2
     """Fewest objects on the table."""
     max_objects: int = 3
@@ -213,6 +222,19 @@ def check_env_config(cfg: EnvConfig) -> EnvSpec:
         raise LcrlError(
             f"min_objects ({cfg.min_objects}) is larger than max_objects ({cfg.max_objects})"
         )
+    if cfg.text_reader and cfg.canonical_reader:
+        raise LcrlError(
+            "env.text_reader and env.canonical_reader are two ways to use the reader: "
+            "choose one (--env.text-reader or --env.canonical-reader)"
+        )
+    if cfg.text_reader or cfg.canonical_reader:
+        from train.tasks import is_language
+
+        if not is_language(cfg):
+            raise LcrlError(
+                f"the instruction reader reads language goals; goal type {cfg.goal_type!r} "
+                "has none: drop --env.text-reader / --env.canonical-reader"
+            )
     return spec
 
 

@@ -78,10 +78,12 @@ def build_task(
         from lcrl.text_encoder import FrozenTextEncoder
 
         encoder: Any = FrozenTextEncoder(cfg.text_encoder)
-        if cfg.env.text_reader:
+        if cfg.env.text_reader or cfg.env.canonical_reader:
             from train.text_reading import reading_encoder
 
-            encoder = reading_encoder(encoder, env, ckpt, seed=cfg.seed)
+            encoder = reading_encoder(
+                encoder, env, ckpt, seed=cfg.seed, canonical=cfg.env.canonical_reader
+            )
         kwargs: dict[str, Any] = {}
         if ckpt is not None:
             from train.run_meta import instruction_table

@@ -1,12 +1,31 @@
-"""The token reader of ``--env.text-reader``: trained on the run's training instructions
-and their training-only phrasings before reinforcement learning, saved with every
-checkpoint, rebuilt from it for evaluation and queries (:mod:`lcrl.text_reader`)."""
+"""The token reader of ``--env.text-reader`` and ``--env.canonical-reader``: trained on the
+run's training instructions and their training-only phrasings before reinforcement
+learning, saved with every checkpoint, rebuilt from it for evaluation and queries
+(:mod:`lcrl.text_reader`).
+
+With ``--env.text-reader`` the policy reads the sentence vector followed by the reader's
+slot probabilities. With ``--env.canonical-reader`` (:class:`CanonicalEncoder`) the reader
+decides the meaning of every instruction, and the policy reads the sentence vector of
+that meaning's canonical sentence: a phrasing it never trained on reaches it as the
+sentence it trained on, and a canonical sentence reads as itself.
+"""
 
 from __future__ import annotations
 
+from collections.abc import Mapping, Sequence
 from typing import Any
 
-from captioner.grammar import DIRECTIONS, FAMILIES, RELATIONS, Instruction
+import numpy as np
+import torch
+
+from captioner.grammar import (
+    DIRECTIONS,
+    FAMILIES,
+    RELATIONAL_FAMILIES,
+    RELATIONS,
+    Instruction,
+    InstructionParseError,
+)
 from captioner.phrasings import training_phrasings
 from envs.scene import COLOURS, SHAPES
 from lcrl.errors import LcrlError
@@ -30,7 +49,8 @@ STATE = "text_reader"
 
 def train_reading_encoder(encoder: Any, train: list[Instruction], seed: int = 0) -> ReadingEncoder:
     """A reader fitted on the canonical texts of ``train`` and :data:`PHRASINGS` phrasings
-    of each, labelled by their meaning."""
+    of each, labelled by their meaning (the values the labels use are kept as
+    ``reading.seen``: per slot, the value indices the reader may answer)."""
     texts: list[str] = []
     meanings: list[Instruction] = []
     for i, m in enumerate(train):
@@ -43,21 +63,155 @@ def train_reading_encoder(encoder: Any, train: list[Instruction], seed: int = 0)
         for slot, values in SLOT_VALUES.items()
     }
     slots = {slot: len(values) for slot, values in SLOT_VALUES.items()}
-    return ReadingEncoder(encoder, fit_reader(states, mask, labels, slots, seed=seed))
+    reading = ReadingEncoder(encoder, fit_reader(states, mask, labels, slots, seed=seed))
+    reading.seen = {slot: sorted(set(ids)) for slot, ids in labels.items()}  # type: ignore[attr-defined]
+    return reading
 
 
-def reading_encoder(encoder: Any, env: Any, ckpt: Any = None, seed: int = 0) -> ReadingEncoder:
+class CanonicalEncoder:
+    """A reader in front of the frozen encoder: each text becomes the canonical sentence
+    of the meaning the reader reads in it (:meth:`meanings`), and its vector is that
+    sentence's (``encode``, ``dim``: the frozen encoder's, so the policy is the one a run
+    without a reader has).
+
+    Args:
+        reading: a trained reader over the encoder (:func:`train_reading_encoder`).
+        seen: per slot of :data:`SLOT_VALUES`, the value indices the reader may answer
+            (those its training labels use); default every value.
+    """
+
+    def __init__(
+        self, reading: ReadingEncoder, seen: Mapping[str, Sequence[int]] | None = None
+    ) -> None:
+        self.reading = reading
+        self.encoder = reading.encoder
+        self.reader = reading.reader
+        self.dim = int(self.encoder.dim)
+        found = seen if seen is not None else getattr(reading, "seen", None)
+        self.seen = {
+            slot: sorted(int(i) for i in (found or {}).get(slot, range(len(values))))
+            for slot, values in SLOT_VALUES.items()
+        }
+        self._cache: dict[str, Instruction] = {}
+
+    def meanings(self, texts: Sequence[str]) -> list[Instruction]:
+        """The meaning the reader reads in each text."""
+        missing = [t for t in dict.fromkeys(texts) if t not in self._cache]
+        if missing:
+            states, mask = self.encoder.encode_tokens(missing)
+            with torch.no_grad():
+                logits = self.reader(torch.as_tensor(states), torch.as_tensor(mask))
+            scores = {k: v.numpy() for k, v in logits.items()}
+            for i, text in enumerate(missing):
+                self._cache[text] = self._decode({k: v[i] for k, v in scores.items()})
+        return [self._cache[t] for t in texts]
+
+    def canonical(self, texts: Sequence[str]) -> list[str]:
+        """The canonical sentence of each text's meaning."""
+        return [m.text for m in self.meanings(texts)]
+
+    def encode(self, texts: Sequence[str]) -> np.ndarray:
+        """The frozen encoder's vectors of :meth:`canonical` sentences."""
+        items = list(texts)
+        if not items:
+            return np.zeros((0, self.dim), np.float32)
+        return np.asarray(self.encoder.encode(self.canonical(items)), np.float32)
+
+    def _values(self, slot: str, none: bool) -> list[int]:
+        """The value indices of ``slot`` a meaning may take: its empty value (``none``), or
+        those it may answer that are not empty."""
+        values = SLOT_VALUES[slot]
+        if none:
+            return [values.index(None)]
+        allowed = [i for i in self.seen[slot] if values[i] is not None]
+        return allowed or [i for i, v in enumerate(values) if v is not None]
+
+    def _decode(self, scores: Mapping[str, np.ndarray]) -> Instruction:
+        """The most probable valid meaning under the reader's per-slot distributions: for
+        each family it may answer, the best values of the slots that family fills, the
+        empty value of those it leaves empty (so "move to the red cube", which names no
+        direction, reads as reach rather than push), and a reference object other than
+        the object; then the family whose meaning scores highest."""
+        logp = {
+            k: np.asarray(v, np.float64) - np.logaddexp.reduce(np.asarray(v, np.float64))
+            for k, v in scores.items()
+        }
+        values = SLOT_VALUES
+
+        def best(slot: str, none: bool) -> tuple[float, Any]:
+            i = max(self._values(slot, none), key=lambda j: logp[slot][j])
+            return float(logp[slot][i]), values[slot][i]
+
+        (lc, colour), (ls, shape) = best("colour", False), best("shape", False)
+        found: list[tuple[float, Instruction]] = []
+        for family in (values["family"][i] for i in self._values("family", False)):
+            total = float(logp["family"][values["family"].index(family)]) + lc + ls
+            fields: dict[str, Any] = {"colour": colour, "shape": shape}
+            for slot, filled in (("direction", family == "push"), ("relation", family == "put")):
+                score, value = best(slot, not filled)
+                total += score
+                if filled:
+                    fields[slot] = value
+            if family in RELATIONAL_FAMILIES:  # the best reference object but the object
+                pairs = [
+                    (logp["target_colour"][c] + logp["target_shape"][t], c, t)
+                    for c in self._values("target_colour", False)
+                    for t in self._values("target_shape", False)
+                    if (values["target_colour"][c], values["target_shape"][t]) != (colour, shape)
+                ]
+                if not pairs:
+                    continue
+                score, c, t = max(pairs)
+                fields["target_colour"] = values["target_colour"][c]
+                fields["target_shape"] = values["target_shape"][t]
+            else:
+                score = sum(best(k, True)[0] for k in ("target_colour", "target_shape"))
+            try:
+                found.append((total + float(score), Instruction(family, **fields)))
+            except InstructionParseError:  # a slot combination the grammar refuses
+                continue
+        if not found:
+            raise LcrlError("the reader found no valid meaning for an instruction")
+        return max(found, key=lambda f: f[0])[1]
+
+    def __getattr__(self, name: str) -> Any:
+        # everything else (the model's name, its cache) is the encoder's
+        return getattr(self.encoder, name)
+
+    def state_dict(self) -> dict[str, Any]:
+        """The reader's weights, and the values it may answer (what a checkpoint keeps)."""
+        return {**self.reading.state_dict(), "output": "canonical", "seen": dict(self.seen)}
+
+
+def reading_encoder(
+    encoder: Any, env: Any, ckpt: Any = None, seed: int = 0, canonical: bool = False
+) -> ReadingEncoder | CanonicalEncoder:
     """The reader of a checkpoint (``ckpt``), or one trained on the training instructions
-    of ``env``'s split and families."""
-    if ckpt is not None:
-        if not ckpt.has_state(STATE):
+    of ``env``'s split and families; as a :class:`CanonicalEncoder` with ``canonical``.
+
+    A canonical reader may be fitted for a checkpoint that holds none (its policy reads
+    canonical sentences as a run without a reader does); a ``text_reader`` policy cannot
+    do without the reader it trained with, nor can the two kinds stand in for each other.
+    """
+    if ckpt is not None and ckpt.has_state(STATE):
+        state = ckpt.state(STATE)
+        saved = str(state.get("output", "append"))
+        if saved != ("canonical" if canonical else "append"):
             raise LcrlError(
-                "this checkpoint was trained without --env.text-reader (it holds no reader): "
-                "evaluate it with its own config"
+                f"this checkpoint's reader was trained with --env."
+                f"{'canonical' if saved == 'canonical' else 'text'}-reader; evaluate it "
+                "with its own config"
             )
-        return ReadingEncoder.from_state(encoder, ckpt.state(STATE))
+        reading = ReadingEncoder.from_state(encoder, state)
+        return CanonicalEncoder(reading, state.get("seen")) if canonical else reading
+    if ckpt is not None and not canonical:
+        raise LcrlError(
+            "this checkpoint was trained without --env.text-reader (it holds no reader): "
+            "evaluate it with its own config"
+        )
     from train.tasks import find_language_wrapper
 
     wrapper = find_language_wrapper(env)
     train = [m for m in wrapper.split.instructions("train") if m.family in wrapper.families]
-    return train_reading_encoder(encoder, train, seed)
+    reading = train_reading_encoder(encoder, train, seed)
+    return CanonicalEncoder(reading) if canonical else reading
