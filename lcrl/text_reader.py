@@ -105,6 +105,53 @@ def fit_reader(
     return reader
 
 
+class ReaderEnsemble(nn.Module):
+    """Readers fitted from different initialisations, read as one: per slot, the mean of
+    their log-probabilities (a reader fitted on few instructions may tie a word to the
+    wrong slot by chance; its peers seldom do the same).
+
+    Args:
+        members: fitted :class:`TokenReader` of the same slots and sizes.
+    """
+
+    def __init__(self, members: Sequence[TokenReader]) -> None:
+        super().__init__()
+        if not members:
+            raise ValueError("an ensemble needs at least one reader")
+        self.members = nn.ModuleList(members)
+        first = members[0]
+        self.slots, self.queries, self.width = dict(first.slots), first.queries, first.width
+
+    @property
+    def out_dim(self) -> int:
+        """Width of :meth:`probabilities`' rows."""
+        return sum(self.slots.values())
+
+    def forward(self, states: torch.Tensor, mask: torch.Tensor) -> dict[str, torch.Tensor]:
+        """Mean log-probabilities per slot (logits of the ensemble's distribution)."""
+        outs = [m(states, mask) for m in self.members]
+        return {k: torch.stack([o[k].log_softmax(-1) for o in outs]).mean(0) for k in self.slots}
+
+    def probabilities(self, states: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
+        """Every slot's value probabilities, one slot after another, ``(B, out_dim)``."""
+        return torch.cat([v.softmax(-1) for v in self(states, mask).values()], -1)
+
+
+def fit_ensemble(
+    states: np.ndarray,
+    mask: np.ndarray,
+    labels: Mapping[str, Sequence[int]],
+    slots: Mapping[str, int],
+    members: int = 5,
+    steps: int = 600,
+    seed: int = 0,
+) -> ReaderEnsemble:
+    """``members`` readers (:func:`fit_reader`), seeds ``1000 * seed + k``, as one."""
+    return ReaderEnsemble(
+        [fit_reader(states, mask, labels, slots, steps, 1000 * seed + k) for k in range(members)]
+    )
+
+
 class ReadingEncoder:
     """The frozen encoder's sentence vectors followed by a :class:`TokenReader`'s slot
     probabilities: a drop-in for :class:`~lcrl.text_encoder.FrozenTextEncoder` where
@@ -148,6 +195,7 @@ class ReadingEncoder:
             "slots": dict(r.slots),
             "queries": r.queries,
             "hidden": r.width,
+            "members": len(r.members) if isinstance(r, ReaderEnsemble) else 0,
             "weights": {k: v.clone() for k, v in r.state_dict().items()},
         }
 
@@ -155,9 +203,14 @@ class ReadingEncoder:
     def from_state(cls, encoder: Any, state: Mapping[str, Any]) -> ReadingEncoder:
         """Rebuild from :meth:`state_dict`."""
         slots = {str(k): int(v) for k, v in state["slots"].items()}
-        reader = TokenReader(
-            int(encoder.dim), slots, int(state.get("queries", 4)), int(state.get("hidden", 64))
-        )
+
+        def one() -> TokenReader:
+            return TokenReader(
+                int(encoder.dim), slots, int(state.get("queries", 4)), int(state.get("hidden", 64))
+            )
+
+        members = int(state.get("members", 0))  # 0: a single reader
+        reader: nn.Module = ReaderEnsemble([one() for _ in range(members)]) if members else one()
         reader.load_state_dict({k: torch.as_tensor(v) for k, v in state["weights"].items()})
         reader.eval()
         reader.requires_grad_(False)

@@ -79,6 +79,27 @@ def test_reading_encoder_rows_are_the_sentence_vector_and_a_soft_parse():
     assert reading.encode([]).shape == (0, enc.dim + 5)
 
 
+def test_an_ensemble_of_readers_averages_them_and_round_trips():
+    from lcrl.text_reader import fit_ensemble
+
+    enc = _Encoder()
+    texts = ["go left now", "go right now", "left go", "right go"]
+    states, mask = enc.encode_tokens(texts)
+    labels, slots = {"d": [0, 1, 0, 1], "v": [0, 0, 0, 0]}, {"d": 2, "v": 3}
+    ensemble = fit_ensemble(states, mask, labels, slots, members=3)
+    x, m = torch.as_tensor(states), torch.as_tensor(mask)
+    with torch.no_grad():
+        mean = torch.stack([r(x, m)["d"].log_softmax(-1) for r in ensemble.members]).mean(0)
+        np.testing.assert_allclose(ensemble(x, m)["d"], mean, atol=1e-6)
+        assert (ensemble(x, m)["d"].argmax(-1).numpy() == labels["d"]).all()
+    reading = ReadingEncoder(enc, ensemble)
+    state = reading.state_dict()
+    assert state["members"] == 3
+    again = ReadingEncoder.from_state(enc, state)
+    np.testing.assert_array_equal(again.encode(texts), reading.encode(texts))
+    assert ReadingEncoder(enc, ensemble.members[0]).state_dict()["members"] == 0
+
+
 def test_a_run_with_the_reader_saves_it_and_queries_read_through_it(tmp_path):
     out = tmp_path / "run"
     cfg = tiny("lang2d-grounded", out, total_steps=200)
@@ -125,10 +146,11 @@ def _canonical_on_split(seed: int = 0):
     """A canonical reader fitted (as a run fits it) on the lang2d reach and push split."""
     from captioner.splits import make_split
     from lcrl.text_encoder import FrozenTextEncoder
-    from train.text_reading import CanonicalEncoder, train_reading_encoder
+    from train.text_reading import CANONICAL_MEMBERS, CanonicalEncoder, train_reading_encoder
 
     split = make_split(0, ("reach", "push"))
-    reading = train_reading_encoder(FrozenTextEncoder(), list(split.instructions("train")), seed)
+    train = list(split.instructions("train"))
+    reading = train_reading_encoder(FrozenTextEncoder(), train, seed, CANONICAL_MEMBERS)
     return split, CanonicalEncoder(reading)
 
 
