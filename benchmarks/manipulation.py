@@ -94,9 +94,29 @@ def train(args: argparse.Namespace) -> None:
     subprocess.run(cmd, check=True, env=env, preexec_fn=die_with_parent)
 
 
+def latest_step(work: Path) -> int | None:
+    """The step of the run's latest checkpoint (``latest.json``), or None."""
+    try:
+        name = json.loads((work / "latest.json").read_text())["checkpoint"]
+        return int(Path(name).name.removeprefix("step_"))
+    except (OSError, ValueError, KeyError):
+        return None
+
+
 def lcrl_eval(args: argparse.Namespace, out: Path, *options: str) -> dict[str, Any] | None:
     """``lcrl eval`` of the run with ``options``; its JSON document (None when it fails,
-    e.g. a set without an instruction of the family)."""
+    e.g. a set without an instruction of the family). A document already at ``out`` for
+    the run's latest checkpoint is kept, so an evaluation cut short (the machine shut
+    down) goes on with the families it had not finished."""
+    if out.is_file():
+        try:
+            doc = json.loads(out.read_text())
+        except ValueError:
+            doc = {}
+        step = latest_step(Path(args.work))
+        if step is not None and doc.get("step") == step:
+            print(f"== keeping {out} (step {step})", flush=True)
+            return doc
     cmd = [*LCRL, "eval", args.work, "--episodes", str(args.episodes), "--num-envs", "1"]
     cmd += [*options, "--no-progress", "--json", str(out)]
     print("== " + shlex.join(cmd), flush=True)

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import pytest
 
 from benchmarks import manipulation
@@ -55,3 +57,40 @@ def test_a_new_run_starts_from_the_demonstrations_and_a_resumed_one_keeps_its_se
     manipulation.train(args)
     again = calls[-1]
     assert "--resume" in again and "--finetune.demos" not in again and "--sac.demo-bc" not in again
+
+
+def test_an_evaluation_of_the_latest_checkpoint_is_kept(tmp_path, monkeypatch):
+    """A family's document for the latest checkpoint is read back, never evaluated again;
+    one for an older checkpoint is evaluated again."""
+    import argparse
+    import json
+
+    import benchmarks.manipulation as manip
+
+    work = tmp_path / "run"
+    work.mkdir()
+    (work / "latest.json").write_text(json.dumps({"checkpoint": "checkpoints/step_000000500"}))
+    assert manip.latest_step(work) == 500
+    calls = []
+
+    def fake_run(cmd, **kwargs):
+        calls.append(cmd)
+        out = Path(cmd[cmd.index("--json") + 1])
+        out.write_text(json.dumps({"step": 500, "sets": {}}))
+
+        class Done:
+            returncode, stderr = 0, ""
+
+        return Done()
+
+    monkeypatch.setattr(manip.subprocess, "run", fake_run)
+    args = argparse.Namespace(work=str(work), episodes=4, processes=1)
+    kept = tmp_path / "push.json"
+    kept.write_text(json.dumps({"step": 500, "sets": {"train": {}}}))
+    assert manip.lcrl_eval(args, kept, "--families", "push") == {"step": 500, "sets": {"train": {}}}
+    assert calls == []
+    old = tmp_path / "lift.json"
+    old.write_text(json.dumps({"step": 400, "sets": {}}))
+    assert manip.lcrl_eval(args, old, "--families", "lift") == {"step": 500, "sets": {}}
+    assert len(calls) == 1
+    assert manip.latest_step(tmp_path) is None
