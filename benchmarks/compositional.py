@@ -49,6 +49,7 @@ from typing import Any
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
+import benchmarks.common as common
 from benchmarks.common import (
     command,
     die_with_parent,
@@ -326,6 +327,30 @@ def eval_canonical(args: argparse.Namespace, arm: str) -> dict[int, Path]:
     return found
 
 
+#: The per-arm entries of a result file that :func:`carry_over` keeps for arms not rerun.
+PER_ARM_KEYS = ("arms", "per_seed", "heldout_family_object", "slot_selection", "arm_options")
+
+
+def carry_over(payload: dict[str, Any], path: Path) -> list[str]:
+    """Arms of the previous result file at ``path`` that this invocation neither trained nor
+    evaluated stay in ``payload`` (every per-arm entry), each marked in ``kept_from`` with
+    the command and date that produced it, so that rerunning one arm never drops the
+    figures of the others (the pooled baseline beside the new arm); returns their names."""
+    if not path.is_file():
+        return []
+    old = json.loads(path.read_text())
+    source = {"command": old.get("command"), "date": old.get("machine", {}).get("date")}
+    kept = [a for a in old.get("arms", {}) if a not in payload["arms"]]
+    for arm in kept:
+        for key in PER_ARM_KEYS:
+            if arm in old.get(key, {}):
+                payload[key][arm] = old[key][arm]
+        if arm in old.get("eval_options", {}):
+            payload["eval_options"][arm] = old["eval_options"][arm]
+        payload.setdefault("kept_from", {})[arm] = old.get("kept_from", {}).get(arm, source)
+    return kept
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--env", choices=tuple(PRESETS), default="lang2d")
@@ -384,8 +409,6 @@ def main(argv: list[str] | None = None) -> int:
             per_arm[arm + READ] = {s: json.loads(f.read_text())["sets"] for s, f in runs.items()}
     arms = {arm: summarise(runs) for arm, runs in per_arm.items()}
     new = args.headline_arm or args.arms[-1]
-    head = headline(args.env, arms, new)
-    ok = reached(args.env, head)
     name = f"compositional-{tag}"
     per_seed = {
         arm: {
@@ -403,31 +426,36 @@ def main(argv: list[str] | None = None) -> int:
         arm: {str(s): slot_selection(run_dir(args, arm, s), arm.endswith(READ)) for s in runs}
         for arm, runs in per_arm.items()
     }
-    save_json(
-        name,
-        {
-            "headline": head,
-            "targets": TARGETS[args.env],
-            "reached": ok,
-            "command": command(),
-            "machine": info,
-            "settings": vars(args),
-            "arm_options": {arm: arm_args(arm, args.grounding, args.phrasings) for arm in arms},
-            "eval_options": {arm: ["--canonical-reader"] for arm in arms if arm.endswith(READ)},
-            "arms": arms,
-            "per_seed": per_seed,
-            "heldout_family_object": combos,
-            "combination_success": per_combo,
-            "slot_selection": selection,
-            "seconds": seconds,
-        },
-    )
+    payload: dict[str, Any] = {
+        "headline": {},
+        "targets": TARGETS[args.env],
+        "reached": {},
+        "command": command(),
+        "machine": info,
+        "settings": vars(args),
+        "arm_options": {arm: arm_args(arm, args.grounding, args.phrasings) for arm in arms},
+        "eval_options": {arm: ["--canonical-reader"] for arm in arms if arm.endswith(READ)},
+        "arms": arms,
+        "per_seed": per_seed,
+        "heldout_family_object": combos,
+        "combination_success": per_combo,
+        "slot_selection": selection,
+        "seconds": seconds,
+    }
+    kept = carry_over(payload, common.RESULTS_DIR / f"{name}.json")
+    if new not in arms:
+        raise SystemExit(f"the headline arm {new!r} has no runs here nor in the previous file")
+    head = headline(args.env, arms, new)
+    ok = reached(args.env, head)
+    payload["headline"], payload["reached"] = head, ok
+    save_json(name, payload)
     lines = [
         "| arm | seed | seen | held-out combinations | paraphrases | held-out / seen |",
         "|---|---:|---|---|---|---:|",
     ]
-    for arm, runs in per_arm.items():
-        for s, r in sorted(runs.items()):
+    rows_by_arm = {arm: per_seed[arm] for arm in arms}
+    for arm, runs in rows_by_arm.items():
+        for s, r in sorted(runs.items(), key=lambda kv: int(kv[0])):
             cells = [
                 f"{r[k]['success']:.2f} [{r[k]['ci'][0]:.2f}, {r[k]['ci'][1]:.2f}]" for k in SETS
             ]
@@ -449,6 +477,11 @@ def main(argv: list[str] | None = None) -> int:
         + combination_tables(per_combo)
         + selection_table(selection)
     )
+    if kept:
+        body += (
+            f"\n\nArms kept from the previous file (not rerun by this command): "
+            f"{', '.join(kept)}; `kept_from` in the JSON names the command that produced them.\n"
+        )
     save_markdown(name, f"Compositional generalisation ({args.env})", body, info)
 
     import matplotlib.pyplot as plt

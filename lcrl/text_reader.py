@@ -73,6 +73,7 @@ def fit_reader(
     slots: Mapping[str, int],
     steps: int = 600,
     seed: int = 0,
+    dropout: float = 0.0,
 ) -> TokenReader:
     """Train a :class:`TokenReader` on token states and the slot values of each text
     (cross-entropy summed over slots), full batch, Adam; returned frozen, in eval mode.
@@ -83,7 +84,12 @@ def fit_reader(
         slots: per slot, its number of values.
         steps: gradient steps.
         seed: the initialisation's seed.
+        dropout: the fraction of token-state features zeroed at each step (a fresh mask
+            every step; none when reading), so that no single feature direction of the
+            words seen in training decides a slot alone.
     """
+    if not 0.0 <= dropout < 1.0:
+        raise ValueError(f"dropout must be in [0, 1), not {dropout}")
     gen = torch.Generator().manual_seed(int(seed))
     with torch.random.fork_rng(devices=[]):
         torch.manual_seed(int(gen.initial_seed()))
@@ -95,7 +101,11 @@ def fit_reader(
     y = {k: torch.as_tensor(np.asarray(v, np.int64)) for k, v in labels.items()}
     opt = torch.optim.Adam(reader.parameters(), 1e-3)
     for _ in range(int(steps)):
-        logits = reader(x, m)
+        if dropout:  # drawn from the seed's generator: the same seed fits the same reader
+            keep = torch.rand(x.shape, generator=gen) >= dropout
+            logits = reader(x * keep / (1.0 - dropout), m)
+        else:
+            logits = reader(x, m)
         loss = sum(F.cross_entropy(logits[k], y[k]) for k in reader.slots)
         opt.zero_grad()
         loss.backward()
@@ -145,10 +155,14 @@ def fit_ensemble(
     members: int = 5,
     steps: int = 600,
     seed: int = 0,
+    dropout: float = 0.0,
 ) -> ReaderEnsemble:
     """``members`` readers (:func:`fit_reader`), seeds ``1000 * seed + k``, as one."""
     return ReaderEnsemble(
-        [fit_reader(states, mask, labels, slots, steps, 1000 * seed + k) for k in range(members)]
+        [
+            fit_reader(states, mask, labels, slots, steps, 1000 * seed + k, dropout)
+            for k in range(members)
+        ]
     )
 
 

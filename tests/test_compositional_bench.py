@@ -262,3 +262,46 @@ def test_canonical_arms_reuse_the_runs_and_add_their_own_evaluation(tmp_path, mo
     assert out["arm_options"]["phrased-canonical"] == out["arm_options"]["phrased"]
     calls.clear()
     assert comp.main(args) == 0 and calls == []  # kept, not evaluated again
+
+
+def test_rerunning_one_arm_keeps_the_other_arms_of_the_previous_file(tmp_path, monkeypatch):
+    """An invocation that trains only the new arm keeps the previous file's other arms
+    (the pooled baseline the headline compares with), marked with where they came from;
+    the arms it reran are replaced."""
+    import json
+
+    import benchmarks.common as common
+    import benchmarks.compositional as comp
+
+    monkeypatch.setattr(common, "RESULTS_DIR", tmp_path / "results")
+    work = tmp_path / "work"
+
+    def finish(arm, seed, v):
+        run = work / f"{arm}-s{seed}"
+        run.mkdir(parents=True, exist_ok=True)
+        (run / "final-eval.json").write_text(json.dumps({"sets": _sets(*v)}))
+
+    for seed in (0, 1):
+        finish("pooled", seed, (0.9, 0.2, 0.8))
+        finish("phrased", seed, (0.8, 0.7, 0.6))
+    args = ["--work", str(work), "--seeds", "0", "1"]
+    assert comp.main([*args, "--arms", "pooled", "phrased"]) == 0
+    first = json.loads((tmp_path / "results" / "compositional-lang2d.json").read_text())
+    assert first["headline"]["seen"] == 0.8 and "kept_from" not in first
+    # the phrased runs are redone (better); the pooled runs are gone from the work folder
+    import shutil
+
+    for seed in (0, 1):
+        shutil.rmtree(work / f"pooled-s{seed}")
+        shutil.rmtree(work / f"phrased-s{seed}")
+        finish("phrased", seed, (1.0, 0.9, 0.95))
+    assert comp.main([*args, "--arms", "phrased"]) == 0
+    out = json.loads((tmp_path / "results" / "compositional-lang2d.json").read_text())
+    assert out["headline"]["seen"] == 1.0 and out["headline"]["paraphrase_ratio"] == 0.95
+    assert out["headline"]["pooled_heldout_ratio"] == round(0.2 / 0.9, 3)  # kept beside
+    assert out["arms"]["pooled"] == first["arms"]["pooled"]
+    assert set(out["per_seed"]["pooled"]) == {"0", "1"}
+    assert list(out["kept_from"]) == ["pooled"]
+    assert out["kept_from"]["pooled"]["command"] == first["command"]
+    md = (tmp_path / "results" / "compositional-lang2d.md").read_text()
+    assert "kept from the previous file" in md and "| pooled | 0 |" in md

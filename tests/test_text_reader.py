@@ -33,6 +33,31 @@ def test_the_reader_learns_which_token_carries_a_slot():
     assert not any(p.requires_grad for p in reader.parameters())  # frozen
 
 
+def test_reader_dropout_is_seeded_learns_and_refuses_bad_values():
+    """Token-state dropout while fitting draws from the seed: the same seed fits the same
+    reader, the reader still learns the slot, and a fraction outside [0, 1) is refused."""
+    rng = np.random.default_rng(1)
+    n, t, d = 120, 5, 16
+    words = rng.normal(size=(2, d)).astype(np.float32)
+    states = rng.normal(size=(n, t, d)).astype(np.float32) * 0.5
+    mask = np.ones((n, t), bool)
+    labels = rng.integers(0, 2, n)
+    states[np.arange(n), rng.integers(0, t, n)] = words[labels]
+    fit = {"labels": {"d": labels}, "slots": {"d": 2}, "steps": 200, "seed": 3}
+    a = fit_reader(states, mask, dropout=0.3, **fit)
+    b = fit_reader(states, mask, dropout=0.3, **fit)
+    plain = fit_reader(states, mask, **fit)
+    x, m = torch.as_tensor(states), torch.as_tensor(mask)
+    with torch.no_grad():
+        la, lb, lp = a(x, m)["d"], b(x, m)["d"], plain(x, m)["d"]
+    torch.testing.assert_close(la, lb)
+    assert not torch.allclose(la, lp)  # the dropout did change the fit
+    assert (la.argmax(-1).numpy() == labels).mean() > 0.95
+    for bad in (-0.1, 1.0):
+        with pytest.raises(ValueError, match="dropout"):
+            fit_reader(states, mask, dropout=bad, **fit)
+
+
 class _Encoder:
     """A stand-in frozen encoder: token states from a fixed table of words."""
 

@@ -1,0 +1,190 @@
+"""How well the canonical instruction reader reads phrasings it never trained on.
+
+Run from the repository root::
+
+    python benchmarks/reader.py        # lang2d, seeds 0 1 2, dropout 0, 0.3, 0.5 and 0.7
+
+The canonical reader (``--env.canonical-reader``, :mod:`train.text_reading`) is fitted,
+as a run fits it, on the training instructions of the env's split and their
+training-only phrasings (words the grammar does not know). It is then scored without any
+policy, on:
+
+- ``paraphrase_forms``: every sentence the grammar makes for a training meaning, the
+  canonical one aside (the population the ``paraphrase`` evaluation set samples);
+- ``paraphrase_set``: the split's ``paraphrase`` set itself (what ``lcrl eval`` runs);
+- ``heldout``: the held-out combinations' canonical sentences;
+- ``heldout_forms``: every grammar sentence of a held-out meaning.
+
+A sentence counts as read when the reader's meaning equals the grammar's parse. Each
+``--dropout`` value is an arm (token-state dropout while fitting the readers); the
+headline is the arm of the default (``CANONICAL_DROPOUT``, else the last), beside the
+arm without dropout (else the first). The misread words are counted per arm.
+
+Writes ``benchmarks/results/reader-<env>.{json,md,png}``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import time
+from collections import Counter
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
+
+from benchmarks.common import command, machine, save_figure, save_json, save_markdown
+
+SETS = ("paraphrase_forms", "paraphrase_set", "heldout", "heldout_forms")
+
+
+def reader_sets(wrapper: Any) -> dict[str, list[tuple[str, Any]]]:
+    """The scored sentences with the meaning each must read as."""
+    from captioner.grammar import parse, surface_forms
+
+    fams = wrapper.families
+    train = [m for m in wrapper.split.instructions("train") if m.family in fams]
+    held = [m for m in wrapper.split.instructions("heldout") if m.family in fams]
+    para = [t for t in wrapper.split.texts("paraphrase") if parse(t).family in fams]
+    return {
+        "paraphrase_forms": [(t, m) for m in train for t in list(surface_forms(m))[1:]],
+        "paraphrase_set": [(t, parse(t)) for t in para],
+        "heldout": [(m.text, m) for m in held],
+        "heldout_forms": [(t, m) for m in held for t in surface_forms(m)],
+    }
+
+
+def misread_word(text: str, truth: Any) -> str:
+    """The word of ``text`` that the canonical sentence lacks (the likely culprit)."""
+    canon = set(truth.text.split())
+    extra = [w for w in text.split() if w not in canon]
+    return " ".join(extra) if extra else "(canonical words)"
+
+
+def score(env_preset: str, seeds: list[int], dropouts: list[float]) -> dict[str, Any]:
+    """Per dropout arm and seed: the fraction read right in each set, and misread words."""
+    import torch
+
+    from lcrl.text_encoder import FrozenTextEncoder
+    from train.config import PRESETS
+    from train.tasks import find_language_wrapper, make_env
+    from train.text_reading import CANONICAL_MEMBERS, CanonicalEncoder, train_reading_encoder
+
+    torch.set_num_threads(max(1, torch.get_num_threads()))
+    cfg = PRESETS[env_preset][1]
+    encoder = FrozenTextEncoder()
+    wrapper = find_language_wrapper(make_env(cfg.env))
+    train = [m for m in wrapper.split.instructions("train") if m.family in wrapper.families]
+    sets = reader_sets(wrapper)
+    out: dict[str, Any] = {"sizes": {k: len(v) for k, v in sets.items()}, "arms": {}}
+    for dropout in dropouts:
+        arm: dict[str, Any] = {"per_seed": {}, "misread": Counter()}
+        for seed in seeds:
+            t0 = time.perf_counter()
+            reading = train_reading_encoder(encoder, train, seed, CANONICAL_MEMBERS, dropout)
+            reader = CanonicalEncoder(reading)
+            row: dict[str, Any] = {"fit_s": round(time.perf_counter() - t0, 1)}
+            for name, items in sets.items():
+                got = reader.meanings([t for t, _ in items])
+                wrong = [(t, m) for (t, m), g in zip(items, got, strict=True) if g != m]
+                row[name] = round(1 - len(wrong) / max(1, len(items)), 4)
+                if name == "paraphrase_forms":
+                    arm["misread"].update(misread_word(t, m) for t, m in wrong)
+                if name == "paraphrase_set":
+                    row["paraphrase_set_misread"] = [
+                        [t, g.text] for (t, m), g in zip(items, got, strict=True) if g != m
+                    ]
+            arm["per_seed"][str(seed)] = row
+            print(f"dropout {dropout} seed {seed}: {row}", flush=True)
+        for name in SETS:
+            values = [arm["per_seed"][str(s)][name] for s in seeds]
+            arm[name] = {"mean": float(np.mean(values)), "std": float(np.std(values))}
+        arm["misread"] = dict(arm["misread"].most_common(12))
+        out["arms"][str(dropout)] = arm
+    return out
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--preset", default="lang2d", help="a language preset (its env)")
+    parser.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2])
+    parser.add_argument(
+        "--dropout",
+        type=float,
+        nargs="+",
+        default=[0.0, 0.3, 0.5, 0.7],
+        help="token-state dropout of each arm",
+    )
+    args = parser.parse_args(argv)
+    if any(not 0.0 <= d < 1.0 for d in args.dropout):
+        parser.error("--dropout values must be in [0, 1)")
+    info = machine()
+    res = score(args.preset, args.seeds, args.dropout)
+    from train.text_reading import CANONICAL_DROPOUT
+
+    arms = [float(d) for d in res["arms"]]
+    chosen = CANONICAL_DROPOUT if CANONICAL_DROPOUT in arms else arms[-1]
+    plain = 0.0 if 0.0 in arms else arms[0]
+    base, new = res["arms"][str(plain)], res["arms"][str(chosen)]
+    head = {k: round(new[k]["mean"], 4) for k in SETS}
+    head.update({f"{k}_baseline": round(base[k]["mean"], 4) for k in SETS})
+    head["dropout"], head["baseline_dropout"] = chosen, plain
+    head["seeds"] = len(args.seeds)
+    name = f"reader-{args.preset}"
+    save_json(
+        name,
+        {
+            "headline": head,
+            "command": command(),
+            "machine": info,
+            "settings": vars(args),
+            **res,
+        },
+    )
+    lines = [
+        "| dropout | " + " | ".join(SETS) + " |",
+        "|---:|" + "---|" * len(SETS),
+    ]
+    for d, arm in res["arms"].items():
+        cells = [f"{arm[k]['mean']:.3f} ± {arm[k]['std']:.3f}" for k in SETS]
+        lines.append(f"| {d} | " + " | ".join(cells) + " |")
+    sizes = ", ".join(f"{k} {v}" for k, v in res["sizes"].items())
+    words = "\n".join(
+        f"- dropout {d}: " + ", ".join(f"{w} ({n})" for w, n in arm["misread"].items())
+        for d, arm in res["arms"].items()
+    )
+    body = (
+        f"Canonical reader ({args.preset}'s split and families), fitted as a run fits it; "
+        f"fraction of sentences whose meaning it reads right, mean ± sd over seeds "
+        f"{args.seeds}. Sentences per set: {sizes}.\n\n" + "\n".join(lines)
+        + f"\n\nMost misread words among the grammar's paraphrases (summed over seeds):\n\n"
+        f"{words}\n"
+    )  # fmt: skip
+    save_markdown(name, f"Canonical reader accuracy ({args.preset})", body, info)
+
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(7, 4))
+    width = 0.8 / len(res["arms"])
+    for j, (d, arm) in enumerate(res["arms"].items()):
+        xs = [i + (j - (len(res["arms"]) - 1) / 2) * width for i in range(len(SETS))]
+        ax.bar(xs, [arm[k]["mean"] for k in SETS], width, yerr=[arm[k]["std"] for k in SETS],
+               capsize=3, label=f"dropout {d}", alpha=0.8)  # fmt: skip
+    ax.set_xticks(range(len(SETS)), [k.replace("_", "\n") for k in SETS])
+    ax.set(ylim=(0, 1.02), ylabel="read right (mean ± sd over seeds)")
+    ax.set_title(f"canonical reader, {args.preset}")
+    ax.legend()
+    fig.tight_layout(rect=(0, 0.08, 1, 1))
+    save_figure(name, fig, info)
+    print(head)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
