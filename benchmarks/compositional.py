@@ -453,9 +453,8 @@ def main(argv: list[str] | None = None) -> int:
         "| arm | seed | seen | held-out combinations | paraphrases | held-out / seen |",
         "|---|---:|---|---|---|---:|",
     ]
-    rows_by_arm = {arm: per_seed[arm] for arm in arms}
-    for arm, runs in rows_by_arm.items():
-        for s, r in sorted(runs.items(), key=lambda kv: int(kv[0])):
+    for arm in arms:
+        for s, r in sorted(per_seed[arm].items(), key=lambda kv: int(kv[0])):
             cells = [
                 f"{r[k]['success']:.2f} [{r[k]['ci'][0]:.2f}, {r[k]['ci'][1]:.2f}]" for k in SETS
             ]

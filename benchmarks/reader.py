@@ -67,14 +67,11 @@ def misread_word(text: str, truth: Any) -> str:
 
 def score(env_preset: str, seeds: list[int], dropouts: list[float]) -> dict[str, Any]:
     """Per dropout arm and seed: the fraction read right in each set, and misread words."""
-    import torch
-
     from lcrl.text_encoder import FrozenTextEncoder
     from train.config import PRESETS
     from train.tasks import find_language_wrapper, make_env
     from train.text_reading import CANONICAL_MEMBERS, CanonicalEncoder, train_reading_encoder
 
-    torch.set_num_threads(max(1, torch.get_num_threads()))
     cfg = PRESETS[env_preset][1]
     encoder = FrozenTextEncoder()
     wrapper = find_language_wrapper(make_env(cfg.env))
