@@ -9,10 +9,17 @@ Both train SAC with hindsight relabelling (``future``, k=4) on gymnasium-robotic
 critics), batch size 256, one gradient update per environment step, and 1,000 steps of
 random actions first. What is timed is environment steps per second *after* learning
 starts: acting, stepping, storing, sampling with relabelling and updating. The two
-libraries alternate (lcrl, SB3, lcrl, SB3, ...) in one process so that both see the same
-machine load; the ratio of medians is reported at each torch thread count (``--threads``,
-set in the process for both). Target: lcrl at least 1.5x SB3 at 1 and at 2 threads
-(``headline.ratio_1thread`` and ``headline.ratio_2threads``).
+libraries alternate (lcrl in float32, lcrl with ``--agent.precision bf16``, SB3, ...) in
+one process so that all see the same machine load; the ratio of medians is reported at
+each torch thread count (``--threads``, set in the process for all). Target: lcrl at least
+1.5x SB3 at 1 and at 2 threads (``headline.ratio_1thread`` and ``headline.ratio_2threads``:
+lcrl's faster precision, named in ``headline.precision``; the float32 ratios are
+``headline.ratio_1thread_fp32`` and ``headline.ratio_2threads_fp32``).
+
+That bf16 updates still learn is checked on the same task: the ``fetch-reach`` preset
+(10k steps) is trained in each precision for ``--learn-seeds`` seeds, and the final seen
+success of each goes in the file (``headline.success_fp32`` and ``headline.success_bf16``,
+means over seeds).
 
 Writes ``benchmarks/results/speed_vs_sb3.{json,md,png}``.
 """
@@ -47,8 +54,9 @@ HIDDEN = (256, 256)
 TARGET = 1.5
 
 
-def time_lcrl(steps: int, seed: int) -> float:
-    """Steps per second of lcrl's loop over ``steps`` steps after learning starts."""
+def time_lcrl(steps: int, seed: int, precision: str = "fp32") -> float:
+    """Steps per second of lcrl's loop over ``steps`` steps after learning starts, its
+    updates in ``precision``."""
     base = PRESETS["fetch-reach"][1]
     out = Path(tempfile.mkdtemp(prefix="lcrl-speed-"))
     cfg = dataclasses.replace(
@@ -63,7 +71,9 @@ def time_lcrl(steps: int, seed: int) -> float:
         seed=seed,
         torch_threads=torch.get_num_threads(),  # the count main() set, for both libraries
     )
-    cfg.agent = dataclasses.replace(cfg.agent, net=NetConfig(hidden=HIDDEN), seed=seed)
+    cfg.agent = dataclasses.replace(
+        cfg.agent, net=NetConfig(hidden=HIDDEN), seed=seed, precision=precision
+    )
     trainer = Trainer(cfg)
     while trainer.step < WARMUP:
         trainer.collect_episode()
@@ -103,43 +113,106 @@ def time_sb3(steps: int, seed: int) -> float:
     return steps / (time.perf_counter() - t0)
 
 
+def learn(seed: int, precision: str) -> float:
+    """Final seen success of the ``fetch-reach`` preset trained with ``seed`` in
+    ``precision`` (its own evaluation, 50 episodes)."""
+    base = PRESETS["fetch-reach"][1]
+    out = Path(tempfile.mkdtemp(prefix="lcrl-speed-learn-"))
+    cfg = dataclasses.replace(
+        base,
+        out=str(out),
+        progress=False,
+        tensorboard=False,
+        eval_every=0,
+        seed=seed,
+        torch_threads=torch.get_num_threads(),
+    )
+    cfg.agent = dataclasses.replace(cfg.agent, seed=seed, precision=precision)
+    results = Trainer(cfg).run()
+    shutil.rmtree(out, ignore_errors=True)
+    return float(results["all"]["success"])
+
+
+LIBRARIES = {
+    "lcrl": lambda steps, seed: time_lcrl(steps, seed, "fp32"),
+    "lcrl-bf16": lambda steps, seed: time_lcrl(steps, seed, "bf16"),
+    "sb3": lambda steps, seed: time_sb3(steps, seed),
+}
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--steps", type=int, default=1_500, help="timed steps per round")
     parser.add_argument("--rounds", type=int, default=2, help="alternating rounds")
     parser.add_argument("--threads", type=int, nargs="+", default=[1, 2])
+    parser.add_argument(
+        "--learn-seeds", type=int, default=3, help="seeds of the learning check per precision"
+    )
     args = parser.parse_args(argv)
     info = machine()
     rates: dict[str, dict[str, list[float]]] = {}
     for n in args.threads:
         torch.set_num_threads(n)
-        rates[str(n)] = {"lcrl": [], "sb3": []}
+        rates[str(n)] = {name: [] for name in LIBRARIES}
         for r in range(args.rounds):
-            for name, fn in (("lcrl", time_lcrl), ("sb3", time_sb3)):
-                rate = fn(args.steps, seed=r)
+            for name, fn in LIBRARIES.items():
+                rate = fn(args.steps, r)
                 rates[str(n)][name].append(rate)
                 print(f"{n} thread(s), round {r} {name}: {rate:.1f} steps/s", flush=True)
     med = {n: {k: statistics.median(v) for k, v in per.items()} for n, per in rates.items()}
-    ratios = {n: m["lcrl"] / m["sb3"] for n, m in med.items()}
-    headline = {
-        f"ratio_{n}thread{'s' if int(n) > 1 else ''}": round(r, 3) for n, r in ratios.items()
-    }
-    reached = all(r >= TARGET for r in ratios.values())
+
+    def key(n: str) -> str:
+        return f"ratio_{n}thread{'s' if int(n) > 1 else ''}"
+
+    ratios = {n: {lib: m[lib] / m["sb3"] for lib in ("lcrl", "lcrl-bf16")} for n, m in med.items()}
+    # the headline: lcrl's faster precision where it is faster at every thread count
+    best = "lcrl-bf16" if all(r["lcrl-bf16"] > r["lcrl"] for r in ratios.values()) else "lcrl"
+    precision = "bf16" if best == "lcrl-bf16" else "fp32"
+    headline: dict[str, object] = {key(n): round(r[best], 3) for n, r in ratios.items()}
+    headline["precision"] = precision
+    headline.update({f"{key(n)}_fp32": round(r["lcrl"], 3) for n, r in ratios.items()})
+    torch.set_num_threads(max(args.threads))
+    success: dict[str, list[float]] = {"fp32": [], "bf16": []}
+    for seed in range(args.learn_seeds):
+        for p in success:
+            success[p].append(learn(seed, p))
+            print(f"fetch-reach seed {seed} {p}: success {success[p][-1]:.2f}", flush=True)
+    for p, v in success.items():
+        if v:
+            headline[f"success_{p}"] = round(statistics.mean(v), 3)
+    reached = all(r[best] >= TARGET for r in ratios.values())
     rows = ["| torch threads | library | steps/s per round | median |", "|---:|---|---|---:|"]
     for n, per in rates.items():
         for k, v in per.items():
             rows.append(f"| {n} | {k} | {', '.join(f'{x:.1f}' for x in v)} | {med[n][k]:.1f} |")
+    rows += ["", "| torch threads | lcrl (fp32) / SB3 | lcrl bf16 / SB3 |", "|---:|---:|---:|"]
+    rows += [f"| {n} | {r['lcrl']:.2f}x | {r['lcrl-bf16']:.2f}x |" for n, r in ratios.items()]
     rows += [
         "",
-        *(f"Ratio lcrl / SB3 at {n} thread(s): **{r:.2f}x**" for n, r in ratios.items()),
+        f"Headline: lcrl with `--agent.precision {precision}` against SB3.",
         "",
         f"Target: at least {TARGET}x at every thread count: "
         f"**{'reached' if reached else 'NOT reached'}**.",
         "",
         f"Setting: FetchReach-v4, SAC, HER future k=4, hidden {HIDDEN}, batch {BATCH}, 1 update "
-        f"per step, {WARMUP} random steps first, {args.steps} timed steps per round; the two "
-        "libraries alternate in one process, alone on the machine.",
+        f"per step, {WARMUP} random steps first, {args.steps} timed steps per round; the "
+        "libraries alternate in one process, alone on the machine. `lcrl-bf16` runs its "
+        "updates under bfloat16 autocast (weights, optimiser state and losses in float32); "
+        "SB3 has no such option.",
     ]
+    if args.learn_seeds:
+        rows += [
+            "",
+            f"Learning check, the `fetch-reach` preset (10k steps), final seen success over "
+            f"seeds {list(range(args.learn_seeds))}:",
+            "",
+            "| precision | success per seed | mean |",
+            "|---|---|---:|",
+            *(
+                f"| {p} | {', '.join(f'{x:.2f}' for x in v)} | {statistics.mean(v):.2f} |"
+                for p, v in success.items()
+            ),
+        ]
     table = "\n".join(rows)
     print(table)
     save_json(
@@ -152,20 +225,25 @@ def main(argv: list[str] | None = None) -> int:
             "machine": info,
             "rates": rates,
             "median": med,
+            "ratios": ratios,
+            "learning_check": {"preset": "fetch-reach", "success": success},
             "steps": args.steps,
             "rounds": args.rounds,
         },
     )
     save_markdown("speed_vs_sb3", "Training speed: lcrl vs Stable-Baselines3", table, info)
     fig, ax = plt.subplots(figsize=(6, 3.8))
-    width = 0.38
-    for j, lib in enumerate(("lcrl", "sb3")):
-        xs = [i + (j - 0.5) * width for i in range(len(rates))]
-        ax.bar(xs, [med[n][lib] for n in rates], width, label=lib,
-               color="tab:blue" if lib == "lcrl" else "tab:grey")  # fmt: skip
+    width = 0.27
+    colours = {"lcrl": "tab:blue", "lcrl-bf16": "tab:cyan", "sb3": "tab:grey"}
+    for j, lib in enumerate(LIBRARIES):
+        xs = [i + (j - 1) * width for i in range(len(rates))]
+        ax.bar(xs, [med[n][lib] for n in rates], width, label=lib, color=colours[lib])
         for x, n in zip(xs, rates, strict=True):
             ax.scatter([x] * len(rates[n][lib]), rates[n][lib], color="black", s=10, zorder=3)
-    ax.set_xticks(range(len(rates)), [f"{n} thread(s)\n{ratios[n]:.2f}x" for n in rates])
+    ticks = [
+        f"{n} thread(s)\n{ratios[n]['lcrl']:.2f}x / {ratios[n]['lcrl-bf16']:.2f}x" for n in rates
+    ]
+    ax.set_xticks(range(len(rates)), ticks)
     ax.set_ylabel("environment steps / s (training)")
     ax.set_title("FetchReach-v4 SAC+HER: lcrl against SB3")
     ax.legend()

@@ -16,6 +16,11 @@ trains both again).
 Writes ``benchmarks/results/time_to_success.{json,md,png}``. Headline: ``new_s`` (target
 <= 480), ``old_s``, and ``final_seen_new`` / ``final_seen_old`` at the same step budget
 (the new run's must not be below the old one's).
+
+A third arm, ``bf16``, is the new settings with ``--agent.precision bf16`` (updates under
+bfloat16 autocast); it reports ``headline.bf16_s`` and ``headline.final_seen_bf16``. An
+arm not trained in this invocation (``--arms``) whose run folder is gone is kept from the
+previous result file, marked ``kept_from`` with that file's date.
 """
 
 from __future__ import annotations
@@ -48,6 +53,9 @@ OLD_OPTIONS = ["--collect.envs", "1", "--batch-size", "256"]
 #: update costs about 0.7 of one at 256, and a 50k-step run learned at least as fast per
 #: step). Both arms name their settings, so the comparison holds whatever the preset says.
 NEW_OPTIONS = ["--collect.envs", "8", "--batch-size", "128"]
+#: The new settings with their updates under bfloat16 autocast.
+BF16_OPTIONS = [*NEW_OPTIONS, "--agent.precision", "bf16"]
+OPTIONS = {"old": OLD_OPTIONS, "new": NEW_OPTIONS, "bf16": BF16_OPTIONS}
 TARGET_S = 480.0
 LCRL = [sys.executable, "-m", "train.cli"]
 
@@ -58,7 +66,7 @@ def run_args(args: argparse.Namespace, arm: str) -> list[str]:
     cmd += ["--total-steps", str(args.steps), "--eval-every", str(args.eval_every)]
     cmd += ["--eval-episodes", str(args.eval_episodes), "--seed", str(args.seed)]
     cmd += ["--checkpoint-every", "0", "--overwrite", "--no-progress", "--no-tensorboard"]
-    return cmd + (OLD_OPTIONS if arm == "old" else NEW_OPTIONS)
+    return cmd + OPTIONS[arm]
 
 
 def curve(run: Path) -> list[dict[str, float]]:
@@ -80,7 +88,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--threshold", type=float, default=0.8)
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--work", default="runs/bench/time-to-success")
-    parser.add_argument("--arms", nargs="+", default=["new", "old"], choices=["new", "old"])
+    parser.add_argument("--arms", nargs="+", default=["new", "old", "bf16"], choices=list(OPTIONS))
     parser.add_argument("--fresh", action="store_true", help="train finished runs again")
     args = parser.parse_args(argv)
 
@@ -105,13 +113,24 @@ def main(argv: list[str] | None = None) -> int:
         (run / "command.txt").write_text(shlex.join(cmd))
 
     info = machine()
+    previous = Path(__file__).resolve().parent / "results" / f"{NAME}.json"
+    before = json.loads(previous.read_text()) if previous.is_file() else {}
     arms = {}
-    for arm in ("new", "old"):
+    for arm in OPTIONS:
+        if arm not in args.arms and not (work / arm / "eval.csv").is_file():
+            if arm in before.get("arms", {}):
+                kept = before["arms"][arm]
+                kept.setdefault("kept_from", before["machine"]["date"])
+                arms[arm] = kept
+                print(f"{arm}: kept from {kept['kept_from']}", flush=True)
+            elif arm != "bf16":
+                raise SystemExit(f"no {arm} run in {work} and none in {previous}: train it")
+            continue
         rows = curve(work / arm)
         hit = first_success(rows, args.threshold)
         config = json.loads((work / arm / "config.json").read_text())
         arms[arm] = {
-            "options": OLD_OPTIONS if arm == "old" else NEW_OPTIONS,
+            "options": OPTIONS[arm],
             "collect_envs": config["collect"]["envs"],
             "updates_per_step": config["updates_per_step"],
             "batch_size": config["batch_size"],
@@ -131,6 +150,9 @@ def main(argv: list[str] | None = None) -> int:
         "final_seen_old": old["final_seen"],
         "steps": args.steps,
     }
+    if "bf16" in arms:
+        headline["bf16_s"] = arms["bf16"]["time_to_success_s"]
+        headline["final_seen_bf16"] = arms["bf16"]["final_seen"]
     reached = {
         "new_s": new["time_to_success_s"] is not None and new["time_to_success_s"] <= TARGET_S,
         "final_seen_new": new["final_seen"] >= old["final_seen"],
@@ -147,6 +169,7 @@ def main(argv: list[str] | None = None) -> int:
                 **vars(args),
                 "old_options": OLD_OPTIONS,
                 "new_options": NEW_OPTIONS,
+                "bf16_options": BF16_OPTIONS,
                 "preset": PRESET,
             },
             "arms": arms,
@@ -161,10 +184,10 @@ def main(argv: list[str] | None = None) -> int:
         f"| final seen ({args.steps} steps) | training time |",
         "|---|---:|---:|---:|---:|---:|---:|---:|",
     ]
-    for arm in ("old", "new"):
-        a = arms[arm]
+    for arm, a in arms.items():
         lines.append(
-            f"| {arm} | {a['collect_envs']} | {a['updates_per_step']} | {a['batch_size']} | "
+            f"| {arm}{' (kept)' if 'kept_from' in a else ''} | {a['collect_envs']} | "
+            f"{a['updates_per_step']} | {a['batch_size']} | "
             f"{fmt(a['time_to_success_s'])} | {a['steps_to_success'] or '-'} | "
             f"{a['final_seen']:.2f} | {a['train_s']:.0f} s |"
         )
@@ -172,8 +195,16 @@ def main(argv: list[str] | None = None) -> int:
     body = (
         f"Targets: new_s <= {TARGET_S:.0f} s; final seen of the new run not below the old "
         f"run's. **{verdicts}.**\n\nOld options: `{shlex.join(OLD_OPTIONS)}`; new options: "
-        f"`{shlex.join(NEW_OPTIONS)}`.\n\n" + "\n".join(lines)
+        f"`{shlex.join(NEW_OPTIONS)}`; bf16: the new options and "
+        "`--agent.precision bf16`.\n\n" + "\n".join(lines)
     )
+    kept = {arm: a["kept_from"] for arm, a in arms.items() if "kept_from" in a}
+    if kept:
+        body += "\n\n" + "; ".join(
+            f"The {arm} run is kept from the previous result file ({date}): not trained again "
+            "in this invocation."
+            for arm, date in kept.items()
+        )
     save_markdown(NAME, "Time to 80% seen success on lang2d", body, info)
 
     import matplotlib
@@ -182,7 +213,10 @@ def main(argv: list[str] | None = None) -> int:
     import matplotlib.pyplot as plt
 
     fig, ax = plt.subplots(figsize=(6.5, 4))
-    for arm, colour in (("old", "tab:gray"), ("new", "tab:blue")):
+    colours = {"old": "tab:gray", "new": "tab:blue", "bf16": "tab:cyan"}
+    for arm, colour in colours.items():
+        if arm not in arms:
+            continue
         rows = arms[arm]["curve"]
         ax.plot(
             [r["train_s"] / 60 for r in rows],

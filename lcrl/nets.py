@@ -695,13 +695,14 @@ class GoalConditionedNet(nn.Module):
         x = self.obs_encoder(obs, g)
         if action is not None:
             x = torch.cat([x, action], -1)
+        # float32 out, also where the update runs under bf16 autocast (agent precision)
         if self.task_heads:
-            return self.head(x, g, goal.argmax(-1))
-        return self.head(x, g)
+            return self.head(x, g, goal.argmax(-1)).float()
+        return self.head(x, g).float()
 
     def selection_logits(self, obs: Mapping[str, torch.Tensor], goal: torch.Tensor) -> torch.Tensor:
         """Logits of the object slots the goal picks, ``(1, B, heads, count)``."""
-        return self.obs_encoder.selection_logits(obs, self.goal_encoder(goal)).unsqueeze(0)
+        return self.obs_encoder.selection_logits(obs, self.goal_encoder(goal)).unsqueeze(0).float()
 
 
 class BatchedLinear(nn.Module):
@@ -801,7 +802,7 @@ class GoalConditionedEnsemble(nn.Module):
                 enc.selection_logits(obs, goal_enc(goal))
                 for enc, goal_enc in zip(self.obs_encoders, self.goal_encoders, strict=True)
             ]
-        )
+        ).float()
 
     def forward(
         self,
@@ -815,7 +816,7 @@ class GoalConditionedEnsemble(nn.Module):
             for i in range(self.n):
                 x, g = self._features(i, obs, goal, action)
                 outs.append(self.heads[i](x, g, task))
-            return torch.stack(outs)
+            return torch.stack(outs).float()
         if self.shared:
             h = torch.cat(self._features(0, obs, goal, action), -1)
         else:
@@ -828,8 +829,8 @@ class GoalConditionedEnsemble(nn.Module):
             if k < last:
                 h = F.relu(h)
         if self.task_heads:
-            return self.out_heads(h, task)
-        return h
+            return self.out_heads(h, task).float()
+        return h.float()
 
 
 class RunningNorm(nn.Module):

@@ -1321,3 +1321,29 @@ def test_sac_target_clip_bounds_the_td_targets(tmp_path, clip):
             assert torch.all(y[boot > 0] == 1.0)  # the overestimates are cut at the bound
     finally:
         trainer.close()
+
+
+@pytest.mark.parametrize("algo", ["sac", "td3", "dqn"])
+def test_a_deep_copied_agent_learns_on_its_own(algo):
+    """Parameters are views of flat buffers; a deep copy's optimiser and target steps move
+    the copy's networks, and never the original's."""
+    agent = make_agent(algo)
+    rng = np.random.default_rng(0)
+    agent.update(make_batch(agent.problem, rng))
+    twin = copy.deepcopy(agent)
+
+    def weights(a):
+        return {k: [p.detach().clone() for p in m.parameters()] for k, m in a.modules().items()}
+
+    original, before = weights(agent), weights(twin)
+    for _ in range(2):
+        twin.update(make_batch(twin.problem, rng))
+    after = weights(twin)
+    for name in before:
+        if name == "norms":
+            continue
+        assert any(not torch.equal(x, y) for x, y in zip(before[name], after[name], strict=True)), (
+            name
+        )
+    for name, values in weights(agent).items():
+        assert all(torch.equal(x, y) for x, y in zip(original[name], values, strict=True)), name
