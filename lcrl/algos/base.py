@@ -224,9 +224,9 @@ class AgentOptions:
     under ``torch.autocast`` with bfloat16, so matrix products and convolutions take
     bfloat16 inputs while weights, optimiser state, network outputs, losses and targets
     stay float32. Acting, evaluation and checkpoints are unchanged. On CPUs with bfloat16
-    instructions (AVX512-BF16, AMX) a 2x256 SAC update takes about 0.6 of the float32
-    time (``benchmarks/results/speed_vs_sb3.json``); on other CPUs it is slower. On CUDA it
-    is the usual mixed precision."""
+    instructions (AVX512-BF16, AMX) the ``lang2d`` SAC update takes about half the float32
+    time at one thread and 0.7 of it at two (``benchmarks/results/compiled_update.json``);
+    on other CPUs it is slower. On CUDA it is the usual mixed precision."""
     seed: int = 0
     """Seed of the network initialisation and of the agent's noise."""
     multitask: MultiTaskOptions = field(default_factory=MultiTaskOptions)
