@@ -538,7 +538,7 @@ class Agent:
         if self.perceiver is None or not all(k in obs for k in self.problem.perceived):
             return dict(obs)
         keys = self.problem.perceived
-        tensors = [torch.as_tensor(np.asarray(obs[k]), device=self.device) for k in keys]
+        tensors = [to_device(obs[k], self.device) for k in keys]
         tensors = [t if t.dtype == torch.uint8 else t.float() for t in tensors]
         with torch.set_grad_enabled(grad and torch.is_grad_enabled()):
             x = self.perceiver(*tensors)
@@ -569,7 +569,7 @@ class Agent:
         attached perception module become the ``observation`` it computes)."""
         out = {}
         for key, arr in self._perceive(obs).items():
-            t = torch.as_tensor(arr, device=self.device)
+            t = to_device(arr, self.device)
             if t.dtype != torch.uint8:
                 t = t.float()
                 if f"obs_{key}" in self.norms:
@@ -607,19 +607,19 @@ class Agent:
                         d[key] = random_shift(t, pad, self.gen)
             if goal.dim() == 4:
                 goal = random_shift(goal, pad, self.gen)
-        act = torch.as_tensor(batch.action, device=self.device)
+        act = to_device(batch.action, self.device)
         act = act.long() if self.problem.discrete else act.float()
-        rew = torch.as_tensor(batch.reward, device=self.device, dtype=torch.float32)
+        rew = to_device(batch.reward, self.device, torch.float32)
         gamma = float(self.cfg.gamma)
         if batch.discount is None:
             disc = torch.full_like(rew, gamma)
         else:
-            disc = torch.as_tensor(batch.discount, device=self.device, dtype=torch.float32)
+            disc = to_device(batch.discount, self.device, torch.float32)
         if self.options.reward_shift:
             # a shift per step: sum_j gamma**j over the row's m rewards, gamma**m = disc
             per_row = 1.0 if batch.discount is None else (1.0 - disc) / (1.0 - gamma)
             rew = rew + self.options.reward_shift * per_row
-        term = torch.as_tensor(batch.terminated, device=self.device, dtype=torch.float32)
+        term = to_device(batch.terminated, self.device, torch.float32)
         return obs, nobs, goal, act, rew, (1.0 - term) * disc
 
     def _critics(self, action_dim: int, n: int = 2) -> GoalConditionedEnsemble:
@@ -653,10 +653,12 @@ class Agent:
     # --- saving ----------------------------------------------------------------------
     def compile_networks(self) -> None:
         """``torch.compile`` every network in place (``nn.Module.compile``, so parameter
-        names and checkpoints stay as they are); the perception model is left alone."""
+        names and checkpoints stay as they are), as CUDA graphs on CUDA
+        (:func:`compile_mode`); the perception model is left alone."""
+        mode = compile_mode(self.device)
         for name, module in self.modules().items():
             if name != "perceiver":
-                module.compile(dynamic=False)
+                module.compile(dynamic=False, mode=mode)
 
     def modules(self) -> dict[str, nn.Module]:
         """Weights to checkpoint, by name."""
@@ -690,6 +692,31 @@ class Agent:
 def _numpy(x: Any) -> np.ndarray:
     """A tensor or array as a numpy array."""
     return x.detach().cpu().numpy() if isinstance(x, torch.Tensor) else np.asarray(x)
+
+
+def to_device(x: Any, device: torch.device, dtype: torch.dtype | None = None) -> torch.Tensor:
+    """An array (or tensor) as a tensor on ``device``.
+
+    On CUDA a host array goes through page-locked (pinned) memory and is copied
+    asynchronously (``non_blocking``), so the copy of one batch overlaps the work queued
+    before it; on the CPU it is ``torch.as_tensor`` (no copy where none is needed).
+    """
+    if isinstance(x, torch.Tensor) and x.device.type != "cpu":
+        return x.to(device=device, dtype=dtype)
+    t = torch.as_tensor(np.asarray(x) if not isinstance(x, torch.Tensor) else x)
+    if dtype is not None and t.dtype != dtype:
+        t = t.to(dtype)
+    if device.type != "cuda":
+        return t.to(device)
+    return t.pin_memory().to(device, non_blocking=True)
+
+
+def compile_mode(device: torch.device) -> str:
+    """The ``torch.compile`` mode of the networks on ``device``: ``reduce-overhead`` on
+    CUDA, which records each compiled forward and backward pass as a CUDA graph and
+    replays it (one launch for the whole network, as LeanRL does for its updates);
+    ``default`` elsewhere, where there are no graphs to record."""
+    return "reduce-overhead" if device.type == "cuda" else "default"
 
 
 def flat_target(module: nn.Module) -> tuple[nn.Module, torch.Tensor]:
