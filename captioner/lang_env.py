@@ -13,10 +13,11 @@ instruction (chained tasks).
 from __future__ import annotations
 
 import string
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from typing import Any
 
 import gymnasium as gym
+import numpy as np
 
 from captioner.grammar import FAMILIES, FAMILIES_2D, Instruction
 from captioner.rule import RuleCaptioner
@@ -114,6 +115,24 @@ class LanguageGoalWrapper(gym.Wrapper):
             )
         self._candidates = self._instructions(tuple(families))
 
+    def weigh_families(self, weights: Mapping[str, float] | None) -> None:
+        """Draw the family of the next instructions with probability proportional to
+        ``weights`` (families it does not name weigh 1) instead of uniformly, among the
+        families with a feasible instruction; None: uniformly again. Only with
+        ``family_balanced``.
+
+        Raises:
+            LcrlError: a weight that is negative or not finite.
+        """
+        if weights is not None:
+            bad = {f: w for f, w in weights.items() if not (np.isfinite(w) and w >= 0.0)}
+            if bad:
+                raise LcrlError(f"family weights must be finite and >= 0, got {bad}")
+            weights = dict(weights)
+        self._family_weights = weights
+
+    _family_weights: dict[str, float] | None = None
+
     def _scene(self) -> SceneState:
         return self.env.unwrapped.scene()
 
@@ -127,7 +146,12 @@ class LanguageGoalWrapper(gym.Wrapper):
         rng = self.env.unwrapped.np_random
         if self.family_balanced:
             families = sorted({m.family for _, m in feasible})
-            family = families[int(rng.integers(len(families)))]
+            w = self._family_weights
+            p = None if w is None else np.array([w.get(f, 1.0) for f in families])
+            if p is None or not p.sum() > 0.0:
+                family = families[int(rng.integers(len(families)))]
+            else:
+                family = families[int(rng.choice(len(families), p=p / p.sum()))]
             feasible = [(t, m) for t, m in feasible if m.family == family]
         return feasible[int(rng.integers(len(feasible)))]
 

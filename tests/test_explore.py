@@ -202,6 +202,57 @@ def test_training_draws_only_open_families_and_checkpoints_the_curriculum(tmp_pa
         resumed.close()
 
 
+def test_failure_weights_follow_live_success_per_family():
+    cfg = ExploreConfig(family_weights="failure", weight_floor=0.1, curriculum_window=4)
+    ex = Explorer(cfg, ("reach", "push"), np.random.default_rng(0))
+    assert ex.weights() == {"reach": 1.1, "push": 1.1}  # nothing tried yet
+    for ok in (True, True, True, True, False):
+        ex.finished(_episode("reach", ok), True, 1)
+    ex.finished(_episode("push", False), True, 2)
+    ex.finished(_episode("push", True, handover=5), True, 2)  # not counted
+    ex.finished(_episode("push", True, scripted=True), True, 2)  # not counted
+    w = ex.weights()
+    assert w["reach"] == pytest.approx(0.1 + 0.25)  # the last 4: 3 of 4 succeeded
+    assert w["push"] == pytest.approx(1.1)
+    assert ex.columns()["weight_push"] == pytest.approx(1.1)
+    again = Explorer(cfg, ("reach", "push"), np.random.default_rng(0))
+    again.load_state_dict(ex.state_dict())
+    assert again.weights() == pytest.approx(w)
+
+
+def test_training_draws_families_by_failure(tmp_path):
+    cfg = tiny(
+        "lang2d",
+        tmp_path / "run",
+        total_steps=2000,
+        checkpoint_every=0,
+        explore=ExploreConfig(family_weights="failure", weight_floor=0.05),
+    )
+    trainer = Trainer(cfg)
+    try:
+        ex = trainer.explorer
+        ex.recent["reach"].extend([1.0] * ex.recent["reach"].maxlen)  # reach mastered
+        ex.recent["push"].extend([0.0] * ex.recent["push"].maxlen)  # push failing
+        trainer.explorer.apply(trainer.envs)
+        wrapper = find_language_wrapper(trainer.envs[0])
+        drawn = []
+        for _ in range(200):
+            wrapper.reset()
+            drawn.append(wrapper.meaning.family)
+        share = drawn.count("push") / len(drawn)
+        assert share > 0.85  # 1.05 / 1.1 expected, against 0.5 uniformly
+        wrapper.weigh_families(None)
+        drawn = []
+        for _ in range(200):
+            wrapper.reset()
+            drawn.append(wrapper.meaning.family)
+        assert 0.35 < drawn.count("push") / len(drawn) < 0.65
+        with pytest.raises(LcrlError, match="family weights"):
+            wrapper.weigh_families({"push": -1.0})
+    finally:
+        trainer.close()
+
+
 def test_draw_from_refuses_families_the_env_does_not_have(tmp_path):
     trainer = Trainer(tiny("lang2d", tmp_path / "run"))
     try:
@@ -218,6 +269,8 @@ def test_draw_from_refuses_families_the_env_does_not_have(tmp_path):
         (["--explore.curriculum", "reach", "lift"], "explore.curriculum names lift"),
         (["--explore.curriculum", "reach", "reach"], "names a family twice"),
         (["--explore.chain", "0.5", "--explore.chain-length", "1"], "chain_length"),
+        (["--explore.family-weights", "hard"], "explore.family_weights must be"),
+        (["--explore.weight-floor", "2"], "explore.weight_floor must be in [0, 1]"),
     ],
 )
 def test_bad_explore_settings_are_one_line_errors(tmp_path, capsys, args, message):

@@ -243,18 +243,35 @@ class ExploreConfig:
     curriculum_threshold: float = 0.6
     """Live success that opens the next family of the curriculum."""
     curriculum_window: int = 50
-    """Policy episodes of the family opened last that the threshold is judged on."""
+    """Policy episodes of the family opened last that the threshold is judged on; with
+    ``family_weights failure``, the episodes of each family its live success is judged
+    on."""
+    family_weights: str = "uniform"
+    """How a training instruction's family is drawn among the open families: ``uniform``,
+    or ``failure``: with probability proportional to ``weight_floor`` plus the policy's
+    live failure rate on the family (over its last ``curriculum_window`` episodes, neither
+    scripted nor handed over; a family not tried yet counts as failed), so that the
+    families the policy has mastered give their share to those it has not."""
+    weight_floor: float = 0.1
+    """The weight a mastered family keeps with ``family_weights failure``."""
 
     @property
     def active(self) -> bool:
-        return bool(self.chain or self.handover or self.curriculum)
+        return bool(
+            self.chain or self.handover or self.curriculum or self.family_weights != "uniform"
+        )
 
     def validate(self, families: tuple[str, ...]) -> None:
         """Raise :class:`LcrlError` for settings that cannot train."""
-        for name in ("chain", "handover", "curriculum_threshold"):
+        for name in ("chain", "handover", "curriculum_threshold", "weight_floor"):
             value = getattr(self, name)
             if not 0.0 <= value <= 1.0:
                 raise LcrlError(f"explore.{name} must be in [0, 1], got {value}")
+        if self.family_weights not in ("uniform", "failure"):
+            raise LcrlError(
+                f"explore.family_weights must be 'uniform' or 'failure', got "
+                f"{self.family_weights!r}"
+            )
         if self.chain_length < 2 and self.chain:
             raise LcrlError("explore.chain_length must be at least 2 (instructions in a row)")
         if self.handover_steps < 1 or self.curriculum_window < 1:

@@ -13,6 +13,10 @@ Three aids for long-horizon manipulation, each off by default:
 - **A curriculum over families** (``explore.curriculum``): instructions come from the
   first family until the policy's live success on the family opened last reaches a
   threshold, then the next family opens.
+- **Families drawn by failure** (``explore.family_weights failure``): among the open
+  families, one is drawn with probability proportional to a floor plus the policy's live
+  failure rate on it, so that mastered families give their share of the episodes to
+  those still failing.
 
 A run resumed from a checkpoint starts its environments from a reset: a chain in hand
 when the checkpoint was written ends there.
@@ -52,8 +56,10 @@ class Explorer:
         self.opened = 1 if cfg.curriculum else 0
         #: Families the curriculum does not name: drawn from the start.
         self.others = tuple(f for f in families if f not in cfg.curriculum)
+        self.weighted = cfg.family_weights == "failure"
+        counted = families if self.weighted else cfg.curriculum
         self.recent: dict[str, deque[float]] = {
-            f: deque(maxlen=cfg.curriculum_window) for f in cfg.curriculum
+            f: deque(maxlen=cfg.curriculum_window) for f in counted
         }
         self.handovers = 0  # episodes the scripted controller began
         self.chained = 0  # episodes that began where the previous one ended
@@ -66,20 +72,34 @@ class Explorer:
         return (*self.cfg.curriculum[: self.opened], *self.others)
 
     def apply(self, envs: Sequence[Any]) -> None:
-        """Make the training environments draw from :meth:`families` (a no-op without a
-        curriculum)."""
-        if not self.cfg.curriculum:
+        """Make the training environments draw from :meth:`families`, with
+        :meth:`weights` (a no-op with neither a curriculum nor family weights)."""
+        if not self.cfg.curriculum and not self.weighted:
             return
+        weights = self.weights() if self.weighted else None
         for env in envs:
-            find_language_wrapper(env).draw_from(self.families())
+            wrapper = find_language_wrapper(env)
+            if self.cfg.curriculum:
+                wrapper.draw_from(self.families())
+            if weights is not None:
+                wrapper.weigh_families(weights)
+
+    def weights(self) -> dict[str, float]:
+        """Each family's draw weight with ``family_weights failure``: the floor plus its
+        live failure rate (1 for a family without counted episodes)."""
+        floor = self.cfg.weight_floor
+        return {f: floor + (1.0 - float(np.mean(w)) if w else 1.0) for f, w in self.recent.items()}
 
     def _judge(self, family: str, succeeded: bool, step: int) -> str | None:
         """Count a policy episode of ``family``; the family that opens, if one does."""
         cur = self.cfg.curriculum
+        if self.weighted and family in self.recent:
+            self.recent[family].append(float(succeeded))
         if not cur or self.opened >= len(cur) or family != cur[self.opened - 1]:
             return None
         window = self.recent[family]
-        window.append(float(succeeded))
+        if not self.weighted:
+            window.append(float(succeeded))
         if len(window) < window.maxlen or np.mean(window) < self.cfg.curriculum_threshold:
             return None
         self.opened += 1
@@ -155,10 +175,13 @@ class Explorer:
         self.openings = [(int(s), str(f)) for s, f in state.get("openings", [])]
 
     def columns(self) -> dict[str, float]:
-        """progress.csv columns: episodes begun by the controller, episodes chained, and
-        families open."""
-        return {
+        """progress.csv columns: episodes begun by the controller, episodes chained,
+        families open and, with family weights, each family's weight."""
+        out = {
             "handover_episodes": float(self.handovers),
             "chained_episodes": float(self.chained),
             "families_open": float(len(self.families())),
         }
+        if self.weighted:  # each family's draw weight
+            out.update({f"weight_{f}": w for f, w in self.weights().items()})
+        return out

@@ -739,8 +739,9 @@ class Trainer(BaseTrainer):
         curriculum."""
         complete = ep.done
         opened = self.explorer.finished(ep, complete, self.step)
-        if opened is not None:
+        if opened is not None or self.explorer.weighted:
             self.explorer.apply(self.envs)
+        if opened is not None:
             print(f"curriculum: {opened} opens at step {self.step}", flush=True)
 
     def _step(self, ep: _Episode) -> None:
