@@ -196,6 +196,57 @@ def curve(work: Path) -> list[dict[str, float]]:
         return [{k: float(v) for k, v in row.items() if v != ""} for row in csv.DictReader(f)]
 
 
+#: The settings that tell compared runs apart (``config.json`` paths).
+COMPARED_SETTINGS = (
+    ("families", ("env", "families")),
+    ("n-step", ("buffer", "n_step")),
+    ("slots", ("agent", "net", "slot_mode")),
+    ("grounding", ("agent", "grounding")),
+    ("q-filter", ("sac", "q_filter")),
+    ("curriculum", ("explore", "curriculum")),
+    ("family weights", ("explore", "family_weights")),
+)
+
+
+def compared(work: Path, last: int = 2) -> dict[str, Any]:
+    """Another run's settings (:data:`COMPARED_SETTINGS`) and its seen success per family,
+    the mean of its last ``last`` periodic evaluations (``eval.csv``)."""
+    cfg = json.loads((work / "config.json").read_text())
+    settings: dict[str, Any] = {}
+    for name, path in COMPARED_SETTINGS:
+        value: Any = cfg
+        for key in path:
+            value = value.get(key) if isinstance(value, dict) else None
+        settings[name] = value
+    rows = curve(work)[-last:]
+    fams = settings["families"] or []
+    seen = {
+        f: round(sum(r[f"train/{f}"] for r in rows) / len(rows), 3)
+        for f in fams
+        if rows and all(f"train/{f}" in r for r in rows)
+    }
+    steps = [int(r["step"]) for r in rows]
+    return {"run": str(work), "settings": settings, "steps": steps, "seen": seen}
+
+
+def compared_lines(runs: list[dict[str, Any]]) -> list[str]:
+    """A Markdown table of :func:`compared` runs."""
+    names = [n for n, _ in COMPARED_SETTINGS]
+    lines = [
+        "| run | " + " | ".join(names) + " | evaluated at | seen success per family |",
+        "|---|" + "---|" * len(names) + "---|---|",
+    ]
+    for r in runs:
+        cells = []
+        for n in names:
+            v = r["settings"].get(n)
+            cells.append(" ".join(map(str, v)) if isinstance(v, list) else str(v))
+        seen = ", ".join(f"{f} {v:.2f}" for f, v in r["seen"].items())
+        steps = " and ".join(f"{s:,}" for s in r["steps"])
+        lines.append(f"| `{r['run']}` | " + " | ".join(cells) + f" | {steps} | {seen} |")
+    return lines
+
+
 def gifs(args: argparse.Namespace) -> dict[str, str]:
     """One ``lcrl act`` GIF per family, a seen instruction each, in the results folder."""
     from captioner.splits import make_split
@@ -291,7 +342,18 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument(
         "--processes", type=int, default=1, help="lcrl processes running beside this one"
     )
+    parser.add_argument(
+        "--compare",
+        nargs="*",
+        default=[],
+        metavar="RUN",
+        help="other runs (e.g. one family alone) to tabulate beside: their settings and "
+        "the mean of their last two periodic evaluations",
+    )
     args = parser.parse_args(argv)
+    missing = [r for r in args.compare if not (Path(r) / "config.json").is_file()]
+    if missing:
+        raise SystemExit(f"--compare: no run (config.json) at {', '.join(missing)}")
     work = Path(args.work)
     if not args.eval_only:
         train(args)
@@ -307,6 +369,7 @@ def main(argv: list[str] | None = None) -> int:
     }
     videos = gifs(args) if args.gifs else {}
     rows = curve(work)
+    others = [compared(Path(r)) for r in args.compare]
     save_json(
         NAME,
         {
@@ -321,6 +384,7 @@ def main(argv: list[str] | None = None) -> int:
             "scripted": script,
             "curve": rows,
             "gifs": videos,
+            "compared": others,
         },
     )
     lines = [
@@ -349,6 +413,12 @@ def main(argv: list[str] | None = None) -> int:
         f"\nBudget: {spent.get('steps', 0):,} environment steps, {spent.get('updates', 0):,} "
         f"updates, {spent.get('wall_clock_s', 0) / 3600:.2f} h of training on this machine."
     )
+    if others:
+        lines.append(
+            "\nOther runs (seen success: the mean of their last two periodic evaluations, 50 "
+            "episodes each; `lcrl train robosuite-manip` with the options shown):\n"
+        )
+        lines += compared_lines(others)
     if videos:
         lines.append("\n" + " ".join(f"![{f}]({p})" for f, p in videos.items()))
     save_markdown(

@@ -94,3 +94,29 @@ def test_an_evaluation_of_the_latest_checkpoint_is_kept(tmp_path, monkeypatch):
     assert manip.lcrl_eval(args, old, "--families", "lift") == {"step": 500, "sets": {}}
     assert len(calls) == 1
     assert manip.latest_step(tmp_path) is None
+
+
+def test_compared_runs_show_their_settings_and_last_evaluations(tmp_path):
+    import json
+
+    run = tmp_path / "put"
+    run.mkdir()
+    cfg = {
+        "env": {"families": ["put"]},
+        "buffer": {"n_step": 3},
+        "agent": {"net": {"slot_mode": "attributes"}, "grounding": 1.0},
+        "sac": {"q_filter": True},
+        "explore": {"curriculum": [], "family_weights": "uniform"},
+    }
+    (run / "config.json").write_text(json.dumps(cfg))
+    (run / "eval.csv").write_text("step,train/put\n5000,0.1\n10000,0.2\n15000,0.4\n")
+    doc = manipulation.compared(run)
+    assert doc["steps"] == [10000, 15000]
+    assert doc["seen"] == {"put": 0.3}
+    assert doc["settings"]["n-step"] == 3 and doc["settings"]["slots"] == "attributes"
+    table = "\n".join(manipulation.compared_lines([doc]))
+    assert "| 3 | attributes | 1.0 |" in table and "put 0.30" in table
+    with pytest.raises(SystemExit, match="no run"):
+        manipulation.main(
+            ["--work", str(tmp_path), "--eval-only", "--compare", str(tmp_path / "x")]
+        )
