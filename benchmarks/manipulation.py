@@ -103,7 +103,9 @@ def latest_step(work: Path) -> int | None:
         return None
 
 
-def lcrl_eval(args: argparse.Namespace, out: Path, *options: str) -> dict[str, Any] | None:
+def lcrl_eval(
+    args: argparse.Namespace, out: Path, *options: str, work: str | None = None
+) -> dict[str, Any] | None:
     """``lcrl eval`` of the run with ``options``; its JSON document (None when it fails,
     e.g. a set without an instruction of the family). A document already at ``out`` for
     the run's latest checkpoint is kept, so an evaluation cut short (the machine shut
@@ -113,11 +115,11 @@ def lcrl_eval(args: argparse.Namespace, out: Path, *options: str) -> dict[str, A
             doc = json.loads(out.read_text())
         except ValueError:
             doc = {}
-        step = latest_step(Path(args.work))
+        step = latest_step(Path(work or args.work))
         if step is not None and doc.get("step") == step:
             print(f"== keeping {out} (step {step})", flush=True)
             return doc
-    cmd = [*LCRL, "eval", args.work, "--episodes", str(args.episodes), "--num-envs", "1"]
+    cmd = [*LCRL, "eval", work or args.work, "--episodes", str(args.episodes), "--num-envs", "1"]
     cmd += [*options, "--no-progress", "--json", str(out)]
     print("== " + shlex.join(cmd), flush=True)
     env = child_env(args)
@@ -128,32 +130,59 @@ def lcrl_eval(args: argparse.Namespace, out: Path, *options: str) -> dict[str, A
     return json.loads(out.read_text())
 
 
-def evaluate(args: argparse.Namespace) -> dict[str, Any]:
-    """Per family and set: success with its interval; the chain figures."""
-    folder = Path(args.work) / "evals" / "manipulation"
+def evaluate_family(args: argparse.Namespace, work: str, family: str) -> dict[str, Any]:
+    """One family's success per set (with its interval) for the run at ``work``."""
+    folder = Path(work) / "evals" / "manipulation"
     folder.mkdir(parents=True, exist_ok=True)
-    out: dict[str, Any] = {"families": {}, "chain": None}
+    # one process for the three sets; set by set when one has no instruction of it
+    options = ("--families", family, "--sets")
+    doc = lcrl_eval(args, folder / f"{family}.json", *options, *SETS, work=work)
+    docs = {name: doc for name in SETS}
+    if doc is None:
+        docs = {
+            name: lcrl_eval(args, folder / f"{family}-{name}.json", *options, name, work=work)
+            for name in SETS
+        }
+    per_set: dict[str, Any] = {}
+    for name, d in docs.items():
+        s = d["sets"][name] if d else None
+        per_set[name] = None if s is None else {k: s[k] for k in ("success", "ci", "episodes")}
+    return per_set
+
+
+def evaluate(args: argparse.Namespace) -> dict[str, Any]:
+    """Per family and set: success with its interval, from the family's own run where
+    ``--family-runs`` names one (the one policy's figures then kept beside); the chain
+    figures of the one policy."""
+    out: dict[str, Any] = {"families": {}, "one_policy": {}, "runs": {}, "chain": None}
     for family in args.families:
-        # one process for the three sets; set by set when one has no instruction of it
-        doc = lcrl_eval(args, folder / f"{family}.json", "--families", family, "--sets", *SETS)
-        docs = {name: doc for name in SETS}
-        if doc is None:
-            docs = {
-                name: lcrl_eval(
-                    args, folder / f"{family}-{name}.json", "--families", family, "--sets", name
-                )
-                for name in SETS
-            }
-        per_set: dict[str, Any] = {}
-        for name, d in docs.items():
-            s = d["sets"][name] if d else None
-            per_set[name] = None if s is None else {k: s[k] for k in ("success", "ci", "episodes")}
-            if d and "step" not in out:
-                out["step"] = d["step"]
-        out["families"][family] = per_set
+        out["one_policy"][family] = evaluate_family(args, args.work, family)
+        own = args.family_runs.get(family)
+        out["families"][family] = (
+            out["one_policy"][family] if own is None else evaluate_family(args, own, family)
+        )
+        out["runs"][family] = own or args.work
+    out["step"] = latest_step(Path(args.work))
+    folder = Path(args.work) / "evals" / "manipulation"
     doc = lcrl_eval(args, folder / "chain2.json", "--chain", "2", "--sets", "train")
     if doc is not None:
         out["chain"] = doc["sets"]["train"].get("chain")
+    return out
+
+
+def family_runs(pairs: list[str]) -> dict[str, str]:
+    """``FAMILY=RUN`` pairs as a dict, with a one-line error for a bad pair."""
+    out: dict[str, str] = {}
+    for pair in pairs:
+        family, sep, run = pair.partition("=")
+        if not sep or family not in MANIPULATION_FAMILIES or not run:
+            raise SystemExit(
+                f"--family-runs: {pair!r} is not FAMILY=RUN with a family of "
+                f"{', '.join(MANIPULATION_FAMILIES)}"
+            )
+        if not has_checkpoint(Path(run)):
+            raise SystemExit(f"--family-runs: {run} has no checkpoint")
+        out[family] = run
     return out
 
 
@@ -263,7 +292,8 @@ def gifs(args: argparse.Namespace) -> dict[str, str]:
     out = {}
     for family in args.families:
         path = RESULTS_DIR / f"{NAME}-{family}.gif"
-        cmd = [*LCRL, "act", args.work, "--instruction", texts[family], "--episodes", "1"]
+        run = args.family_runs.get(family, args.work)
+        cmd = [*LCRL, "act", run, "--instruction", texts[family], "--episodes", "1"]
         cmd += ["--video", str(path), "--fps", "8"]
         env = child_env(args)
         if (
@@ -274,7 +304,12 @@ def gifs(args: argparse.Namespace) -> dict[str, str]:
     return out
 
 
-def headline(ev: dict[str, Any], spent: dict[str, float]) -> dict[str, Any]:
+def headline(
+    ev: dict[str, Any], spent: dict[str, float], own: dict[str, dict[str, float]] | None = None
+) -> dict[str, Any]:
+    """Seen success per family, ``chain2`` and the one policy's budget; for a family
+    trained in a run of its own (``own``: its budget): ``<family>_one_policy`` (the one
+    policy's figure), ``<family>_run``, ``<family>_steps`` and ``<family>_wall_clock_s``."""
     head: dict[str, Any] = {}
     for family, sets in ev["families"].items():
         seen = sets.get("train")
@@ -282,6 +317,12 @@ def headline(ev: dict[str, Any], spent: dict[str, float]) -> dict[str, Any]:
     chain = ev.get("chain")
     head["chain2"] = chain["success"][1]["success"] if chain else None
     head.update(spent)
+    for family, budget_ in (own or {}).items():
+        one = (ev.get("one_policy", {}).get(family) or {}).get("train")
+        head[f"{family}_one_policy"] = None if one is None else one["success"]
+        head[f"{family}_run"] = ev["runs"][family]
+        head[f"{family}_steps"] = budget_.get("steps")
+        head[f"{family}_wall_clock_s"] = budget_.get("wall_clock_s")
     return head
 
 
@@ -343,6 +384,14 @@ def main(argv: list[str] | None = None) -> int:
         "--processes", type=int, default=1, help="lcrl processes running beside this one"
     )
     parser.add_argument(
+        "--family-runs",
+        nargs="*",
+        default=[],
+        metavar="FAMILY=RUN",
+        help="families whose figures come from a run of their own (a per-family preset, "
+        "e.g. stack=runs/bench/robosuite-stack); the one policy's figures stay beside",
+    )
+    parser.add_argument(
         "--compare",
         nargs="*",
         default=[],
@@ -351,6 +400,7 @@ def main(argv: list[str] | None = None) -> int:
         "the mean of their last two periodic evaluations",
     )
     args = parser.parse_args(argv)
+    args.family_runs = family_runs(args.family_runs)
     missing = [r for r in args.compare if not (Path(r) / "config.json").is_file()]
     if missing:
         raise SystemExit(f"--compare: no run (config.json) at {', '.join(missing)}")
@@ -363,7 +413,8 @@ def main(argv: list[str] | None = None) -> int:
     ev = evaluate(args)
     script = scripted(args)
     spent = budget(work)
-    head = headline(ev, spent)
+    own = {f: budget(Path(r)) for f, r in args.family_runs.items()}
+    head = headline(ev, spent, own)
     reached = {
         k: (head.get(k) is not None and head[k] >= t) for k, t in TARGETS.items() if k in head
     }
@@ -387,22 +438,39 @@ def main(argv: list[str] | None = None) -> int:
             "compared": others,
         },
     )
+
+    def cells(sets: dict[str, Any]) -> list[str]:
+        return [
+            "n/a" if r is None else f"{r['success']:.2f} [{r['ci'][0]:.2f}, {r['ci'][1]:.2f}]"
+            for r in (sets.get(k) for k in SETS)
+        ]
+
     lines = [
-        "| family | seen | held-out combinations | paraphrases | scripted controller "
+        "| family | run | seen | held-out combinations | paraphrases | scripted controller "
         "| target (seen) |",
-        "|---|---|---|---|---:|---:|",
+        "|---|---|---|---|---|---:|---:|",
     ]
     for f, sets in ev["families"].items():
-        cells = []
-        for k in SETS:
-            r = sets.get(k)
-            cells.append(
-                "n/a" if r is None else f"{r['success']:.2f} [{r['ci'][0]:.2f}, {r['ci'][1]:.2f}]"
-            )
         ok = "reached" if reached.get(f) else "NOT reached"
+        run = ev["runs"][f]
         lines.append(
-            f"| {f} | {' | '.join(cells)} | {script.get(f, 0):.2f} | {TARGETS[f]} ({ok}) |"
+            f"| {f} | `{run}` | {' | '.join(cells(sets))} | {script.get(f, 0):.2f} "
+            f"| {TARGETS[f]} ({ok}) |"
         )
+    if args.family_runs:
+        lines.append(
+            f"\nThe one policy of `{args.work}` (all five families) on the families above "
+            "that come from a run of their own:\n"
+        )
+        lines += ["| family | seen | held-out combinations | paraphrases |", "|---|---|---|---|"]
+        for f in args.family_runs:
+            lines.append(f"| {f} | {' | '.join(cells(ev['one_policy'][f]))} |")
+        for f, r in args.family_runs.items():
+            b = own[f]
+            lines.append(
+                f"\n{f}: `{r}`, {b.get('steps', 0):,} environment steps, "
+                f"{b.get('wall_clock_s', 0) / 3600:.2f} h of training."
+            )
     c2 = head.get("chain2")
     lines.append(
         f"\nTwo instructions in a row (`lcrl eval --chain 2`, {args.episodes} chains): "

@@ -120,3 +120,45 @@ def test_compared_runs_show_their_settings_and_last_evaluations(tmp_path):
         manipulation.main(
             ["--work", str(tmp_path), "--eval-only", "--compare", str(tmp_path / "x")]
         )
+
+
+def test_family_runs_are_family_equals_run_with_a_checkpoint(tmp_path):
+    run = tmp_path / "stack"
+    (run / "checkpoints" / "step_000001000").mkdir(parents=True)
+    assert manipulation.family_runs([f"stack={run}"]) == {"stack": str(run)}
+    with pytest.raises(SystemExit, match="not FAMILY=RUN"):
+        manipulation.family_runs([str(run)])
+    with pytest.raises(SystemExit, match="not FAMILY=RUN"):
+        manipulation.family_runs([f"fly={run}"])
+    with pytest.raises(SystemExit, match="has no checkpoint"):
+        manipulation.family_runs([f"put={tmp_path / 'none'}"])
+
+
+def test_a_family_run_gives_its_family_figure_and_the_one_policy_stays_beside(
+    tmp_path, monkeypatch
+):
+    import argparse
+
+    main_run, own_run = str(tmp_path / "all"), str(tmp_path / "stack")
+    seen = {main_run: 0.1, own_run: 0.7}
+
+    def fake_eval(args, out, *options, work=None):
+        if "--chain" in options:
+            return {"sets": {"train": {"chain": {"success": [{}, {"success": 0.2}]}}}}
+        sets = {
+            n: {"success": seen[work], "ci": [0, 1], "episodes": 100} for n in manipulation.SETS
+        }
+        return {"step": 1, "sets": sets}
+
+    monkeypatch.setattr(manipulation, "lcrl_eval", fake_eval)
+    args = argparse.Namespace(
+        work=main_run, families=["reach", "stack"], family_runs={"stack": own_run}
+    )
+    ev = manipulation.evaluate(args)
+    assert ev["families"]["stack"]["train"]["success"] == 0.7
+    assert ev["families"]["reach"]["train"]["success"] == 0.1
+    assert ev["one_policy"]["stack"]["train"]["success"] == 0.1
+    head = manipulation.headline(ev, {"steps": 9}, {"stack": {"steps": 5, "wall_clock_s": 3.0}})
+    assert head["stack"] == 0.7 and head["stack_one_policy"] == 0.1
+    assert head["stack_run"] == own_run and head["stack_steps"] == 5
+    assert head["reach"] == 0.1 and head["chain2"] == 0.2 and "reach_one_policy" not in head
