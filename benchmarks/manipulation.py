@@ -326,7 +326,14 @@ def headline(
     return head
 
 
-def figure(name: str, ev: dict[str, Any], script: dict[str, float], rows: list, info: dict):
+def figure(
+    name: str,
+    ev: dict[str, Any],
+    script: dict[str, float],
+    rows: list,
+    info: dict,
+    own_rows: dict[str, list] | None = None,
+):
     import matplotlib
 
     matplotlib.use("Agg")
@@ -347,10 +354,13 @@ def figure(name: str, ev: dict[str, Any], script: dict[str, float], rows: list, 
     ax.set_ylabel("success (dashed: target)")
     ax.legend(fontsize=7)
     ax.set_title("per family, privileged state")
-    for f in fams:
+    for i, f in enumerate(fams):
         pts = [(r["step"], r[f"train/{f}"]) for r in rows if f"train/{f}" in r]
         if pts:
-            bx.plot(*zip(*pts, strict=True), marker="o", label=f)
+            bx.plot(*zip(*pts, strict=True), marker="o", color=f"C{i}", label=f)
+        mine = [(r["step"], r[f"train/{f}"]) for r in (own_rows or {}).get(f, [])]
+        if mine:  # the family's own run
+            bx.plot(*zip(*mine, strict=True), "--", marker="s", color=f"C{i}", label=f"{f} alone")
     bx.set_xlabel("environment steps")
     bx.set_ylabel("seen success (periodic evaluation)")
     bx.set_ylim(0, 1.05)
@@ -495,7 +505,7 @@ def main(argv: list[str] | None = None) -> int:
         "\n".join(lines),
         info,
     )
-    figure(NAME, ev, script, rows, info)
+    figure(NAME, ev, script, rows, info, {f: curve(Path(r)) for f, r in args.family_runs.items()})
     print("\n".join(lines))
     return 0
 
