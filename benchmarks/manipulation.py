@@ -225,15 +225,19 @@ def curve(work: Path) -> list[dict[str, float]]:
         return [{k: float(v) for k, v in row.items() if v != ""} for row in csv.DictReader(f)]
 
 
-#: The settings that tell compared runs apart (``config.json`` paths).
+#: The settings that tell compared runs apart (``config.json`` paths) and the value of
+#: each in a config written before it existed.
 COMPARED_SETTINGS = (
-    ("families", ("env", "families")),
-    ("n-step", ("buffer", "n_step")),
-    ("slots", ("agent", "net", "slot_mode")),
-    ("grounding", ("agent", "grounding")),
-    ("q-filter", ("sac", "q_filter")),
-    ("curriculum", ("explore", "curriculum")),
-    ("family weights", ("explore", "family_weights")),
+    ("families", ("env", "families"), None),
+    ("demonstrations", ("finetune", "demos"), ""),
+    ("demo BC", ("sac", "demo_bc"), 0.0),
+    ("target clip", ("sac", "target_clip"), None),
+    ("n-step", ("buffer", "n_step"), 1),
+    ("slots", ("agent", "net", "slot_mode"), None),
+    ("grounding", ("agent", "grounding"), 0.0),
+    ("q-filter", ("sac", "q_filter"), True),
+    ("curriculum", ("explore", "curriculum"), ()),
+    ("family weights", ("explore", "family_weights"), "uniform"),
 )
 
 
@@ -242,11 +246,11 @@ def compared(work: Path, last: int = 2) -> dict[str, Any]:
     the mean of its last ``last`` periodic evaluations (``eval.csv``)."""
     cfg = json.loads((work / "config.json").read_text())
     settings: dict[str, Any] = {}
-    for name, path in COMPARED_SETTINGS:
+    for name, path, default in COMPARED_SETTINGS:
         value: Any = cfg
         for key in path:
             value = value.get(key) if isinstance(value, dict) else None
-        settings[name] = value
+        settings[name] = default if value is None else value
     rows = curve(work)[-last:]
     fams = settings["families"] or []
     seen = {
@@ -260,7 +264,7 @@ def compared(work: Path, last: int = 2) -> dict[str, Any]:
 
 def compared_lines(runs: list[dict[str, Any]]) -> list[str]:
     """A Markdown table of :func:`compared` runs."""
-    names = [n for n, _ in COMPARED_SETTINGS]
+    names = [n for n, _, _ in COMPARED_SETTINGS]
     lines = [
         "| run | " + " | ".join(names) + " | evaluated at | seen success per family |",
         "|---|" + "---|" * len(names) + "---|---|",
@@ -269,7 +273,10 @@ def compared_lines(runs: list[dict[str, Any]]) -> list[str]:
         cells = []
         for n in names:
             v = r["settings"].get(n)
-            cells.append(" ".join(map(str, v)) if isinstance(v, list) else str(v))
+            if isinstance(v, list | tuple):
+                cells.append(" ".join(map(str, v)) or "none")
+            else:
+                cells.append("none" if v == "" else str(v))
         seen = ", ".join(f"{f} {v:.2f}" for f, v in r["seen"].items())
         steps = " and ".join(f"{s:,}" for s in r["steps"])
         lines.append(f"| `{r['run']}` | " + " | ".join(cells) + f" | {steps} | {seen} |")
@@ -493,8 +500,8 @@ def main(argv: list[str] | None = None) -> int:
     )
     if others:
         lines.append(
-            "\nOther runs (seen success: the mean of their last two periodic evaluations, 50 "
-            "episodes each; `lcrl train robosuite-manip` with the options shown):\n"
+            "\nOther runs, seed 0 (their settings from their config.json; seen success: the "
+            "mean of their last two periodic evaluations, 50 episodes each):\n"
         )
         lines += compared_lines(others)
     if videos:

@@ -115,7 +115,7 @@ def test_compared_runs_show_their_settings_and_last_evaluations(tmp_path):
     assert doc["seen"] == {"put": 0.3}
     assert doc["settings"]["n-step"] == 3 and doc["settings"]["slots"] == "attributes"
     table = "\n".join(manipulation.compared_lines([doc]))
-    assert "| 3 | attributes | 1.0 |" in table and "put 0.30" in table
+    assert "| 3 | attributes | 1.0 | True | none | uniform |" in table and "put 0.30" in table
     with pytest.raises(SystemExit, match="no run"):
         manipulation.main(
             ["--work", str(tmp_path), "--eval-only", "--compare", str(tmp_path / "x")]
