@@ -283,24 +283,31 @@ def compared_lines(runs: list[dict[str, Any]]) -> list[str]:
     return lines
 
 
-def gifs(args: argparse.Namespace) -> dict[str, str]:
-    """One ``lcrl act`` GIF per family, a seen instruction each, in the results folder."""
-    from captioner.splits import make_split
+def seen_instruction(run: str, family: str) -> str:
+    """A seen (training) instruction of ``family`` that the run's training env draws on
+    its first layout (seed 0), so ``lcrl act`` finds it feasible there."""
+    import lcrl
+    from train.tasks import find_language_wrapper
 
-    split = make_split(0, tuple(MANIPULATION_FAMILIES))
-    texts = dict(
-        reversed(
-            [
-                (m.family, t)
-                for t, m in zip(split.texts("train"), split.instructions("train"), strict=True)
-            ]
-        )
-    )
+    env = lcrl.load(run).make_env("train")
+    try:
+        wrapper = find_language_wrapper(env)
+        wrapper.draw_from((family,))
+        env.reset(seed=0)
+        return wrapper.instruction
+    finally:
+        env.close()
+
+
+def gifs(args: argparse.Namespace) -> dict[str, str]:
+    """One ``lcrl act`` GIF per family, a seen instruction of the run that gives the
+    family's figure, in the results folder."""
     out = {}
     for family in args.families:
         path = RESULTS_DIR / f"{NAME}-{family}.gif"
         run = args.family_runs.get(family, args.work)
-        cmd = [*LCRL, "act", run, "--instruction", texts[family], "--episodes", "1"]
+        text = seen_instruction(run, family)
+        cmd = [*LCRL, "act", run, "--instruction", text, "--episodes", "1"]
         cmd += ["--video", str(path), "--fps", "8"]
         env = child_env(args)
         if (
