@@ -76,6 +76,8 @@ class LanguageGoalWrapper(gym.Wrapper):
         self.family_balanced = family_balanced
         self.max_resample = max_resample
         self._candidates = self._instructions(self.families)
+        #: Draw weights of the families (:meth:`weigh_families`); None: uniform.
+        self._family_weights: dict[str, float] | None = None
         self.observation_space = gym.spaces.Dict(
             {
                 **dict(env.observation_space.spaces),
@@ -130,8 +132,6 @@ class LanguageGoalWrapper(gym.Wrapper):
                 raise LcrlError(f"family weights must be finite and >= 0, got {bad}")
             weights = dict(weights)
         self._family_weights = weights
-
-    _family_weights: dict[str, float] | None = None
 
     def _scene(self) -> SceneState:
         return self.env.unwrapped.scene()

@@ -235,18 +235,17 @@ def test_training_draws_families_by_failure(tmp_path):
         ex.recent["push"].extend([0.0] * ex.recent["push"].maxlen)  # push failing
         trainer.explorer.apply(trainer.envs)
         wrapper = find_language_wrapper(trainer.envs[0])
-        drawn = []
-        for _ in range(200):
-            wrapper.reset()
-            drawn.append(wrapper.meaning.family)
-        share = drawn.count("push") / len(drawn)
-        assert share > 0.85  # 1.05 / 1.1 expected, against 0.5 uniformly
+
+        def push_share(draws: int = 200) -> float:
+            families = []
+            for _ in range(draws):
+                wrapper.reset()
+                families.append(wrapper.meaning.family)
+            return families.count("push") / draws
+
+        assert push_share() > 0.85  # 1.05 / 1.1 expected, against 0.5 uniformly
         wrapper.weigh_families(None)
-        drawn = []
-        for _ in range(200):
-            wrapper.reset()
-            drawn.append(wrapper.meaning.family)
-        assert 0.35 < drawn.count("push") / len(drawn) < 0.65
+        assert 0.35 < push_share() < 0.65
         with pytest.raises(LcrlError, match="family weights"):
             wrapper.weigh_families({"push": -1.0})
     finally:

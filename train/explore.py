@@ -74,15 +74,19 @@ class Explorer:
     def apply(self, envs: Sequence[Any]) -> None:
         """Make the training environments draw from :meth:`families`, with
         :meth:`weights` (a no-op with neither a curriculum nor family weights)."""
-        if not self.cfg.curriculum and not self.weighted:
+        if self.cfg.curriculum:
+            for env in envs:
+                find_language_wrapper(env).draw_from(self.families())
+        self.reweigh(envs)
+
+    def reweigh(self, envs: Sequence[Any]) -> None:
+        """Give the training environments the current :meth:`weights` (a no-op without
+        family weights)."""
+        if not self.weighted:
             return
-        weights = self.weights() if self.weighted else None
+        weights = self.weights()
         for env in envs:
-            wrapper = find_language_wrapper(env)
-            if self.cfg.curriculum:
-                wrapper.draw_from(self.families())
-            if weights is not None:
-                wrapper.weigh_families(weights)
+            find_language_wrapper(env).weigh_families(weights)
 
     def weights(self) -> dict[str, float]:
         """Each family's draw weight with ``family_weights failure``: the floor plus its
@@ -93,13 +97,11 @@ class Explorer:
     def _judge(self, family: str, succeeded: bool, step: int) -> str | None:
         """Count a policy episode of ``family``; the family that opens, if one does."""
         cur = self.cfg.curriculum
-        if self.weighted and family in self.recent:
+        if family in self.recent:
             self.recent[family].append(float(succeeded))
         if not cur or self.opened >= len(cur) or family != cur[self.opened - 1]:
             return None
         window = self.recent[family]
-        if not self.weighted:
-            window.append(float(succeeded))
         if len(window) < window.maxlen or np.mean(window) < self.cfg.curriculum_threshold:
             return None
         self.opened += 1

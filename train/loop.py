@@ -739,10 +739,11 @@ class Trainer(BaseTrainer):
         curriculum."""
         complete = ep.done
         opened = self.explorer.finished(ep, complete, self.step)
-        if opened is not None or self.explorer.weighted:
-            self.explorer.apply(self.envs)
         if opened is not None:
+            self.explorer.apply(self.envs)
             print(f"curriculum: {opened} opens at step {self.step}", flush=True)
+        else:
+            self.explorer.reweigh(self.envs)
 
     def _step(self, ep: _Episode) -> None:
         step_episode(self.task, ep)

@@ -703,7 +703,7 @@ def to_device(x: Any, device: torch.device, dtype: torch.dtype | None = None) ->
     """
     if isinstance(x, torch.Tensor) and x.device.type != "cpu":
         return x.to(device=device, dtype=dtype)
-    t = torch.as_tensor(np.asarray(x) if not isinstance(x, torch.Tensor) else x)
+    t = x if isinstance(x, torch.Tensor) else torch.as_tensor(np.asarray(x))
     if dtype is not None and t.dtype != dtype:
         t = t.to(dtype)
     if device.type != "cuda":
