@@ -2,7 +2,7 @@
 
 Run from the repository root::
 
-    python benchmarks/reader.py        # lang2d, seeds 0 1 2, dropout 0, 0.3, 0.5 and 0.7
+    python benchmarks/reader.py   # lang2d, seeds 0 1 2: both designs, dropout 0 and 0.5
 
 The canonical reader (``--env.canonical-reader``, :mod:`train.text_reading`) is fitted,
 as a run fits it, on the training instructions of the env's split and their
@@ -15,10 +15,14 @@ policy, on:
 - ``heldout``: the held-out combinations' canonical sentences;
 - ``heldout_forms``: every grammar sentence of a held-out meaning.
 
-A sentence counts as read when the reader's meaning equals the grammar's parse. Each
-``--dropout`` value is an arm (token-state dropout while fitting the readers); the
-headline is the arm of the default (``CANONICAL_DROPOUT``, else the last), beside the
-arm without dropout (else the first). The misread words are counted per arm.
+A sentence counts as read when the reader's meaning equals the grammar's parse. An arm is
+a design of the readers (``shared``: all slots pool the tokens with the same queries;
+``per-slot``: each slot has queries of its own, ``CANONICAL_DESIGN``), a token-state
+dropout while fitting them (``--dropout``) and the weight of the family head when a
+meaning is decoded (1, and ``FAMILY_WEIGHT``: the same fitted readers, decoded twice).
+The headline is the default reader (per-slot, ``CANONICAL_DROPOUT``, ``FAMILY_WEIGHT``)
+beside the previous default (shared queries, ``CANONICAL_DROPOUT``, family weight 1).
+The misread words are counted per arm.
 
 Writes ``benchmarks/results/reader-<env>.{json,md,png}``.
 """
@@ -65,43 +69,78 @@ def misread_word(text: str, truth: Any) -> str:
     return " ".join(extra) if extra else "(canonical words)"
 
 
-def score(env_preset: str, seeds: list[int], dropouts: list[float]) -> dict[str, Any]:
-    """Per dropout arm and seed: the fraction read right in each set, and misread words."""
+#: Reader designs (:class:`lcrl.text_reader.TokenReader` options) by arm name.
+DESIGNS: dict[str, dict[str, Any]] = {
+    "shared": {"per_slot": False, "queries": 4, "hidden": 64},
+    "per-slot": {},  # filled with CANONICAL_DESIGN when scored
+}
+
+
+def arm_name(design: str, dropout: float, family_weight: float) -> str:
+    """The name of an arm, e.g. ``per-slot d0.5 fw0.5``."""
+    return f"{design} d{dropout:g} fw{family_weight:g}"
+
+
+def score(
+    env_preset: str, seeds: list[int], dropouts: list[float], designs: list[str]
+) -> dict[str, Any]:
+    """Per arm and seed: the fraction read right in each set, and misread words."""
     from lcrl.text_encoder import FrozenTextEncoder
     from train.config import PRESETS
     from train.tasks import find_language_wrapper, make_env
-    from train.text_reading import CANONICAL_MEMBERS, CanonicalEncoder, train_reading_encoder
+    from train.text_reading import (
+        CANONICAL_DESIGN,
+        CANONICAL_MEMBERS,
+        FAMILY_WEIGHT,
+        CanonicalEncoder,
+        train_reading_encoder,
+    )
 
     cfg = PRESETS[env_preset][1]
     encoder = FrozenTextEncoder()
     wrapper = find_language_wrapper(make_env(cfg.env))
     train = [m for m in wrapper.split.instructions("train") if m.family in wrapper.families]
     sets = reader_sets(wrapper)
+    weights = sorted({1.0, float(FAMILY_WEIGHT)}, reverse=True)
     out: dict[str, Any] = {"sizes": {k: len(v) for k, v in sets.items()}, "arms": {}}
-    for dropout in dropouts:
-        arm: dict[str, Any] = {"per_seed": {}, "misread": Counter()}
-        for seed in seeds:
-            t0 = time.perf_counter()
-            reading = train_reading_encoder(encoder, train, seed, CANONICAL_MEMBERS, dropout)
-            reader = CanonicalEncoder(reading)
-            row: dict[str, Any] = {"fit_s": round(time.perf_counter() - t0, 1)}
-            for name, items in sets.items():
-                got = reader.meanings([t for t, _ in items])
-                wrong = [(t, m) for (t, m), g in zip(items, got, strict=True) if g != m]
-                row[name] = round(1 - len(wrong) / max(1, len(items)), 4)
-                if name == "paraphrase_forms":
-                    arm["misread"].update(w for t, m in wrong for w in misread_word(t, m).split())
-                if name == "paraphrase_set":
-                    row["paraphrase_set_misread"] = [
-                        [t, g.text] for (t, m), g in zip(items, got, strict=True) if g != m
-                    ]
-            arm["per_seed"][str(seed)] = row
-            print(f"dropout {dropout} seed {seed}: {row}", flush=True)
-        for name in SETS:
-            values = [arm["per_seed"][str(s)][name] for s in seeds]
-            arm[name] = {"mean": float(np.mean(values)), "std": float(np.std(values))}
-        arm["misread"] = dict(arm["misread"].most_common(12))
-        out["arms"][str(dropout)] = arm
+    for design in designs:
+        options = DESIGNS[design] or dict(CANONICAL_DESIGN)
+        for dropout in dropouts:
+            arms = {
+                w: {"per_seed": {}, "misread": Counter(), "design": design, "dropout": dropout,
+                    "family_weight": w, "options": options}
+                for w in weights
+            }  # fmt: skip
+            for seed in seeds:
+                t0 = time.perf_counter()
+                reading = train_reading_encoder(
+                    encoder, train, seed, CANONICAL_MEMBERS, dropout, options
+                )
+                fit_s = round(time.perf_counter() - t0, 1)
+                for w, arm in arms.items():
+                    reader = CanonicalEncoder(reading, family_weight=w)
+                    row: dict[str, Any] = {"fit_s": fit_s}
+                    for name, items in sets.items():
+                        got = reader.meanings([t for t, _ in items])
+                        pairs = list(zip(items, got, strict=True))
+                        wrong = [(t, m) for (t, m), g in pairs if g != m]
+                        row[name] = round(1 - len(wrong) / max(1, len(items)), 4)
+                        if name == "paraphrase_forms":
+                            arm["misread"].update(
+                                x for t, m in wrong for x in misread_word(t, m).split()
+                            )
+                        if name == "paraphrase_set":
+                            row["paraphrase_set_misread"] = [
+                                [t, g.text] for (t, m), g in pairs if g != m
+                            ]
+                    arm["per_seed"][str(seed)] = row
+                    print(f"{arm_name(design, dropout, w)} seed {seed}: {row}", flush=True)
+            for w, arm in arms.items():
+                for name in SETS:
+                    values = [arm["per_seed"][str(s)][name] for s in seeds]
+                    arm[name] = {"mean": float(np.mean(values)), "std": float(np.std(values))}
+                arm["misread"] = dict(arm["misread"].most_common(12))
+                out["arms"][arm_name(design, dropout, w)] = arm
     return out
 
 
@@ -113,23 +152,34 @@ def main(argv: list[str] | None = None) -> int:
         "--dropout",
         type=float,
         nargs="+",
-        default=[0.0, 0.3, 0.5, 0.7],
+        default=[0.0, 0.5],
         help="token-state dropout of each arm",
+    )
+    parser.add_argument(
+        "--designs",
+        nargs="+",
+        choices=sorted(DESIGNS),
+        default=["shared", "per-slot"],
+        help="reader designs: shared queries, or queries of each slot's own",
     )
     args = parser.parse_args(argv)
     if any(not 0.0 <= d < 1.0 for d in args.dropout):
         parser.error("--dropout values must be in [0, 1)")
-    info = machine()
-    res = score(args.preset, args.seeds, args.dropout)
-    from train.text_reading import CANONICAL_DROPOUT
+    from train.text_reading import CANONICAL_DROPOUT, FAMILY_WEIGHT
 
-    arms = [float(d) for d in res["arms"]]
-    chosen = CANONICAL_DROPOUT if CANONICAL_DROPOUT in arms else arms[-1]
-    plain = 0.0 if 0.0 in arms else arms[0]
-    base, new = res["arms"][str(plain)], res["arms"][str(chosen)]
-    head = {k: round(new[k]["mean"], 4) for k in SETS}
+    if CANONICAL_DROPOUT not in args.dropout or set(args.designs) != set(DESIGNS):
+        parser.error(
+            f"the headline compares both designs at the default dropout {CANONICAL_DROPOUT}: "
+            "keep it among --dropout and both --designs"
+        )
+    info = machine()
+    res = score(args.preset, args.seeds, args.dropout, args.designs)
+    new_arm = arm_name("per-slot", CANONICAL_DROPOUT, FAMILY_WEIGHT)
+    base_arm = arm_name("shared", CANONICAL_DROPOUT, 1.0)
+    base, new = res["arms"][base_arm], res["arms"][new_arm]
+    head: dict[str, Any] = {k: round(new[k]["mean"], 4) for k in SETS}
     head.update({f"{k}_baseline": round(base[k]["mean"], 4) for k in SETS})
-    head["dropout"], head["baseline_dropout"] = chosen, plain
+    head["arm"], head["baseline_arm"] = new_arm, base_arm
     head["seeds"] = len(args.seeds)
     name = f"reader-{args.preset}"
     save_json(
@@ -143,21 +193,35 @@ def main(argv: list[str] | None = None) -> int:
         },
     )
     lines = [
-        "| dropout | " + " | ".join(SETS) + " |",
-        "|---:|" + "---|" * len(SETS),
+        "| design | dropout | family weight | " + " | ".join(SETS) + " |",
+        "|---|---:|---:|" + "---|" * len(SETS),
     ]
-    for d, arm in res["arms"].items():
+    for name_, arm in res["arms"].items():
         cells = [f"{arm[k]['mean']:.3f} ± {arm[k]['std']:.3f}" for k in SETS]
-        lines.append(f"| {d} | " + " | ".join(cells) + " |")
+        mark = "**" if name_ == new_arm else ""
+        lines.append(
+            f"| {mark}{arm['design']}{mark} | {arm['dropout']:g} | {arm['family_weight']:g} | "
+            + " | ".join(cells) + " |"
+        )  # fmt: skip
     sizes = ", ".join(f"{k} {v}" for k, v in res["sizes"].items())
     words = "\n".join(
-        f"- dropout {d}: " + ", ".join(f"{w} ({n})" for w, n in arm["misread"].items())
+        f"- {d}: " + ", ".join(f"{w} ({n})" for w, n in arm["misread"].items())
         for d, arm in res["arms"].items()
+    )
+    missed = "\n".join(
+        f"- seed {seed}: "
+        + ("; ".join(f"{t!r} read as {g!r}" for t, g in row["paraphrase_set_misread"]) or "none")
+        for seed, row in new["per_seed"].items()
     )
     body = (
         f"Canonical reader ({args.preset}'s split and families), fitted as a run fits it; "
         f"fraction of sentences whose meaning it reads right, mean ± sd over seeds "
-        f"{args.seeds}. Sentences per set: {sizes}.\n\n" + "\n".join(lines)
+        f"{args.seeds}. Sentences per set: {sizes}. Designs: `shared` (every slot pools "
+        f"the tokens with the same {DESIGNS['shared']['queries']} queries), `per-slot` "
+        f"(each slot with queries of its own, {new['options']}); the family weight scales "
+        "the family head's log-probabilities when a meaning is decoded. In bold: the "
+        "default.\n\n" + "\n".join(lines)
+        + f"\n\nThe default's misread sentences of the `paraphrase` set:\n\n{missed}"
         + "\n\nWords the canonical sentence lacks, counted over the misread paraphrases "
         "(summed over seeds):\n\n"
         f"{words}\n"
@@ -169,16 +233,16 @@ def main(argv: list[str] | None = None) -> int:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    fig, ax = plt.subplots(figsize=(7, 4))
+    fig, ax = plt.subplots(figsize=(9, 4.5))
     width = 0.8 / len(res["arms"])
     for j, (d, arm) in enumerate(res["arms"].items()):
         xs = [i + (j - (len(res["arms"]) - 1) / 2) * width for i in range(len(SETS))]
         ax.bar(xs, [arm[k]["mean"] for k in SETS], width, yerr=[arm[k]["std"] for k in SETS],
-               capsize=3, label=f"dropout {d}", alpha=0.8)  # fmt: skip
+               capsize=3, label=d, alpha=0.8)  # fmt: skip
     ax.set_xticks(range(len(SETS)), [k.replace("_", "\n") for k in SETS])
     ax.set(ylim=(0, 1.02), ylabel="read right (mean ± sd over seeds)")
     ax.set_title(f"canonical reader, {args.preset}")
-    ax.legend()
+    ax.legend(fontsize=7, ncol=2, loc="lower left")
     fig.tight_layout(rect=(0, 0.08, 1, 1))
     save_figure(name, fig, info)
     print(head)

@@ -7,10 +7,13 @@ when a learned attention over the encoder's token states picks the words first
 (``benchmarks/grounding_probe.py``). :class:`TokenReader` is that attention: a few learned
 queries pool the token states of an instruction, and small heads predict the slot values
 its meaning has (family, colours, shapes, direction, relation), supervised by the parse
-of the training instructions. It is trained once, before reinforcement learning, and
-then frozen. :class:`ReadingEncoder` gives the policy the sentence vector followed by the
-reader's predicted slot-value probabilities: a soft parse that unseen phrasings share
-with the training instructions they mean.
+of the training instructions. With ``per_slot`` each meaning slot has queries of its own,
+so the colour is read from the tokens the colour head attends to and the direction from
+those of the direction head, rather than all heads from one shared pooling. It is
+trained once, before reinforcement learning, and then frozen. :class:`ReadingEncoder`
+gives the policy the sentence vector followed by the reader's predicted slot-value
+probabilities: a soft parse that unseen phrasings share with the training instructions
+they mean.
 
 The encoder stays frozen; the reader's weights travel with the checkpoint.
 """
@@ -32,18 +35,31 @@ class TokenReader(nn.Module):
     Args:
         dim: width of the token states.
         slots: for each meaning slot (``family``, ``colour`` ...), its number of values.
-        queries: attention queries (each pools the tokens once).
+        queries: attention queries (each pools the tokens once); per slot with ``per_slot``.
         hidden: width of the layer between the pooled tokens and the classifiers.
+        per_slot: every slot pools the tokens with queries of its own and has a hidden
+            layer of its own; otherwise all slots share the queries and the hidden layer.
     """
 
     def __init__(
-        self, dim: int, slots: Mapping[str, int], queries: int = 4, hidden: int = 64
+        self,
+        dim: int,
+        slots: Mapping[str, int],
+        queries: int = 4,
+        hidden: int = 64,
+        per_slot: bool = False,
     ) -> None:
         super().__init__()
         self.slots = dict(slots)
-        self.queries, self.width = int(queries), int(hidden)
-        self.query = nn.Linear(dim, queries)
-        self.hidden = nn.Sequential(nn.Linear(queries * dim, hidden), nn.ReLU())
+        self.queries, self.width, self.per_slot = int(queries), int(hidden), bool(per_slot)
+        if self.per_slot:
+            self.query = nn.Linear(dim, queries * len(self.slots))
+            self.hidden = nn.ModuleDict(
+                {k: nn.Sequential(nn.Linear(queries * dim, hidden), nn.ReLU()) for k in self.slots}
+            )
+        else:
+            self.query = nn.Linear(dim, queries)
+            self.hidden = nn.Sequential(nn.Linear(queries * dim, hidden), nn.ReLU())
         self.heads = nn.ModuleDict({k: nn.Linear(hidden, n) for k, n in self.slots.items()})
         self.register_buffer("mean", torch.zeros(dim))
         self.register_buffer("std", torch.ones(dim))
@@ -57,9 +73,15 @@ class TokenReader(nn.Module):
         """Logits per slot for token states ``(B, T, dim)`` with their mask ``(B, T)``."""
         x = (states - self.mean) / self.std
         w = self.query(x).masked_fill(~mask.unsqueeze(-1), -1e9).softmax(1)  # (B, T, Q)
-        pooled = torch.einsum("btq,btd->bqd", w, x).flatten(1)
-        h = self.hidden(pooled)
-        return {k: head(h) for k, head in self.heads.items()}
+        pooled = torch.einsum("btq,btd->bqd", w, x)
+        if not self.per_slot:
+            h = self.hidden(pooled.flatten(1))
+            return {k: head(h) for k, head in self.heads.items()}
+        q = self.queries  # slot i reads the pooled vectors of its queries i*q .. (i+1)*q
+        return {
+            k: self.heads[k](self.hidden[k](pooled[:, i * q : (i + 1) * q].flatten(1)))
+            for i, k in enumerate(self.slots)
+        }
 
     def probabilities(self, states: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
         """Every slot's value probabilities, one slot after another, ``(B, out_dim)``."""
@@ -74,6 +96,9 @@ def fit_reader(
     steps: int = 600,
     seed: int = 0,
     dropout: float = 0.0,
+    per_slot: bool = False,
+    queries: int = 4,
+    hidden: int = 64,
 ) -> TokenReader:
     """Train a :class:`TokenReader` on token states and the slot values of each text
     (cross-entropy summed over slots), full batch, Adam; returned frozen, in eval mode.
@@ -87,13 +112,14 @@ def fit_reader(
         dropout: the fraction of token-state features zeroed at each step (a fresh mask
             every step; none when reading), so that no single feature direction of the
             words seen in training decides a slot alone.
+        per_slot, queries, hidden: the reader's design (:class:`TokenReader`).
     """
     if not 0.0 <= dropout < 1.0:
         raise ValueError(f"dropout must be in [0, 1), not {dropout}")
     gen = torch.Generator().manual_seed(int(seed))
     with torch.random.fork_rng(devices=[]):
         torch.manual_seed(int(gen.initial_seed()))
-        reader = TokenReader(states.shape[-1], slots)
+        reader = TokenReader(states.shape[-1], slots, queries, hidden, per_slot)
     x, m = torch.as_tensor(states), torch.as_tensor(mask)
     real = x[m]
     reader.mean.copy_(real.mean(0))
@@ -131,6 +157,7 @@ class ReaderEnsemble(nn.Module):
         self.members = nn.ModuleList(members)
         first = members[0]
         self.slots, self.queries, self.width = dict(first.slots), first.queries, first.width
+        self.per_slot = first.per_slot
 
     @property
     def out_dim(self) -> int:
@@ -156,11 +183,13 @@ def fit_ensemble(
     steps: int = 600,
     seed: int = 0,
     dropout: float = 0.0,
+    **design: Any,
 ) -> ReaderEnsemble:
-    """``members`` readers (:func:`fit_reader`), seeds ``1000 * seed + k``, as one."""
+    """``members`` readers (:func:`fit_reader`, ``design``: its ``per_slot``, ``queries``
+    and ``hidden``), seeds ``1000 * seed + k``, as one."""
     return ReaderEnsemble(
         [
-            fit_reader(states, mask, labels, slots, steps, 1000 * seed + k, dropout)
+            fit_reader(states, mask, labels, slots, steps, 1000 * seed + k, dropout, **design)
             for k in range(members)
         ]
     )
@@ -209,6 +238,7 @@ class ReadingEncoder:
             "slots": dict(r.slots),
             "queries": r.queries,
             "hidden": r.width,
+            "per_slot": bool(r.per_slot),
             "members": len(r.members) if isinstance(r, ReaderEnsemble) else 0,
             "weights": {k: v.clone() for k, v in r.state_dict().items()},
         }
@@ -220,7 +250,11 @@ class ReadingEncoder:
 
         def one() -> TokenReader:
             return TokenReader(
-                int(encoder.dim), slots, int(state.get("queries", 4)), int(state.get("hidden", 64))
+                int(encoder.dim),
+                slots,
+                int(state.get("queries", 4)),
+                int(state.get("hidden", 64)),
+                bool(state.get("per_slot", False)),  # readers saved before it shared queries
             )
 
         members = int(state.get("members", 0))  # 0: a single reader

@@ -125,6 +125,39 @@ def test_an_ensemble_of_readers_averages_them_and_round_trips():
     assert ReadingEncoder(enc, ensemble.members[0]).state_dict()["members"] == 0
 
 
+def test_a_per_slot_reader_reads_each_slot_from_its_own_token_and_round_trips():
+    """With queries of its own per slot, each head finds the token of its slot; the
+    design travels in the state, and a state saved before the option reads as shared."""
+    rng = np.random.default_rng(2)
+    n, t, d = 240, 6, 16
+    words = {"a": rng.normal(size=(3, d)), "b": rng.normal(size=(2, d))}
+    states = rng.normal(size=(n, t, d)).astype(np.float32) * 0.5
+    mask = np.ones((n, t), bool)
+    labels = {"a": rng.integers(0, 3, n), "b": rng.integers(0, 2, n)}
+    where = np.stack([rng.permutation(t)[:2] for _ in range(n)])  # two distinct positions
+    states[np.arange(n), where[:, 0]] = words["a"][labels["a"]]
+    states[np.arange(n), where[:, 1]] = words["b"][labels["b"]]
+    reader = fit_reader(
+        states, mask, labels, {"a": 3, "b": 2}, steps=300, per_slot=True, queries=2, hidden=16
+    )
+    assert reader.per_slot and reader.query.out_features == 4
+    with torch.no_grad():
+        logits = reader(torch.as_tensor(states), torch.as_tensor(mask))
+    for k in ("a", "b"):
+        assert (logits[k].argmax(-1).numpy() == labels[k]).mean() > 0.95, k
+    enc = _Encoder()
+    enc.dim = d
+    state = ReadingEncoder(enc, reader).state_dict()
+    assert state["per_slot"] is True and state["queries"] == 2 and state["hidden"] == 16
+    again = ReadingEncoder.from_state(enc, state).reader
+    with torch.no_grad():
+        torch.testing.assert_close(again(torch.as_tensor(states), torch.as_tensor(mask)), logits)
+    shared = fit_reader(states, mask, labels, {"a": 3, "b": 2}, steps=1)
+    old = ReadingEncoder(enc, shared).state_dict()
+    del old["per_slot"]  # as saved before the option existed
+    assert not ReadingEncoder.from_state(enc, old).reader.per_slot
+
+
 def test_a_run_with_the_reader_saves_it_and_queries_read_through_it(tmp_path):
     out = tmp_path / "run"
     cfg = tiny("lang2d-grounded", out, total_steps=200)
@@ -229,15 +262,27 @@ def test_the_canonical_decoder_gives_valid_meanings():
     assert meaning.text == "stack the red cube on the blue cube"
     favour("family", "push")
     scores["family"][SLOT_VALUES["family"].index("stack")] = 0.0
-    scores["direction"][SLOT_VALUES["direction"].index(None)] = 9.0
+    scores["direction"][SLOT_VALUES["direction"].index(None)] = 6.0  # a push names one
     favour("direction", "left")
     assert canonical._decode(scores).text == "push the red cube left"
+    # a confident family head against a confident "no direction": the family head's
+    # log-probability counts at half weight, so the sentence reads as reach; at full
+    # weight the family head alone would decide
+    for k in scores:
+        scores[k][:] = 0.0
+    favour("colour", "red")
+    favour("shape", "cube")
+    scores["family"][SLOT_VALUES["family"].index("push")] = 10.0
+    scores["direction"][SLOT_VALUES["direction"].index(None)] = 9.0
+    assert canonical._decode(scores).text == "reach the red cube"
+    full = CanonicalEncoder(ReadingEncoder(enc, reader), family_weight=1.0)
+    assert full._decode(scores).family == "push"
     # the state keeps the values it may answer
     state = canonical.state_dict()
     assert state["output"] == "canonical" and set(state["seen"]) == set(SLOT_VALUES)
 
 
-def test_a_run_with_the_canonical_reader_saves_it_and_eval_can_add_one(tmp_path):
+def test_a_run_with_the_canonical_reader_saves_it_and_eval_can_add_one(tmp_path, monkeypatch):
     """Training with --env.canonical-reader keeps the policy's goal width and saves the
     reader; queries read through it. A checkpoint without a reader gets one fitted by
     ``lcrl eval --canonical-reader``; a --env.text-reader checkpoint cannot swap readers."""
@@ -245,6 +290,8 @@ def test_a_run_with_the_canonical_reader_saves_it_and_eval_can_add_one(tmp_path)
     from train.environments import check_env_config
     from train.text_reading import CanonicalEncoder
 
+    # two members instead of five: saving, loading and fitting for eval are what is checked
+    monkeypatch.setattr("train.text_reading.CANONICAL_MEMBERS", 2)
     out = tmp_path / "run"
     cfg = tiny("lang2d-grounded", out, total_steps=200)
     cfg.env.canonical_reader = True
