@@ -25,7 +25,11 @@ replay buffer. Then its latest checkpoint is evaluated:
   chains whose first two instructions both succeed;
 - the scripted controllers on the same number of episodes per family, with the same
   100-step limit (``captioner.scripted3d.evaluate``);
-- one ``lcrl act`` GIF per family (``--gifs``).
+- one ``lcrl act`` GIF per family (``--gifs``);
+- with ``--chain-run RUN``: ``chain2`` and every family's figures of that run too: one
+  policy over all five families that another route gave (a student of ``lcrl distill
+  --state``, which merges per-family teachers over chains); the one RL policy's chain
+  figure stays beside as ``chain2_rl_policy``.
 
 Writes ``benchmarks/results/robosuite-manipulation.{json,md,png}``. Headline: seen
 success per family (``reach`` ... ``stack``, targets 0.90, 0.80, 0.70, 0.50, 0.30),
@@ -154,7 +158,14 @@ def evaluate(args: argparse.Namespace) -> dict[str, Any]:
     """Per family and set: success with its interval, from the family's own run where
     ``--family-runs`` names one (the one policy's figures then kept beside); the chain
     figures of the one policy."""
-    out: dict[str, Any] = {"families": {}, "one_policy": {}, "runs": {}, "chain": None}
+    out: dict[str, Any] = {
+        "families": {},
+        "one_policy": {},
+        "runs": {},
+        "chain": None,
+        "chain_run": {},
+        "rl_chain": None,
+    }
     for family in args.families:
         out["one_policy"][family] = evaluate_family(args, args.work, family)
         own = args.family_runs.get(family)
@@ -167,6 +178,43 @@ def evaluate(args: argparse.Namespace) -> dict[str, Any]:
     doc = lcrl_eval(args, folder / "chain2.json", "--chain", "2", "--sets", "train")
     if doc is not None:
         out["chain"] = doc["sets"]["train"].get("chain")
+    if getattr(args, "chain_run", ""):
+        out["rl_chain"] = out["chain"]
+        for family in args.families:
+            out["chain_run"][family] = evaluate_family(args, args.chain_run, family)
+        folder = Path(args.chain_run) / "evals" / "manipulation"
+        folder.mkdir(parents=True, exist_ok=True)
+        doc = lcrl_eval(
+            args, folder / "chain2.json", "--chain", "2", "--sets", "train", work=args.chain_run
+        )
+        out["chain"] = None if doc is None else doc["sets"]["train"].get("chain")
+    return out
+
+
+def distilled(run: Path) -> dict[str, Any]:
+    """A distilled run's budget (rounds, episodes, labelled states, training seconds) and
+    its teachers, from its logs and checkpoint."""
+    out: dict[str, Any] = {}
+    with (run / "progress.csv").open() as f:
+        rows = list(csv.DictReader(f))
+    if rows:
+        last = rows[-1]
+        out.update(
+            rounds=int(float(last["step"])),
+            episodes=int(float(last["episodes"])),
+            labelled_states=int(float(last["rows"])),
+        )
+    if (run / "eval.csv").is_file():
+        with (run / "eval.csv").open() as f:
+            evals = list(csv.DictReader(f))
+        if evals and evals[-1].get("train_s"):
+            out["wall_clock_s"] = round(float(evals[-1]["train_s"]), 1)
+    try:
+        ckpt = json.loads((run / "latest.json").read_text())["checkpoint"]
+        meta = json.loads((run / ckpt / "meta.json").read_text())
+        out["teachers"] = meta.get("distill", {})
+    except (OSError, ValueError, KeyError):
+        pass
     return out
 
 
@@ -329,7 +377,14 @@ def headline(
         seen = sets.get("train")
         head[family] = None if seen is None else seen["success"]
     chain = ev.get("chain")
-    head["chain2"] = chain["success"][1]["success"] if chain else None
+    head["chain2"] = chain["success"][1].get("success") if chain else None
+    head["chain2_first"] = chain["success"][0].get("success") if chain else None
+    if ev.get("chain_run"):
+        rl = ev.get("rl_chain")
+        head["chain2_rl_policy"] = rl["success"][1].get("success") if rl else None
+        for family, sets in ev["chain_run"].items():
+            seen = sets.get("train")
+            head[f"{family}_distilled"] = None if seen is None else seen["success"]
     head.update(spent)
     for family, budget_ in (own or {}).items():
         one = (ev.get("one_policy", {}).get(family) or {}).get("train")
@@ -416,6 +471,13 @@ def main(argv: list[str] | None = None) -> int:
         "e.g. stack=runs/bench/robosuite-stack); the one policy's figures stay beside",
     )
     parser.add_argument(
+        "--chain-run",
+        default="",
+        metavar="RUN",
+        help="take chain2 from this run (one policy over every family, e.g. a student of "
+        "lcrl distill --state) and report its per-family figures beside",
+    )
+    parser.add_argument(
         "--compare",
         nargs="*",
         default=[],
@@ -425,6 +487,8 @@ def main(argv: list[str] | None = None) -> int:
     )
     args = parser.parse_args(argv)
     args.family_runs = family_runs(args.family_runs)
+    if args.chain_run and not has_checkpoint(Path(args.chain_run)):
+        raise SystemExit(f"--chain-run: {args.chain_run} has no checkpoint")
     missing = [r for r in args.compare if not (Path(r) / "config.json").is_file()]
     if missing:
         raise SystemExit(f"--compare: no run (config.json) at {', '.join(missing)}")
@@ -439,6 +503,11 @@ def main(argv: list[str] | None = None) -> int:
     spent = budget(work)
     own = {f: budget(Path(r)) for f, r in args.family_runs.items()}
     head = headline(ev, spent, own)
+    student = distilled(Path(args.chain_run)) if args.chain_run else {}
+    if student:
+        head["chain2_run"] = args.chain_run
+        for key in ("rounds", "labelled_states", "wall_clock_s"):
+            head[f"distilled_{key}"] = student.get(key)
     reached = {
         k: (head.get(k) is not None and head[k] >= t) for k, t in TARGETS.items() if k in head
     }
@@ -456,6 +525,10 @@ def main(argv: list[str] | None = None) -> int:
             "settings": vars(args),
             "families": ev["families"],
             "chain": ev["chain"],
+            "rl_chain": ev["rl_chain"],
+            "distilled": {"run": args.chain_run, **student, "families": ev["chain_run"]}
+            if student
+            else None,
             "scripted": script,
             "curve": rows,
             "gifs": videos,
@@ -496,11 +569,34 @@ def main(argv: list[str] | None = None) -> int:
                 f"{b.get('wall_clock_s', 0) / 3600:.2f} h of training."
             )
     c2 = head.get("chain2")
+    if student:
+        t = student.get("teachers", {})
+        who = ", ".join(f"{f}: `{v['path']}`" for f, v in t.get("teachers", {}).items())
+        chain_t = (t.get("chain_teacher") or {}).get("path")
+        lines.append(
+            f"\nOne policy over all five families, distilled with DAgger (`{args.chain_run}`, "
+            f"`lcrl distill --state`): teacher `{t.get('teacher')}`"
+            + (f", per family {who}" if who else "")
+            + (f"; after the first instruction of a chain: `{chain_t}`" if chain_t else "")
+            + f". {student.get('rounds', 0)} rounds, {student.get('labelled_states', 0):,} "
+            f"labelled states, {student.get('wall_clock_s', 0) / 3600:.2f} h:\n"
+        )
+        lines += ["| family | seen | held-out combinations | paraphrases |", "|---|---|---|---|"]
+        for f, sets in ev["chain_run"].items():
+            lines.append(f"| {f} | {' | '.join(cells(sets))} |")
     lines.append(
-        f"\nTwo instructions in a row (`lcrl eval --chain 2`, {args.episodes} chains): "
+        f"\nTwo instructions in a row (`lcrl eval --chain 2`, {args.episodes} chains"
+        + (f", the policy of `{args.chain_run}`" if student else "")
+        + "): "
         + ("n/a" if c2 is None else f"{c2:.2f}")
+        + ("" if head.get("chain2_first") is None else f" (first {head['chain2_first']:.2f})")
         + f", target {TARGETS['chain2']} ({'reached' if reached.get('chain2') else 'NOT reached'})."
     )
+    if student:
+        rl = head.get("chain2_rl_policy")
+        lines.append(
+            f"The RL policy of `{args.work}`: " + ("n/a" if rl is None else f"{rl:.2f}") + "."
+        )
     lines.append(
         f"\nBudget: {spent.get('steps', 0):,} environment steps, {spent.get('updates', 0):,} "
         f"updates, {spent.get('wall_clock_s', 0) / 3600:.2f} h of training on this machine."

@@ -441,13 +441,149 @@ class ScriptedController3D:
         return self._move(g, np.array([g[0], g[1], hover + 0.03]), OPEN)
 
 
+class MarkovController3D(ScriptedController3D):
+    """The scripted strategies as a function of the scene alone: no phase machine, no
+    counters, no damping by the last motion.
+
+    :class:`ScriptedController3D` decides when to close, carry, lower or release from its
+    phase and step counters, and damps moves by the gripper's last motion; a policy that
+    sees only the current state cannot imitate those decisions. This controller reads the
+    phase off the scene each step (what is held, where the gripper is against the object
+    and the drop point), so it labels any state the same way whatever led there: the
+    teacher for DAgger (``lcrl distill --teacher-for FAMILY=scripted``).
+
+    Rules per family (the geometry of :class:`ScriptedController3D`):
+
+    * reach: as there (already a function of the scene);
+    * push: with an object in the fingers, open and rise; otherwise approach behind X at
+      hover height, come down there, then push through X's centre while the fingers are
+      in line with it, and approach again when they are not;
+    * lift / put / stack, X not held: approach above X with open fingers, come down when
+      lined up, close when at X's height; when X rests at the drop point (put, stack),
+      open and rise instead of grasping it again;
+    * X held: lift raises it; put and stack carry it above the others to the drop point,
+      lower it there, and open when it rests there.
+
+    Failures need no counters: a knocked or dropped object is no longer lined up, and the
+    approach starts again.
+    """
+
+    def __init__(self, *args: Any, **kwargs: Any) -> None:
+        kwargs["damping"] = 0.0
+        super().__init__(*args, **kwargs)
+
+    def act(self, instruction: str | Instruction, s0: SceneState, s: SceneState) -> np.ndarray:
+        """Action for the current scene (see :meth:`ScriptedController3D.act`), from the
+        scene alone."""
+        ins = parse(instruction) if isinstance(instruction, str) else instruction
+        self._memory = _Memory()  # nothing carries over from one step to the next
+        i = s.index(*ins.obj)
+        j = s.index(*ins.target) if ins.target is not None else 0
+        if i < 0 or j < 0 or s0.index(*ins.obj) < 0:
+            return np.array([0.0, 0.0, 0.0, OPEN], dtype=np.float32)
+        if ins.family == "reach":
+            a = self._reach(s, i)
+        elif ins.family == "push":
+            a = self._push_now(ins, s0, s, i)
+        else:
+            a = self._grasp_now(ins, s0, s, i, j)
+        return np.clip(a, -1.0, 1.0).astype(np.float32)
+
+    def _push_now(self, ins: Instruction, s0: SceneState, s: SceneState, i: int) -> np.ndarray:
+        g, o = s.gripper, s.positions[i]
+        if s.grasped is not None and bool(np.any(s.grasped)):  # let go of what is held
+            return np.array([0.0, 0.0, 0.5, OPEN])
+        half = float(s.half_extents[i, :2].max())
+        vec = np.asarray(DIRECTION_VECTORS[ins.direction], dtype=np.float64)
+        start = s0.positions[i, :2]
+        xmin, xmax, ymin, ymax = s.table_bounds
+        lo = np.array([xmin, ymin]) + half
+        hi = np.array([xmax, ymax]) - half
+        room = min(
+            (hi - start)[k] / vec[k] if vec[k] > 0 else (lo - start)[k] / vec[k]
+            for k in range(2)
+            if vec[k] != 0
+        )
+        th = self.thresholds
+        aim = min(th.push_distance + self.push_margin, max(room, th.push_distance + 0.005))
+        progress = float((o[:2] - start) @ vec)
+        push_z = s.table_height + 0.018
+        axis = self._push_axis(s, i, vec)
+        remaining = max(aim - progress, 0.01) / float(axis @ vec)
+        goal = np.clip(o[:2] + axis * remaining, lo, hi)
+        d = goal - o[:2]
+        dist = float(np.linalg.norm(d))
+        u = d / dist if dist > 1e-6 else vec
+        perp = np.array([-u[1], u[0]])
+        reach = float(np.abs(u) @ self.finger_half_width)
+        behind = o[:2] - u * (half + reach + self.standoff)
+        rel = g[:2] - o[:2]
+        along, lat = float(rel @ u), float(rel @ perp)
+        in_line = along < -(half + reach) + 0.02 and abs(lat) < 0.7 * half
+        if in_line and g[2] <= push_z + 0.02 and along > -(half + reach + 0.04):
+            speed = float(np.clip((dist + 0.02) / self.step_size, 0.2, 0.6))
+            a_xy = u * speed - perp * np.clip(lat / self.step_size, -0.5, 0.5)
+            a_z = np.clip((push_z - g[2]) / self.step_size, -1.0, 1.0)
+            return np.array([a_xy[0], a_xy[1], a_z, CLOSE])
+        if float(np.linalg.norm(g[:2] - behind)) < 0.012:  # lined up behind X: come down
+            return self._move(g, np.array([behind[0], behind[1], push_z]), CLOSE)
+        return self._fly(s, np.array([behind[0], behind[1], self._hover_z(s)]), CLOSE)
+
+    def _drop_point(
+        self, ins: Instruction, s0: SceneState, s: SceneState, i: int, j: int
+    ) -> np.ndarray:
+        """Where put and stack leave X's centre."""
+        if ins.family == "stack":
+            dest = s.positions[j].copy()
+            dest[2] += s.half_extents[j, 2] + s.half_extents[i, 2] + 0.004
+            return dest
+        dest = np.append(self._put_goal(ins, s0, s, i, j), s.table_height)
+        dest[2] += s.half_extents[i, 2] + 0.004
+        return dest
+
+    def _grasp_now(
+        self, ins: Instruction, s0: SceneState, s: SceneState, i: int, j: int
+    ) -> np.ndarray:
+        g, o = s.gripper, s.positions[i]
+        held = bool(s.grasped[i]) if s.grasped is not None else False
+        hover = self._hover_z(s, skip=i)
+        dest = self._drop_point(ins, s0, s, i, j) if ins.family != "lift" else None
+        xy_err = float(np.linalg.norm(dest[:2] - o[:2])) if dest is not None else np.inf
+        if not held:
+            if dest is not None and xy_err < 0.01 and o[2] - dest[2] < 0.006:
+                return self._move(g, np.array([g[0], g[1], hover + 0.03]), OPEN)  # let go
+            xy = float(np.linalg.norm(g[:2] - o[:2]))
+            if xy < 0.008 and abs(g[2] - o[2]) < 0.006:
+                return self._move(g, o, CLOSE, 0.3)  # at X: close
+            if xy < 0.012 and g[2] < o[2] + 0.07:
+                return self._move(g, o, OPEN)  # lined up above X: come down
+            return self._fly(s, np.array([o[0], o[1], o[2] + 0.06]), OPEN, max(hover, o[2] + 0.06))
+        if dest is None:  # lift: straight up from where it is held
+            rise = self.thresholds.lift_height + self.lift_margin
+            target_o = np.array([o[0], o[1], s0.positions[i, 2] + rise])
+            return self._move(g, g + (target_o - o), CLOSE)
+        if xy_err < 0.008:
+            if o[2] - dest[2] < 0.003:
+                return np.array([0.0, 0.0, 0.0, OPEN])  # resting at the drop point: release
+            target_o = dest if xy_err < 0.006 else np.array([dest[0], dest[1], o[2]])
+            return self._move(g, g + (target_o - o), CLOSE, 0.5)  # lower
+        carry_z = hover + (o[2] - g[2]) + s.half_extents[i, 2]
+        if o[2] < carry_z - 0.015 and xy_err > 0.01:
+            target_o = np.array([o[0], o[1], carry_z])  # up first
+        else:
+            target_o = np.array([dest[0], dest[1], carry_z])
+        return self._move(g, g + (target_o - o), CLOSE)
+
+
 def evaluate(
     families: Sequence[str] = FAMILIES,
     seeds: Iterable[int] = range(20),
     max_steps: int = 100,
+    markov: bool = False,
     **env_kwargs: Any,
 ) -> dict[str, dict[int, int | None]]:
-    """Run the scripted controller on language-goal episodes of the robosuite tabletop.
+    """Run the scripted controller (``markov``: :class:`MarkovController3D`) on
+    language-goal episodes of the robosuite tabletop.
 
     Each family gets its own :class:`~captioner.lang_env.LanguageGoalWrapper` (instructions
     of that family only, sampled by the wrapper from the train set of split 0) around one
@@ -457,6 +593,7 @@ def evaluate(
         families: the instruction families to run.
         seeds: the reset seeds (one episode each, per family).
         max_steps: steps before an episode counts as failed.
+        markov: run the controller that reads everything off the scene.
         **env_kwargs: passed to the environment.
 
     Returns:
@@ -466,7 +603,7 @@ def evaluate(
     from envs.robosuite_tabletop import RobosuiteTabletopEnv
 
     env = RobosuiteTabletopEnv(**env_kwargs)
-    controller = ScriptedController3D()
+    controller = MarkovController3D() if markov else ScriptedController3D()
     out: dict[str, dict[int, int | None]] = {}
     try:
         for family in families:
@@ -499,13 +636,18 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--families", nargs="+", default=list(FAMILIES), choices=FAMILIES)
     parser.add_argument("--num-objects", type=int, default=None, help="default: 2 to 4")
     parser.add_argument("--controller-period", type=int, default=5)
+    parser.add_argument(
+        "--markov", action="store_true", help="the controller without memory (a DAgger teacher)"
+    )
     args = parser.parse_args(argv)
     env_kwargs: dict[str, Any] = {"controller_period": args.controller_period}
     if args.num_objects is not None:
         env_kwargs["num_objects"] = args.num_objects
     print(f"{'family':8s} {'success':>9s} {'steps: median':>14s} {'max':>5s}")
     for family in args.families:
-        steps = evaluate([family], range(args.episodes), args.max_steps, **env_kwargs)[family]
+        steps = evaluate([family], range(args.episodes), args.max_steps, args.markov, **env_kwargs)[
+            family
+        ]
         done = [n for n in steps.values() if n is not None]
         rate = len(done) / max(len(steps), 1)
         median = f"{float(np.median(done)):.0f}" if done else "-"

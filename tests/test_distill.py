@@ -106,7 +106,7 @@ def test_a_resumed_distillation_continues_exactly(teacher, perception, tmp_path)
 def test_students_and_teachers_that_cannot_work_are_refused(teacher, perception, tmp_path, capsys):
     out = ["--out", str(tmp_path / "s")]
     assert cli("distill", str(teacher), *out) == 2
-    assert "give --perception MODEL" in error_line(capsys.readouterr().err)
+    assert "one of: --perception MODEL" in error_line(capsys.readouterr().err)
     assert cli("distill", str(tmp_path / "nothing"), "--perception", str(perception), *out) == 2
     assert "no checkpoint or run folder" in error_line(capsys.readouterr().err)
     # a student of another camera: a perception model for robosuite's slots
@@ -138,3 +138,109 @@ def test_the_student_does_not_inherit_how_the_teacher_explored(tmp_path):
     assert cfg.env.perception == str(tmp_path / "p") and cfg.algo == "bc"
     assert cfg.env.families == teacher_cfg.env.families
     cfg.validate()  # chains with perception would be refused
+
+
+@pytest.fixture(scope="module")
+def two_families(tmp_path_factory) -> Path:
+    """A privileged-state lang2d policy over reach and push (a few hundred steps)."""
+    from train.loop import Trainer
+
+    out = tmp_path_factory.mktemp("distill") / "two"
+    Trainer(tiny("lang2d", out, total_steps=300, learning_starts=100)).run()
+    return out
+
+
+def test_family_teachers_merge_into_one_state_student_over_chains(two_families, teacher, tmp_path):
+    """``--state --teacher-for``: every family is labelled by its own teacher (here the
+    scripted controller, which succeeds where a 300-step policy cannot), achieved
+    instructions go on in the same scene, and the student is one policy over both."""
+    out = tmp_path / "merged"
+    args = ["distill", str(two_families), "--state", "--out", str(out), "--chain", "1"]
+    args += ["--teacher-for", "reach=scripted", "push=scripted", "--rounds", "2"]
+    args += ["--episodes-per-round", "6", "--updates-per-round", "100", "--batch-size", "64"]
+    args += ["--eval-every", "0", "--eval-episodes", "2", "--no-progress", "--no-tensorboard"]
+    assert cli(*args) == 0
+    rows = _rows(out / "progress.csv")
+    first = rows[0]  # the teachers act alone in the first round
+    assert first["teacher_share"] == 1.0 and first["success"] >= 5 / 6
+    assert first["chained"] >= 5 and first["chained_success"] >= 0.8
+    assert rows[1]["rows"] > first["rows"] and rows[1]["loss"] < first["loss_first"]
+
+    import lcrl
+
+    policy = lcrl.load(out)
+    meta = policy.checkpoint.meta["distill"]
+    assert meta["teachers"] == {"reach": {"path": "scripted"}, "push": {"path": "scripted"}}
+    assert not policy.perceives
+    obs, _ = policy.make_env().reset(seed=0)
+    assert policy.act(obs, "push the red cube left").shape == (2,)
+
+    # the chain's teacher labels every instruction after the first: the 300-step policy
+    # labels first push instructions (and fails them), the scripted controller the rest
+    out = tmp_path / "chained"
+    args = ["distill", str(two_families), "--state", "--out", str(out), "--chain", "1"]
+    args += ["--teacher-for", "reach=scripted", "--chain-teacher", "scripted", "--rounds", "1"]
+    args += ["--episodes-per-round", "8", "--updates-per-round", "5", "--batch-size", "16"]
+    args += ["--eval-every", "0", "--eval-episodes", "1", "--no-progress", "--no-tensorboard"]
+    assert cli(*args) == 0
+    row = _rows(out / "progress.csv")[0]
+    assert row["success"] < 1.0 and row["chained"] >= 1 and row["chained_success"] == 1.0
+    assert lcrl.load(out).checkpoint.meta["distill"]["chain_teacher"] == {"path": "scripted"}
+    # roll-in: the teacher acts the first instruction whole, the student (beta 0) the rest
+    rolled = tmp_path / "rolled"
+    args[args.index(str(out))] = str(rolled)
+    assert cli(*args, "--roll-in", "1", "--beta", "0") == 0
+    row = _rows(rolled / "progress.csv")[0]
+    assert row["chained"] >= 1 and 0.0 < row["teacher_share"] < 1.0
+
+    # a family's teacher run: the instruction's id is looked up in that teacher's table
+    from lcrl.checkpoint import load_checkpoint
+    from train.config import DistillConfig
+    from train.distill import DistillTrainer, student_config
+    from train.evaluate import resolve_checkpoint
+    from train.run_meta import run_meta
+
+    base = run_meta(load_checkpoint(resolve_checkpoint(two_families))).config
+    cfg = student_config(
+        base,
+        state=True,
+        out=str(tmp_path / "reach-teacher"),
+        distill=DistillConfig(teacher=str(two_families), teachers=(f"reach={teacher}",)),
+        progress=False,
+        tensorboard=False,
+    )
+    trainer = DistillTrainer(cfg)
+    try:
+        reach_teacher = trainer.family_teachers["reach"]
+        text = next(t for t in trainer.task.table[: trainer.task.num_train] if "reach" in t)
+        goal = trainer.task.ids[text]
+        trainer.env.reset(seed=0, options={"instruction": text})
+        chosen, ids = trainer._teacher(goal)
+        assert chosen is reach_teacher and ids.tolist() == [reach_teacher.task.ids[text]]
+        push = next(t for t in trainer.task.table[: trainer.task.num_train] if "push" in t)
+        trainer.env.reset(seed=0, options={"instruction": push})
+        chosen, ids = trainer._teacher(trainer.task.ids[push])
+        assert chosen is trainer.teacher and ids.tolist() == [trainer.task.ids[push]]
+    finally:
+        trainer.close()
+
+
+def test_family_teachers_that_cannot_teach_are_refused(two_families, teacher, tmp_path, capsys):
+    out = ["--out", str(tmp_path / "s"), "--no-progress", "--no-tensorboard"]
+    base = ["distill", str(two_families), "--state", *out]
+    assert cli(*base, "--teacher-for", "reach") == 2
+    assert "FAMILY=RUN (put=runs/put), got 'reach'" in error_line(capsys.readouterr().err)
+    assert cli(*base, "--teacher-for", "lift=scripted") == 2
+    assert "the student's env has the families reach, push" in error_line(capsys.readouterr().err)
+    assert cli(*base, "--teacher-for", "reach=scripted", "reach=scripted") == 2
+    assert "two teachers for the family 'reach'" in error_line(capsys.readouterr().err)
+    # the reach-only policy never saw a push instruction
+    assert cli(*base, "--teacher-for", f"push={teacher}") == 2
+    line = error_line(capsys.readouterr().err)
+    assert "was not trained on" in line and "push instructions" in line
+    assert cli(*base, "--perception", str(tmp_path / "p")) == 2
+    assert "one of: --perception MODEL" in error_line(capsys.readouterr().err)
+    assert cli(*base, "--chain", "1.5") == 2
+    assert "distill.chain must be in [0, 1]" in error_line(capsys.readouterr().err)
+    assert cli(*base, "--roll-in", "-0.5") == 2
+    assert "distill.roll_in must be in [0, 1]" in error_line(capsys.readouterr().err)

@@ -18,7 +18,14 @@ def test_headline_reads_seen_success_per_family_and_the_second_chain_link():
         "chain": {"success": [{"length": 1, "success": 0.7}, {"length": 2, "success": 0.4}]},
     }
     head = manipulation.headline(ev, {"steps": 1000, "wall_clock_s": 12.5})
-    assert head == {"reach": 0.9, "push": None, "chain2": 0.4, "steps": 1000, "wall_clock_s": 12.5}
+    assert head == {
+        "reach": 0.9,
+        "push": None,
+        "chain2": 0.4,
+        "chain2_first": 0.7,
+        "steps": 1000,
+        "wall_clock_s": 12.5,
+    }
 
 
 def test_budget_comes_from_the_run_logs(tmp_path):
@@ -162,3 +169,45 @@ def test_a_family_run_gives_its_family_figure_and_the_one_policy_stays_beside(
     assert head["stack"] == 0.7 and head["stack_one_policy"] == 0.1
     assert head["stack_run"] == own_run and head["stack_steps"] == 5
     assert head["reach"] == 0.1 and head["chain2"] == 0.2 and "reach_one_policy" not in head
+
+
+def test_a_chain_run_gives_chain2_and_its_family_figures_beside(tmp_path, monkeypatch):
+    """``--chain-run``: chain2 comes from that policy (a distilled student over every
+    family), the RL policy's chain figure and the student's per-family figures beside."""
+    import argparse
+    import json
+
+    rl, student = str(tmp_path / "rl"), str(tmp_path / "student")
+    chains = {rl: 0.2, student: 0.5}
+    seen = {rl: 0.1, student: 0.6}
+
+    def fake_eval(args, out, *options, work=None):
+        work = work or args.work
+        if "--chain" in options:
+            links = [{"success": 0.8}, {"success": chains[work]}]
+            return {"sets": {"train": {"chain": {"success": links}}}}
+        sets = {n: {"success": seen[work], "ci": [0, 1], "episodes": 9} for n in manipulation.SETS}
+        return {"step": 1, "sets": sets}
+
+    monkeypatch.setattr(manipulation, "lcrl_eval", fake_eval)
+    args = argparse.Namespace(work=rl, families=["put"], family_runs={}, chain_run=student)
+    ev = manipulation.evaluate(args)
+    head = manipulation.headline(ev, {"steps": 9})
+    assert head["chain2"] == 0.5 and head["chain2_rl_policy"] == 0.2
+    assert head["put"] == 0.1 and head["put_distilled"] == 0.6
+
+    run = tmp_path / "student"
+    (run / "checkpoints" / "step_000000003").mkdir(parents=True)
+    (run / "progress.csv").write_text("step,episodes,rows\n2,60,900\n3,90,1400\n")
+    (run / "eval.csv").write_text("step,train/success,train_s\n3,0.5,99.94\n")
+    (run / "latest.json").write_text(json.dumps({"checkpoint": "checkpoints/step_000000003"}))
+    meta = {"distill": {"teacher": "runs/all", "teachers": {"put": {"path": "scripted"}}}}
+    (run / "checkpoints" / "step_000000003" / "meta.json").write_text(json.dumps(meta))
+    spent = manipulation.distilled(run)
+    assert spent == {
+        "rounds": 3,
+        "episodes": 90,
+        "labelled_states": 1400,
+        "wall_clock_s": 99.9,
+        "teachers": meta["distill"],
+    }

@@ -21,7 +21,7 @@ import numpy as np
 from captioner.grammar import FAMILIES, Instruction, all_instructions
 from captioner.lang_env import LanguageGoalWrapper
 from captioner.rule import RuleCaptioner
-from captioner.scripted3d import ScriptedController3D
+from captioner.scripted3d import MarkovController3D, ScriptedController3D
 from envs.robosuite_tabletop import RobosuiteTabletopEnv
 from envs.scene import OBJECT_KINDS, SceneState
 
@@ -40,11 +40,16 @@ def env() -> Iterator[RobosuiteTabletopEnv]:
 
 
 def run_scripted(
-    wrapped: LanguageGoalWrapper, seed: int, steps: int = MAX_STEPS
+    wrapped: LanguageGoalWrapper,
+    seed: int | None,
+    steps: int = MAX_STEPS,
+    controller: ScriptedController3D | None = None,
 ) -> tuple[bool, int]:
-    """One scripted episode; (success, steps taken)."""
-    controller = ScriptedController3D()
-    wrapped.reset(seed=seed)
+    """One scripted episode (``seed`` None: go on in the scene, with the instruction the
+    wrapper has); (success, steps taken)."""
+    controller = controller or ScriptedController3D()
+    if seed is not None:
+        wrapped.reset(seed=seed)
     scene = wrapped.unwrapped.scene
     for t in range(steps):
         action = controller.act(wrapped.meaning, wrapped.s0, scene())
@@ -63,6 +68,41 @@ def test_scripted_controller_succeeds(env: RobosuiteTabletopEnv, family: str) ->
     results = {seed: run_scripted(wrapped, seed) for seed in SEEDS}
     successes = sum(ok for ok, _ in results.values())
     assert successes >= MIN_SUCCESSES, f"{family}: {results}"
+
+
+@pytest.mark.parametrize("family", FAMILIES)
+def test_the_memoryless_controller_succeeds_and_goes_on_in_the_same_scene(
+    env: RobosuiteTabletopEnv, family: str
+) -> None:
+    """The DAgger teacher: each family from a reset, then a second instruction of another
+    family from where the first left the scene (after lift, the object is still held)."""
+    wrapped = LanguageGoalWrapper(env, families=(family,))
+    markov = MarkovController3D()
+    firsts, seconds = 0, 0
+    for seed in range(4):
+        ok, _ = run_scripted(wrapped, seed, controller=markov)
+        firsts += ok
+        following = "push" if family != "push" else "lift"
+        pool = [str(i) for i in ALL if i.family == following]
+        if ok and wrapped.switch_instruction(candidates=pool) is not None:
+            seconds += run_scripted(wrapped, None, controller=markov)[0]
+    assert firsts >= 3 and seconds >= 3, (family, firsts, seconds)
+
+
+def test_the_memoryless_controller_reads_everything_off_the_scene(
+    env: RobosuiteTabletopEnv,
+) -> None:
+    wrapped = LanguageGoalWrapper(env, families=("put",))
+    markov = MarkovController3D()
+    wrapped.reset(seed=3)
+    s0, scenes = wrapped.s0, []
+    for _ in range(12):
+        scenes.append(env.scene())
+        wrapped.step(markov.act(wrapped.meaning, s0, scenes[-1]))
+    first = [markov.act(wrapped.meaning, s0, s) for s in scenes]
+    again = [markov.act(wrapped.meaning, s0, s) for s in reversed(scenes)][::-1]
+    np.testing.assert_array_equal(np.stack(first), np.stack(again))
+    assert len({a.tobytes() for a in first}) > 1  # it does move
 
 
 def test_accepts_sentences_and_restarts_on_a_new_episode(env: RobosuiteTabletopEnv) -> None:

@@ -18,7 +18,7 @@ Subcommands:
     demos info        summarise a demonstration dataset (segments per family ...)
     demos import-robomimic   convert a robomimic / LIBERO file into a demonstration dataset
     perception collect | train | eval   learn to read object slots from camera frames
-    distill  distil a privileged-state teacher into a student acting from camera frames
+    distill  distil privileged-state teachers into a student (camera frames, or one policy)
 
 User mistakes (bad options, unparseable instructions, missing files) print one line
 starting with ``lcrl: error:`` and exit with status 2; Ctrl-C exits with status 130.
@@ -29,7 +29,7 @@ from __future__ import annotations
 import json
 import sys
 from collections.abc import Mapping, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
@@ -666,11 +666,12 @@ def _perception(argv: Sequence[str]) -> None:
 
 @dataclass
 class DistillCommand:
-    """Distil a privileged-state teacher into a student that acts from camera frames,
-    with DAgger: the student acts (the teacher's share of the actions shrinks round by
-    round), the teacher labels every state visited, the student is fitted on everything
-    gathered. The student is a policy like any other: ``lcrl eval``, ``lcrl act`` and
-    ``lcrl.load`` take its run folder."""
+    """Distil a privileged-state teacher into a student that acts from camera frames (or
+    teachers of different instruction families into one policy), with DAgger: the
+    student acts (the teacher's share of the actions shrinks round by round), the teacher
+    labels every state visited, the student is fitted on everything gathered. The student
+    is a policy like any other: ``lcrl eval``, ``lcrl act`` and ``lcrl.load`` take its run
+    folder."""
 
     teacher: tyro.conf.Positional[str]
     """The teacher's run (or checkpoint) folder: a policy trained on the privileged state."""
@@ -680,6 +681,31 @@ class DistillCommand:
     image_obs: bool = False
     """The student reads the camera frames and proprioception through a CNN instead (end
     to end; practical on a GPU)."""
+    state: bool = False
+    """The student reads the teachers' own privileged state instead: with
+    ``--teacher-for``, policies trained apart merge into one."""
+    teacher_for: list[str] = field(default_factory=list)
+    """Teachers of some instruction families, ``FAMILY=RUN`` (``put=runs/put
+    stack=runs/stack``); ``TEACHER`` labels the other families."""
+    chain: float = 0.0
+    """Probability that an achieved instruction is followed by the next one in the same
+    scene (chains, as ``lcrl eval --chain`` runs them)."""
+    chain_length: int = 2
+    """Most instructions in a row (with ``--chain``)."""
+    chain_teacher: str = ""
+    """The teacher of the instructions after the first of a chain: ``scripted`` or a
+    run (default: each family's teacher)."""
+    roll_in: float = 0.0
+    """Probability that the teacher acts an episode's whole first instruction, the
+    student taking over at the second (with ``--chain``)."""
+    hidden: list[int] = field(default_factory=list)
+    """The student's hidden layer sizes (default: the teacher's)."""
+    slot_mode: str = ""
+    """How the student picks object slots: ``attention``, ``select`` or ``attributes``
+    (through their colour and shape); default: as the teacher."""
+    grounding: float | None = None
+    """Weight of the student's auxiliary grounding loss (which slots the instruction
+    names; with ``--slot-mode attributes``); default: the teacher's."""
     out: str = "runs/distill"
     """The student's run folder."""
     rounds: int = 10
@@ -713,7 +739,7 @@ class DistillCommand:
 
     def run(self) -> None:
         from lcrl.checkpoint import load_checkpoint
-        from train.config import BCConfig, DistillConfig
+        from train.config import SLOT_ATTRIBUTES, BCConfig, DistillConfig
         from train.distill import DistillTrainer, student_config
         from train.evaluate import resolve_checkpoint
         from train.run_meta import run_meta
@@ -727,11 +753,17 @@ class DistillCommand:
             updates_per_round=self.updates_per_round,
             beta=self.beta,
             beta_decay=self.beta_decay,
+            teachers=tuple(self.teacher_for),
+            chain=self.chain,
+            chain_length=self.chain_length,
+            chain_teacher=self.chain_teacher,
+            roll_in=self.roll_in,
         )
         cfg = student_config(
             teacher,
             perception=self.perception,
             image_obs=self.image_obs,
+            state=self.state,
             out=self.out,
             distill=distill,
             total_steps=self.rounds,
@@ -745,6 +777,16 @@ class DistillCommand:
             tensorboard=self.tensorboard,
         )
         cfg.bc = BCConfig(lr=self.lr, loss="mse", hindsight=False)
+        if self.hidden:
+            if min(self.hidden) <= 0:
+                raise LcrlError(f"--hidden sizes must be positive, got {self.hidden}")
+            cfg.agent.net.hidden = tuple(self.hidden)
+        if self.slot_mode:
+            cfg.agent.net.slot_mode = self.slot_mode
+            if self.slot_mode == "attributes" and not cfg.agent.net.slot_attributes:
+                cfg.agent.net.slot_attributes = SLOT_ATTRIBUTES
+        if self.grounding is not None:
+            cfg.agent.grounding = self.grounding
         cfg.resume, cfg.overwrite = self.resume, self.overwrite
         DistillTrainer(cfg).run()
         print(f"evaluate again with: lcrl eval {cfg.out}")

@@ -9,6 +9,7 @@ from __future__ import annotations
 import dataclasses
 import types
 import typing
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -345,6 +346,23 @@ class DistillConfig:
     beta_decay: float = 0.5
     """The teacher's share shrinks by this factor each round: ``beta * beta_decay ** r``
     in round ``r`` (0: the student acts alone from the second round on)."""
+    teachers: tuple[str, ...] = ()
+    """Teachers of some instruction families, as ``FAMILY=RUN`` entries (one policy per
+    family, trained apart): the instructions of those families are labelled by them, every
+    other family by ``teacher``. Several teachers merge into one student."""
+    chain: float = 0.0
+    """The probability that an episode whose instruction was achieved goes on in the same
+    scene with the next instruction (a chain, as ``lcrl eval --chain`` runs them), so the
+    student learns to start from where an instruction left the scene."""
+    chain_length: int = 2
+    """Most instructions in a row before the next reset (with ``chain``)."""
+    chain_teacher: str = ""
+    """The teacher of every instruction after the first of a chain: ``scripted`` (the
+    env's scripted controller) or a run; empty: the instruction family's teacher."""
+    roll_in: float = 0.0
+    """The probability that the teacher acts an episode's whole first instruction (its
+    states labelled as every other), so that the student acts from where it left the
+    scene: more of the states that chains start from (with ``chain``)."""
 
     def validate(self) -> None:
         """Raise :class:`LcrlError` for settings that cannot train."""
@@ -352,10 +370,31 @@ class DistillConfig:
             raise LcrlError(
                 "distill.episodes_per_round must be positive and distill.updates_per_round >= 0"
             )
-        for name in ("beta", "beta_decay"):
+        for name in ("beta", "beta_decay", "chain", "roll_in"):
             value = getattr(self, name)
             if not 0.0 <= value <= 1.0:
                 raise LcrlError(f"distill.{name} must be in [0, 1], got {value}")
+        if self.chain and self.chain_length < 2:
+            raise LcrlError("distill.chain_length must be at least 2 (instructions in a row)")
+        family_teachers(self.teachers)
+
+
+def family_teachers(entries: Sequence[str]) -> dict[str, str]:
+    """``FAMILY=RUN`` entries as ``{family: run}``.
+
+    Raises:
+        LcrlError: an entry without ``=``, an empty side, or a family named twice.
+    """
+    out: dict[str, str] = {}
+    for entry in entries:
+        family, sep, run = str(entry).partition("=")
+        family, run = family.strip(), run.strip()
+        if not sep or not family or not run:
+            raise LcrlError(f"a family's teacher is FAMILY=RUN (put=runs/put), got {entry!r}")
+        if family in out:
+            raise LcrlError(f"two teachers for the family {family!r}: {out[family]} and {run}")
+        out[family] = run
+    return out
 
 
 #: Learners of ``lcrl train --offline FILE``, with what each does there.

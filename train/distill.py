@@ -6,12 +6,22 @@ estimates from each frame (``--perception MODEL``), or the camera frames and the
 proprioception themselves (``--image-obs``, a CNN: the GPU path). Both see the same
 instruction embedding, so the student inherits the teacher's instruction table.
 
+A student may also read the same privileged state as its teachers (``--state``): then
+DAgger merges policies trained apart, one per instruction family (``--teacher-for
+put=RUN``), into one policy that follows every family, and with ``--chain`` it learns
+to go on from where the previous instruction left the scene.
+
 DAgger (Ross et al., 2011), one round at a time:
 
 1. collect ``distill.episodes_per_round`` episodes. At every step the teacher names its
    action for the true state; the action executed is the teacher's with probability
    ``beta_r = beta * beta_decay ** r`` and the student's own otherwise, so control is
    handed over round by round and the student visits the states its own mistakes lead to;
+   The teacher of a state is the one of its instruction's family. With ``distill.chain``
+   an achieved instruction is followed, in the same scene, by the next one (as
+   ``lcrl eval --chain`` does), up to ``distill.chain_length`` in a row; with
+   ``distill.roll_in`` the teacher acts some episodes' whole first instruction, so the
+   student meets more of the scenes that chains go on from;
 2. add every visited state, with the teacher's action, to the dataset (it only grows);
 3. run ``distill.updates_per_round`` behavioural-cloning updates of the student on the
    whole dataset (:class:`lcrl.bc.BC`, squared error of the mean action).
@@ -34,14 +44,18 @@ import numpy as np
 
 from lcrl.buffer import Batch
 from lcrl.errors import LcrlError
-from train.config import BCConfig, ExploreConfig, FinetuneConfig, TrainConfig
-from train.evaluate import build_agent, build_task, load_policy, resolve_checkpoint
+from train.config import BCConfig, ExploreConfig, FinetuneConfig, TrainConfig, family_teachers
+from train.evaluate import LoadedPolicy, build_agent, build_task, load_policy, resolve_checkpoint
 from train.loop import attach_grounding, checkpoint_meta
-from train.tasks import make_env
+from train.tasks import ScriptedActor, find_language_wrapper, make_env, switch_in_place
 from train.trainer import BaseTrainer, open_run
 
 #: Seeds of the collection episodes: round r, episode e of a run with seed s.
 EPISODE_SEED = 1_000_003
+#: ``--teacher-for FAMILY=scripted``: the env's scripted controller teaches that family
+#: (its memoryless form, :attr:`train.environments.EnvSpec.teacher`, where it has one: a
+#: student that sees only the current state can imitate it).
+SCRIPTED = "scripted"
 
 
 def student_config(
@@ -49,23 +63,26 @@ def student_config(
     *,
     perception: str = "",
     image_obs: bool = False,
+    state: bool = False,
     out: str = "runs/distill",
     **overrides: Any,
 ) -> TrainConfig:
     """The student's run config: the teacher's environment and networks, acting through
-    ``perception`` (or from ``image_obs``), cloned with ``algo="bc"``; ``overrides`` set
+    ``perception`` (or from ``image_obs``, or from the teacher's own privileged ``state``),
+    cloned with ``algo="bc"``; ``overrides`` set
     any other :class:`TrainConfig` field (``distill``, ``total_steps`` ...). How the
     teacher's own episodes were shaped (``explore``: chains, hand-overs, a curriculum) and
     the demonstrations it started from (``finetune``) are not the student's: DAgger
     collects its episodes itself.
 
     Raises:
-        LcrlError: neither a perception model nor image observations, or both.
+        LcrlError: not exactly one of a perception model, image observations or state.
     """
-    if bool(perception) == bool(image_obs):
+    if bool(perception) + bool(image_obs) + bool(state) != 1:
         raise LcrlError(
-            "the student acts from camera frames: give --perception MODEL (object slots "
-            "estimated from each frame) or --image-obs (a CNN over the frames), one of them"
+            "say what the student reads, one of: --perception MODEL (object slots estimated "
+            "from each camera frame), --image-obs (a CNN over the frames) or --state (the "
+            "teachers' privileged state: merging teachers)"
         )
     cfg = copy.deepcopy(teacher_cfg)
     env = dataclasses.replace(cfg.env, perception=perception, image_obs=image_obs)
@@ -87,8 +104,9 @@ def student_config(
 
 
 class DistillTrainer(BaseTrainer):
-    """DAgger from a privileged-state teacher (``cfg.distill.teacher``) into a ``bc``
-    student that acts from camera frames.
+    """DAgger from a privileged-state teacher (``cfg.distill.teacher``, with
+    ``cfg.distill.teachers`` for some families) into a ``bc`` student that acts from
+    camera frames, or from the same state.
 
     Args:
         cfg: the student's run config (:func:`student_config`). With ``cfg.resume`` the
@@ -97,7 +115,8 @@ class DistillTrainer(BaseTrainer):
 
     Raises:
         LcrlError: no teacher, a teacher without language goals or of another environment
-            than the student's, or a student that reads the true state.
+            than the student's, a family's teacher without that family's instructions, or
+            a student with a privileged critic.
     """
 
     unit = "round"
@@ -109,20 +128,32 @@ class DistillTrainer(BaseTrainer):
         if cfg.algo != "bc":
             raise LcrlError(f"the student is a bc policy, not {cfg.algo!r}")
         teacher = load_policy(resolve_checkpoint(cfg.distill.teacher))
-        self.out = Path(cfg.out)
-        cfg, ckpt = open_run(cfg)
-        self.cfg = cfg
-        self.algo = "bc"
         self.teacher = teacher
-        self.env = make_env(cfg.env, "train", training=True)
+        self.family_teachers: dict[str, LoadedPolicy] = {}
+        self.scripted_families: list[str] = []
+        self.chain_teacher: LoadedPolicy | None = None
+        self.env: Any = None
         try:
+            if cfg.distill.chain_teacher not in ("", SCRIPTED):
+                self.chain_teacher = load_policy(resolve_checkpoint(cfg.distill.chain_teacher))
+            for family, run in family_teachers(cfg.distill.teachers).items():
+                if run == SCRIPTED:
+                    self.scripted_families.append(family)
+                else:
+                    self.family_teachers[family] = load_policy(resolve_checkpoint(run))
+            self.out = Path(cfg.out)
+            cfg, ckpt = open_run(cfg)
+            self.cfg = cfg
+            self.algo = "bc"
+            self.env = make_env(cfg.env, "train", training=True)
             self._build(ckpt)
         except BaseException:
-            self.env.close()
+            self._close_envs()
             raise
 
-    def _build(self, ckpt: Any) -> None:
-        cfg, teacher = self.cfg, self.teacher
+    def _check_teacher(self, teacher: LoadedPolicy) -> None:
+        """Refuse a teacher that cannot label the student's states."""
+        cfg = self.cfg
         if teacher.task.query != "text":
             raise LcrlError(
                 f"the teacher {teacher.checkpoint.path} was not trained with language goals "
@@ -134,17 +165,46 @@ class DistillTrainer(BaseTrainer):
                 f"the teacher {teacher.checkpoint.path} acts from camera frames itself: a "
                 "teacher reads the privileged state"
             )
-        space = self.env.observation_space
-        source = "privileged" if "privileged" in space.spaces else "observation"
-        self._source = source
         theirs = tuple(teacher.task.problem().obs_shapes["observation"])
-        ours = tuple(space[source].shape)
+        ours = tuple(self.env.observation_space[self._source].shape)
         if theirs != ours or teacher.cfg.env.kind != cfg.env.kind:
             raise LcrlError(
                 f"the teacher {teacher.checkpoint.path} reads the {teacher.cfg.env.kind} env's "
                 f"state of shape {theirs}; the student's {cfg.env.kind} env gives {ours}: "
                 "distil a teacher of the same environment and observation features"
             )
+
+    def _check_family_teachers(self) -> None:
+        """Each family's teacher knows every training instruction of its family."""
+        wrapper = find_language_wrapper(self.env)
+        texts = wrapper.split.texts(wrapper.split_set)
+        meanings = wrapper.split.instructions(wrapper.split_set)
+        for family in [*self.family_teachers, *self.scripted_families]:
+            if family not in wrapper.families:
+                raise LcrlError(
+                    f"--teacher-for {family}=...: the student's env has the families "
+                    f"{', '.join(wrapper.families)}"
+                )
+        teachers = list(self.family_teachers.items())
+        if self.chain_teacher is not None:
+            teachers += [(family, self.chain_teacher) for family in wrapper.families]
+        for family, teacher in teachers:
+            self._check_teacher(teacher)
+            mine = [t for t, m in zip(texts, meanings, strict=True) if m.family == family]
+            missing = [t for t in mine if t not in teacher.task.ids]
+            if missing:
+                raise LcrlError(
+                    f"the {family} teacher {teacher.checkpoint.path} was not trained on "
+                    f"{len(missing)} of the student's {len(mine)} {family} instructions "
+                    f"(e.g. {missing[0]!r}): a family's teacher needs the same split"
+                )
+
+    def _build(self, ckpt: Any) -> None:
+        cfg, teacher = self.cfg, self.teacher
+        space = self.env.observation_space
+        self._source = "privileged" if "privileged" in space.spaces else "observation"
+        self._check_teacher(teacher)
+        self._check_family_teachers()
         table = (list(teacher.task.table), teacher.task.num_train)  # the teacher's ids
         self.task = build_task(cfg, self.env, ckpt, table=None if ckpt else table)
         if list(self.task.table) != list(teacher.task.table):
@@ -164,6 +224,11 @@ class DistillTrainer(BaseTrainer):
         self.rows = 0
         self._round: dict[str, float] = {}
         self._start: dict[str, Any] | None = None
+        self.lang = find_language_wrapper(self.env)
+        self.scripted = None
+        if self.scripted_families or cfg.distill.chain_teacher == SCRIPTED:
+            # the controller that reads everything off the scene
+            self.scripted = ScriptedActor(cfg.env, self.task, 0.0, teacher=True)
         if ckpt is not None:
             self.restore(ckpt)
         else:
@@ -174,12 +239,31 @@ class DistillTrainer(BaseTrainer):
     def begin(self) -> None:
         """Say who teaches whom."""
         cfg = self.cfg
-        how = f"perception {cfg.env.perception}" if cfg.env.perception else "camera frames"
+        if cfg.env.perception:
+            how = f"acting through perception {cfg.env.perception}"
+        elif cfg.env.image_obs:
+            how = "acting through camera frames"
+        else:
+            how = "acting from the same state"
+        others = "".join(
+            f", {family}: {t.checkpoint.path} (step {t.checkpoint.meta.get('step')})"
+            for family, t in self.family_teachers.items()
+        ) + "".join(f", {family}: the scripted controller" for family in self.scripted_families)
+        if cfg.distill.chain_teacher:
+            who = (
+                self.chain_teacher.checkpoint.path
+                if self.chain_teacher
+                else "the scripted controller"
+            )
+            others += f", after the first instruction of a chain: {who}"
+        chain = f"; chains of up to {cfg.distill.chain_length}" if cfg.distill.chain else ""
+        if cfg.distill.roll_in:
+            chain += f", the teacher acting the first instruction of {cfg.distill.roll_in:.0%}"
         print(
             f"DAgger: teacher {self.teacher.checkpoint.path} (step "
-            f"{self.teacher.checkpoint.meta.get('step')}) -> student acting through {how}; "
+            f"{self.teacher.checkpoint.meta.get('step')}){others} -> student {how}; "
             f"{cfg.distill.episodes_per_round} episodes and {cfg.distill.updates_per_round} "
-            "updates per round"
+            f"updates per round{chain}"
         )
 
     def beta(self, round_index: int) -> float:
@@ -193,14 +277,15 @@ class DistillTrainer(BaseTrainer):
         self._start = self.snapshot()
         cfg = self.cfg
         beta = self.beta(self.step)
-        added, teacher_steps, steps, successes = 0, 0, 0, 0
+        teacher_steps, steps, successes, chained, chained_ok = 0, 0, 0, 0, 0
         for e in range(cfg.distill.episodes_per_round):
             seed = int(cfg.seed * EPISODE_SEED * 7 + self.step * 1000 + e)
-            rows, executed, success = self._episode(seed, beta)
-            added += rows
+            rows, executed, achieved = self._episode(seed, beta)
             teacher_steps += executed
             steps += rows
-            successes += int(success)
+            successes += int(achieved[0])
+            chained += len(achieved) - 1
+            chained_ok += sum(achieved[1:])
         losses = []
         for _ in range(cfg.distill.updates_per_round):
             losses.append(self.agent.update(self._batch())["loss"])
@@ -212,34 +297,72 @@ class DistillTrainer(BaseTrainer):
                 "teacher_share": teacher_steps / max(steps, 1),
                 "success": successes / cfg.distill.episodes_per_round,
                 "rows": float(self.rows),
+                **(
+                    {"chained": float(chained), "chained_success": chained_ok / max(chained, 1)}
+                    if cfg.distill.chain
+                    else {}
+                ),
                 "loss": float(np.mean(losses)) if losses else float("nan"),
                 "loss_first": float(losses[0]) if losses else float("nan"),
             }
             self._start = None
 
-    def _episode(self, seed: int, beta: float) -> tuple[int, int, bool]:
-        """One episode under the mixed policy; every visited state is kept with the
-        teacher's action. Returns the rows added, the teacher's executed steps and
-        whether the instruction was achieved."""
-        env, task, teacher = self.env, self.task, self.teacher
+    def _teacher(self, goal: int, link: int = 0) -> tuple[LoadedPolicy | None, np.ndarray]:
+        """The teacher of the running instruction (by its family, or the chain's teacher
+        from the second instruction of a chain, ``link`` > 0; None: the scripted
+        controller) and the instruction's id in that teacher's table, as a batch of one."""
+        family = self.lang.meaning.family
+        chained = link > 0 and self.cfg.distill.chain_teacher
+        if (chained and self.chain_teacher is None) or (
+            not chained and family in self.scripted_families
+        ):
+            return None, np.asarray([goal])
+        teacher = self.chain_teacher if chained else self.family_teachers.get(family)
+        if teacher is None:
+            return self.teacher, np.asarray([goal])
+        return teacher, np.asarray([teacher.task.ids[self.task.table[goal]]])
+
+    def _label(
+        self,
+        teacher: LoadedPolicy | None,
+        goal: np.ndarray,
+        obs: dict[str, Any],
+        first: dict[str, Any],
+    ) -> np.ndarray:
+        """The teacher's action (policy units) for the env's current state."""
+        if teacher is None:
+            return self.scripted.act(self.env, self.rng)
+        view = {"observation": obs[self._source]}
+        theirs = teacher.task.storage_obs(view, {"observation": first[self._source]})
+        return teacher.agent.act({k: v[None] for k, v in theirs.items()}, goal, deterministic=True)[
+            0
+        ]
+
+    def _episode(self, seed: int, beta: float) -> tuple[int, int, list[bool]]:
+        """One episode under the mixed policy (a chain of instructions with
+        ``distill.chain``); every visited state is kept with its teacher's action. Returns
+        the rows added, the teachers' executed steps and, per instruction, whether it was
+        achieved."""
+        env, task, chain = self.env, self.task, self.cfg.distill
         obs, _ = env.reset(seed=seed)
+        if self.scripted is not None:
+            self.scripted.reset()
         first = obs
         goal = task.goal(obs, env)
         goal_batch = np.asarray([goal])
+        teacher, theirs_goal = self._teacher(goal)
         rows: dict[str, list[np.ndarray]] = {k: [] for k in self.data}
-        executed, success = 0, False
+        executed, success, achieved = 0, False, []
+        # roll-in: the teacher acts the whole first instruction, the student the next ones
+        rolled = bool(chain.roll_in) and self.rng.random() < chain.roll_in
         while True:
             mine = task.storage_obs(obs, first)
-            view = {"observation": obs[self._source]}
-            theirs = teacher.task.storage_obs(view, {"observation": first[self._source]})
-            label = teacher.agent.act(
-                {k: v[None] for k, v in theirs.items()}, goal_batch, deterministic=True
-            )[0]
+            label = self._label(teacher, theirs_goal, obs, first)
             for k in self.keys:
                 rows[k].append(mine[k])
             rows["action"].append(np.asarray(label, np.float32))
             rows["goal"].append(np.asarray(goal, np.int64))
-            if self.rng.random() < beta:
+            if (rolled and not achieved) or self.rng.random() < beta:
                 action = label
                 executed += 1
             else:
@@ -247,14 +370,26 @@ class DistillTrainer(BaseTrainer):
                 action = self.agent.act(batch, goal_batch, deterministic=True)[0]
             obs, _, terminated, truncated, info = env.step(task.scale_action(action))
             success = success or bool(info.get("is_success", False))
-            if terminated or truncated:
+            if not (terminated or truncated):
+                continue
+            achieved.append(success)
+            go_on = success and chain.chain and len(achieved) < chain.chain_length
+            if not (go_on and self.rng.random() < chain.chain):
                 break
+            following = switch_in_place(env, obs)
+            if following is None:  # no instruction feasible in this scene
+                break
+            obs = first = following
+            goal = task.goal(obs, env)
+            goal_batch = np.asarray([goal])
+            teacher, theirs_goal = self._teacher(goal, len(achieved))
+            success = False
         for k, v in rows.items():
             self.data[k].append(np.stack(v))
         n = len(rows["action"])
         self.rows += n
         self.agent.observe({k: np.stack(rows[k]) for k in self.keys})
-        return n, executed, success
+        return n, executed, achieved
 
     def _batch(self) -> Batch:
         """Rows drawn uniformly from everything gathered so far."""
@@ -349,6 +484,21 @@ class DistillTrainer(BaseTrainer):
             "teacher_step": self.teacher.checkpoint.meta.get("step"),
             "rows": self.rows,
         }
+        if self.family_teachers or self.scripted_families:
+            meta["distill"]["teachers"] = {
+                **{
+                    family: {"path": str(t.checkpoint.path), "step": t.checkpoint.meta.get("step")}
+                    for family, t in self.family_teachers.items()
+                },
+                **{family: {"path": SCRIPTED} for family in self.scripted_families},
+            }
+        if self.cfg.distill.chain_teacher:
+            t = self.chain_teacher
+            meta["distill"]["chain_teacher"] = (
+                {"path": SCRIPTED}
+                if t is None
+                else {"path": str(t.checkpoint.path), "step": t.checkpoint.meta.get("step")}
+            )
         states = {
             **self.agent.states(),
             "trainer": {"step": self.step, "episodes": self.episodes, "round": self._round},
@@ -374,8 +524,14 @@ class DistillTrainer(BaseTrainer):
             self.rows = len(self.data["action"][0])
         print(f"resumed {self.out} at round {self.step} ({self.rows} labelled states)")
 
+    def _close_envs(self) -> None:
+        if self.env is not None:
+            self.env.close()
+        extra = [self.chain_teacher] if self.chain_teacher is not None else []
+        for teacher in [self.teacher, *self.family_teachers.values(), *extra]:
+            teacher.env.close()
+
     def close(self) -> None:
         """Close the environments and TensorBoard."""
-        self.env.close()
-        self.teacher.env.close()
+        self._close_envs()
         super().close()

@@ -143,6 +143,9 @@ class EnvSpec:
         scripted: ``() -> controller`` with ``act(meaning, s0, scene)`` (and optionally
             ``reset()``): the scripted controller of scripted training episodes and
             demonstrations; None: it has none.
+        teacher: ``() -> controller`` like ``scripted``, whose action is a function of the
+            scene alone (no phase memory), for labelling the states a student visits
+            (``lcrl distill --teacher-for FAMILY=scripted``); None: ``scripted`` does.
         scene: ``env -> SceneState``: the privileged scene of the unwrapped env (what the
             rule captioner reads); None: it has none.
         time_limit: whether :func:`train.tasks.make_env` adds the ``max_episode_steps``
@@ -161,6 +164,7 @@ class EnvSpec:
     summary: str = ""
     families: tuple[str, ...] = ()
     scripted: Callable[[], Any] | None = None
+    teacher: Callable[[], Any] | None = None
     scene: Callable[[gym.Env], Any] | None = None
     time_limit: bool = True
     step_cost: str = "fast"
@@ -336,6 +340,12 @@ def _scripted_3d() -> Any:
     return ScriptedController3D()
 
 
+def _teacher_3d() -> Any:
+    from captioner.scripted3d import MarkovController3D
+
+    return MarkovController3D()
+
+
 def _families(name: str) -> tuple[str, ...]:
     from captioner import grammar
 
@@ -360,6 +370,7 @@ ENVS: dict[str, EnvSpec] = {
         summary="robosuite tabletop",
         families=_families("FAMILIES"),
         scripted=_scripted_3d,
+        teacher=_teacher_3d,
         scene=unwrapped_scene,
         step_cost="slow",
         caption_name="robosuite",

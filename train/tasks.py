@@ -881,19 +881,22 @@ class ScriptedActor:
         cfg: the env config (language goals on the 2D tabletop or robosuite).
         task: the run's task (action scaling, discrete moves).
         noise: std of the Gaussian noise added to continuous actions.
+        teacher: use the env's controller that reads everything off the scene
+            (:attr:`EnvSpec.teacher`, where it has one), to label states it did not lead to.
 
     Raises:
         LcrlError: the env has no scripted controller.
     """
 
-    def __init__(self, cfg: EnvConfig, task: Task, noise: float) -> None:
+    def __init__(self, cfg: EnvConfig, task: Task, noise: float, teacher: bool = False) -> None:
         spec = env_spec(cfg.kind)
         if not has_instructions(cfg) or spec.scripted is None:
             raise LcrlError(
                 "scripted episodes need language or task goals on a simulator with a scripted "
                 f"controller (env kind {cfg.kind!r}, goal type {cfg.goal_type!r} has none)"
             )
-        self.controller: Any = spec.scripted()
+        make = spec.teacher if teacher and spec.teacher is not None else spec.scripted
+        self.controller: Any = make()
         self.scene = spec.scene or (lambda env: env.unwrapped.scene())
         self.task, self.noise = task, float(noise)
 
