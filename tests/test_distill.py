@@ -186,6 +186,12 @@ def test_family_teachers_merge_into_one_state_student_over_chains(two_families, 
     row = _rows(out / "progress.csv")[0]
     assert row["success"] < 1.0 and row["chained"] >= 1 and row["chained_success"] == 1.0
     assert lcrl.load(out).checkpoint.meta["distill"]["chain_teacher"] == {"path": "scripted"}
+    # resumed without naming them, the run keeps the teachers it started with
+    resume = ["distill", str(two_families), "--state", "--out", str(out), "--resume"]
+    assert cli(*resume, "--rounds", "2", "--no-progress", "--no-tensorboard") == 0
+    meta = lcrl.load(out).checkpoint.meta["distill"]
+    assert meta["chain_teacher"] == {"path": "scripted"}
+    assert meta["teachers"] == {"reach": {"path": "scripted"}}
     # roll-in: the teacher acts the first instruction whole, the student (beta 0) the rest
     rolled = tmp_path / "rolled"
     args[args.index(str(out))] = str(rolled)

@@ -134,15 +134,14 @@ class DistillTrainer(BaseTrainer):
         self.chain_teacher: LoadedPolicy | None = None
         self.env: Any = None
         try:
-            if cfg.distill.chain_teacher not in ("", SCRIPTED):
-                self.chain_teacher = load_policy(resolve_checkpoint(cfg.distill.chain_teacher))
-            for family, run in family_teachers(cfg.distill.teachers).items():
-                if run == SCRIPTED:
-                    self.scripted_families.append(family)
-                else:
-                    self.family_teachers[family] = load_policy(resolve_checkpoint(run))
+            given = cfg.distill
+            self._load_teachers(given)
             self.out = Path(cfg.out)
             cfg, ckpt = open_run(cfg)
+            saved = cfg.distill  # a resumed run keeps the teachers it started with
+            if (saved.teachers, saved.chain_teacher) != (given.teachers, given.chain_teacher):
+                self._close_envs(teachers_only=True)
+                self._load_teachers(saved)
             self.cfg = cfg
             self.algo = "bc"
             self.env = make_env(cfg.env, "train", training=True)
@@ -150,6 +149,17 @@ class DistillTrainer(BaseTrainer):
         except BaseException:
             self._close_envs()
             raise
+
+    def _load_teachers(self, distill: Any) -> None:
+        """The family teachers and the chain's teacher of ``distill``."""
+        self.family_teachers, self.scripted_families, self.chain_teacher = {}, [], None
+        if distill.chain_teacher not in ("", SCRIPTED):
+            self.chain_teacher = load_policy(resolve_checkpoint(distill.chain_teacher))
+        for family, run in family_teachers(distill.teachers).items():
+            if run == SCRIPTED:
+                self.scripted_families.append(family)
+            else:
+                self.family_teachers[family] = load_policy(resolve_checkpoint(run))
 
     def _check_teacher(self, teacher: LoadedPolicy) -> None:
         """Refuse a teacher that cannot label the student's states."""
@@ -524,11 +534,12 @@ class DistillTrainer(BaseTrainer):
             self.rows = len(self.data["action"][0])
         print(f"resumed {self.out} at round {self.step} ({self.rows} labelled states)")
 
-    def _close_envs(self) -> None:
-        if self.env is not None:
+    def _close_envs(self, teachers_only: bool = False) -> None:
+        if self.env is not None and not teachers_only:
             self.env.close()
         extra = [self.chain_teacher] if self.chain_teacher is not None else []
-        for teacher in [self.teacher, *self.family_teachers.values(), *extra]:
+        main = [] if teachers_only else [self.teacher]
+        for teacher in [*main, *self.family_teachers.values(), *extra]:
             teacher.env.close()
 
     def close(self) -> None:
