@@ -202,6 +202,8 @@ def is_slow(argv: list[str]) -> bool:
     values = {a for k, a in itertools.pairwise(argv) if k in ("--preset", "--env")}
     names = {train_preset, *values}
     data = {a for k, a in itertools.pairwise(argv) if k == "--data"}  # robosuite frames
+    if argv[1:2] == ["distill"] and len(argv) > 2:  # the teacher's run names its simulator
+        data.add(argv[2])
     return any(n.startswith("robosuite") or n == "fetch-reach" for n in names) or any(
         "robosuite" in d for d in data
     )
