@@ -579,7 +579,8 @@ def main(argv: list[str] | None = None) -> int:
             + (f", per family {who}" if who else "")
             + (f"; after the first instruction of a chain: `{chain_t}`" if chain_t else "")
             + f". {student.get('rounds', 0)} rounds, {student.get('labelled_states', 0):,} "
-            f"labelled states, {student.get('wall_clock_s', 0) / 3600:.2f} h:\n"
+            f"labelled states, {student.get('wall_clock_s', 0) / 3600:.2f} h of DAgger (the "
+            "teachers' own training not counted):\n"
         )
         lines += ["| family | seen | held-out combinations | paraphrases |", "|---|---|---|---|"]
         for f, sets in ev["chain_run"].items():
