@@ -237,11 +237,12 @@ class ScriptedController3D:
 
     # ------------------------------------------------------------------ push
 
-    def _push(
-        self, ins: Instruction, s0: SceneState, s: SceneState, i: int, mem: _Memory
-    ) -> np.ndarray:
+    def _push_plan(
+        self, ins: Instruction, s0: SceneState, s: SceneState, i: int
+    ) -> tuple[np.ndarray, float, np.ndarray, np.ndarray, float, float, float]:
+        """A push's geometry: the direction, X's half size, the bounds of X's centre on
+        the table, the aimed progress, the progress so far and the fingers' height."""
         th = self.thresholds
-        g, o = s.gripper, s.positions[i]
         half = float(s.half_extents[i, :2].max())
         vec = np.asarray(DIRECTION_VECTORS[ins.direction], dtype=np.float64)
         start = s0.positions[i, :2]
@@ -255,8 +256,15 @@ class ScriptedController3D:
             if vec[k] != 0
         )
         aim = min(th.push_distance + self.push_margin, max(room, th.push_distance + 0.005))
-        progress = float((o[:2] - start) @ vec)
-        push_z = s.table_height + 0.018
+        progress = float((s.positions[i, :2] - start) @ vec)
+        return vec, half, lo, hi, aim, progress, s.table_height + 0.018
+
+    def _push(
+        self, ins: Instruction, s0: SceneState, s: SceneState, i: int, mem: _Memory
+    ) -> np.ndarray:
+        th = self.thresholds
+        g, o = s.gripper, s.positions[i]
+        vec, half, lo, hi, aim, progress, push_z = self._push_plan(ins, s0, s, i)
         if progress >= aim - 0.003 and mem.phase != "done":
             mem.goto("done")
         if mem.phase == "done":
@@ -493,21 +501,7 @@ class MarkovController3D(ScriptedController3D):
         g, o = s.gripper, s.positions[i]
         if s.grasped is not None and bool(np.any(s.grasped)):  # let go of what is held
             return np.array([0.0, 0.0, 0.5, OPEN])
-        half = float(s.half_extents[i, :2].max())
-        vec = np.asarray(DIRECTION_VECTORS[ins.direction], dtype=np.float64)
-        start = s0.positions[i, :2]
-        xmin, xmax, ymin, ymax = s.table_bounds
-        lo = np.array([xmin, ymin]) + half
-        hi = np.array([xmax, ymax]) - half
-        room = min(
-            (hi - start)[k] / vec[k] if vec[k] > 0 else (lo - start)[k] / vec[k]
-            for k in range(2)
-            if vec[k] != 0
-        )
-        th = self.thresholds
-        aim = min(th.push_distance + self.push_margin, max(room, th.push_distance + 0.005))
-        progress = float((o[:2] - start) @ vec)
-        push_z = s.table_height + 0.018
+        vec, half, lo, hi, aim, progress, push_z = self._push_plan(ins, s0, s, i)
         axis = self._push_axis(s, i, vec)
         remaining = max(aim - progress, 0.01) / float(axis @ vec)
         goal = np.clip(o[:2] + axis * remaining, lo, hi)
