@@ -322,14 +322,14 @@ class DistillTrainer(BaseTrainer):
         from the second instruction of a chain, ``link`` > 0; None: the scripted
         controller) and the instruction's id in that teacher's table, as a batch of one."""
         family = self.lang.meaning.family
-        chained = link > 0 and self.cfg.distill.chain_teacher
-        if (chained and self.chain_teacher is None) or (
-            not chained and family in self.scripted_families
-        ):
-            return None, np.asarray([goal])
-        teacher = self.chain_teacher if chained else self.family_teachers.get(family)
-        if teacher is None:
-            return self.teacher, np.asarray([goal])
+        if link > 0 and self.cfg.distill.chain_teacher:
+            teacher = self.chain_teacher
+        elif family in self.scripted_families:
+            teacher = None
+        else:
+            teacher = self.family_teachers.get(family, self.teacher)
+        if teacher is None or teacher is self.teacher:  # the student's own ids
+            return teacher, np.asarray([goal])
         return teacher, np.asarray([teacher.task.ids[self.task.table[goal]]])
 
     def _label(
