@@ -146,9 +146,19 @@ def save_markdown(
     return path
 
 
+#: Caption font size (points) and the width of one of its characters, in points.
+CAPTION_SIZE, CAPTION_CHAR = 6, 6 * 0.55
+
+
 def caption(fig: Any, info: dict[str, Any], cmd: str | None = None) -> None:
-    """Put the command and machine under a matplotlib figure."""
-    fig.text(0.01, 0.01, f"{cmd or command()}\n{machine_line(info)}", fontsize=6, va="bottom")
+    """Put the command and machine under a matplotlib figure, the command wrapped at
+    spaces to the figure's width."""
+    import textwrap
+
+    width = max(40, int(fig.get_figwidth() * 72 * 0.98 / CAPTION_CHAR))
+    lines = textwrap.wrap(cmd or command(), width, break_on_hyphens=False)
+    text = "\n".join([*lines, machine_line(info)])
+    fig.text(0.01, 0.01, text, fontsize=CAPTION_SIZE, va="bottom")
 
 
 def save_figure(name: str, fig: Any, info: dict[str, Any], cmd: str | None = None) -> Path:

@@ -410,12 +410,21 @@ def figure(
     import numpy as np
 
     fams = list(ev["families"])
-    fig, (ax, bx) = plt.subplots(1, 2, figsize=(11, 4.2))
+    fig, (ax, bx) = plt.subplots(1, 2, figsize=(11, 4.6))
     x = np.arange(len(fams))
-    for i, (key, label) in enumerate((("train", "seen"), ("heldout", "held-out"))):
-        vals = [(ev["families"][f].get(key) or {}).get("success") or 0.0 for f in fams]
-        ax.bar(x + (i - 1) * 0.27, vals, 0.27, label=f"policy, {label}")
-    ax.bar(x + 0.27, [script.get(f, 0.0) for f in fams], 0.27, label="scripted controller")
+    bars = [
+        (ev["families"], "train", "policy, seen"),
+        (ev["families"], "heldout", "policy, held-out"),
+    ]
+    if ev.get("chain_run"):
+        bars.append((ev["chain_run"], "train", "one distilled policy, seen"))
+    w = 0.8 / (len(bars) + 1)
+    for i, (sets, key, label) in enumerate(bars):
+        vals = [((sets.get(f) or {}).get(key) or {}).get("success") or 0.0 for f in fams]
+        ax.bar(x + (i - len(bars) / 2) * w, vals, w, label=label)
+    ax.bar(
+        x + len(bars) / 2 * w, [script.get(f, 0.0) for f in fams], w, label="scripted controller"
+    )
     for i, f in enumerate(fams):
         ax.plot([i - 0.45, i + 0.45], [TARGETS[f]] * 2, "k--", lw=1)
     ax.set_xticks(x, fams)
@@ -435,7 +444,7 @@ def figure(
     bx.set_ylim(0, 1.05)
     bx.legend(fontsize=7)
     bx.set_title("learning curve")
-    fig.tight_layout(rect=(0, 0.08, 1, 1))
+    fig.tight_layout(rect=(0, 0.12, 1, 1))
     save_figure(name, fig, info)
 
 
