@@ -31,6 +31,12 @@ success only if the chosen goal is its own next achieved goal:
 
 Real episodes revisit goals (an arm resting still, an object never touched), so real
 positive fractions are higher; ``tests/test_buffer.py`` checks the exact figures above.
+
+Storage on the learner's device (``device``): the observation arrays (camera frames are
+most of a buffer's bytes) can live as torch tensors on the learner's device, so a sampled
+batch of frames is gathered there and never crosses the host-device bus; the index
+arithmetic, relabelling and rewards stay in numpy on the host, where they are cheap. A
+key the goal space reads from the host (the frames of image goals) stays on the host.
 """
 
 from __future__ import annotations
@@ -39,6 +45,7 @@ from collections.abc import Mapping
 from typing import Any, NamedTuple
 
 import numpy as np
+import torch
 
 from lcrl.errors import LcrlError
 from lcrl.goals import STRATEGIES, TASK_RELABEL_ERROR, GoalSpace
@@ -122,6 +129,9 @@ class HindsightReplayBuffer:
             paths ``n`` times faster, at the cost of a bias from the behaviour policy's
             later actions (small for small ``n``).
         gamma: the learner's discount, needed when ``n_step > 1``.
+        device: store the observation arrays as torch tensors on this device (``cuda``,
+            ``cuda:N``, ``cpu``) instead of numpy arrays in host memory; sampled batches
+            then hold tensors on it for those keys. ``None``: host numpy (the default).
     """
 
     def __init__(
@@ -138,6 +148,7 @@ class HindsightReplayBuffer:
         random_fraction: float = 0.0,
         n_step: int = 1,
         gamma: float = 0.98,
+        device: str | torch.device | None = None,
     ) -> None:
         if capacity < 2:
             raise LcrlError(f"buffer capacity must be at least 2 slots, got {capacity}")
@@ -170,10 +181,20 @@ class HindsightReplayBuffer:
         self.relabel_ratio = self.k / (self.k + 1)
         self.random_fraction = float(random_fraction)
         self.rng = np.random.default_rng(seed)
-
-        self.obs = {
-            key: np.zeros((self.capacity, *shape), dt) for key, (shape, dt) in self.obs_spec.items()
-        }
+        self.device = None if device is None else storage_device(device)
+        host = set(getattr(goal_space, "host_obs_keys", ()))
+        #: Observation keys stored as tensors on :attr:`device`.
+        self.device_keys = tuple(
+            k for k in self.obs_spec if self.device is not None and k not in host
+        )
+        self.obs: dict[str, Any] = {}
+        for key, (shape, dt) in self.obs_spec.items():
+            if key in self.device_keys:
+                self.obs[key] = torch.zeros(
+                    (self.capacity, *shape), dtype=torch_dtype(dt), device=self.device
+                )
+            else:
+                self.obs[key] = np.zeros((self.capacity, *shape), dt)
         self.action = np.zeros((self.capacity, *self.action_shape), self.action_dtype)
         self.env_reward = np.zeros(self.capacity, np.float32)
         self.terminated = np.zeros(self.capacity, bool)
@@ -231,7 +252,7 @@ class HindsightReplayBuffer:
         end = start + n
         self._drop_overlapping(start, end)
         for key in self.obs_spec:
-            self.obs[key][start:end] = obs[key]
+            self._write_obs(key, start, end, obs[key])
         self.action[start : end - 1] = action
         self.env_reward[start : end - 1] = np.asarray(episode["reward"], np.float32)
         term = np.asarray(episode["terminated"], bool)
@@ -250,6 +271,29 @@ class HindsightReplayBuffer:
         self.episodes_added += 1
         self.steps_added += t
         self._valid_idx = None
+
+    def _write_obs(self, key: str, start: int, end: int, values: Any) -> None:
+        """Write observation rows ``[start, end)`` of ``key`` (host or device storage)."""
+        arr = self.obs[key]
+        if isinstance(arr, torch.Tensor):
+            src = torch.as_tensor(np.asarray(values, self.obs_spec[key][1]))
+            arr[start:end] = src.to(self.device, non_blocking=False)
+        else:
+            arr[start:end] = values
+
+    def _gather(self, idx: np.ndarray) -> dict[str, Any]:
+        """The observations at slots ``idx``: numpy arrays, or tensors on :attr:`device`
+        for :attr:`device_keys`."""
+        ti = torch.from_numpy(idx).to(self.device) if self.device_keys else None
+        return {
+            key: arr.index_select(0, ti) if isinstance(arr, torch.Tensor) else arr[idx]
+            for key, arr in self.obs.items()
+        }
+
+    def host_obs(self, key: str, rows: Any = slice(None)) -> np.ndarray:
+        """Rows of one observation array as numpy, wherever it is stored."""
+        arr = self.obs[key][rows]
+        return arr.cpu().numpy() if isinstance(arr, torch.Tensor) else arr
 
     def _drop_overlapping(self, start: int, end: int) -> None:
         """Invalidate every stored episode with a slot in ``[start, end)``."""
@@ -335,10 +379,10 @@ class HindsightReplayBuffer:
                 idx, goals, relabelled, reward, terminated
             )
         return Batch(
-            obs={key: arr[idx] for key, arr in self.obs.items()},
+            obs=self._gather(idx),
             action=self.action[idx],
             reward=reward,
-            next_obs={key: arr[nxt] for key, arr in self.obs.items()},
+            next_obs=self._gather(nxt),
             terminated=terminated,
             goal=goals,
             relabelled=relabelled,
@@ -416,6 +460,8 @@ class HindsightReplayBuffer:
         for key, arr in self._full_arrays().items():
             per_slot = key != "counters" and arr.ndim >= 1 and arr.shape[0] == self.capacity
             out[key] = arr[: self.high] if per_slot else arr
+            if isinstance(out[key], torch.Tensor):
+                out[key] = out[key].cpu().numpy()
         out["extent"] = np.array([self.high, self.capacity], np.int64)
         return out
 
@@ -458,6 +504,9 @@ class HindsightReplayBuffer:
                 continue
             per_slot = arr.ndim >= 1 and arr.shape[0] == self.capacity
             if per_slot and saved.shape == (high, *arr.shape[1:]):
+                if isinstance(arr, torch.Tensor):  # device storage: the rows past high stay 0
+                    full[key] = saved
+                    continue
                 saved = np.concatenate([saved, arr[high:]]) if high < self.capacity else saved
             elif not key.startswith("goal.") and saved.shape != arr.shape:
                 raise LcrlError(
@@ -465,8 +514,9 @@ class HindsightReplayBuffer:
                     f"buffer has {arr.shape} (capacity or observation shapes differ)"
                 )
             full[key] = saved
-        for key, value in self.obs.items():
-            value[...] = full[f"obs.{key}"]
+        for key in self.obs:
+            saved = full[f"obs.{key}"]
+            self._write_obs(key, 0, len(saved), saved)
         self.action[...] = full["action"]
         self.env_reward[...] = full["env_reward"]
         self.terminated[...] = full["terminated"]
@@ -481,3 +531,41 @@ class HindsightReplayBuffer:
             {key[5:]: arr for key, arr in full.items() if key.startswith("goal.")}
         )
         self._valid_idx = None
+
+
+_TORCH_DTYPES = {
+    np.dtype(np.uint8): torch.uint8,
+    np.dtype(np.float32): torch.float32,
+    np.dtype(np.float64): torch.float64,
+    np.dtype(np.int64): torch.int64,
+    np.dtype(bool): torch.bool,
+}
+
+
+def torch_dtype(dtype: Any) -> torch.dtype:
+    """The torch dtype of a numpy observation dtype (device storage)."""
+    try:
+        return _TORCH_DTYPES[np.dtype(dtype)]
+    except KeyError:
+        raise LcrlError(
+            f"observations of dtype {np.dtype(dtype)} cannot be stored on a device"
+        ) from None
+
+
+def storage_device(device: str | torch.device) -> torch.device:
+    """A buffer's storage device, checked: a clear error for a name torch does not know
+    or a CUDA device this machine does not have."""
+    try:
+        dev = torch.device(device)
+    except (RuntimeError, TypeError):
+        raise LcrlError(
+            f"unknown replay storage device {device!r}; use cpu, cuda or cuda:N"
+        ) from None
+    if dev.type == "cuda" and not torch.cuda.is_available():
+        raise LcrlError(
+            f"replay storage on {device!r} needs CUDA, which this machine does not have "
+            "(store on the host: buffer.storage host)"
+        )
+    if dev.type not in ("cpu", "cuda"):
+        raise LcrlError(f"replay storage on {dev.type!r} is not supported; use cpu or cuda")
+    return dev

@@ -532,6 +532,12 @@ class ImageGoals(StateGoals):
         """Shape of one embedded goal: the frame."""
         return self.image_shape
 
+    @property
+    def host_obs_keys(self) -> tuple[str, ...]:
+        """Observation keys a buffer must keep in host memory: the goal frames are read
+        from them with numpy (:meth:`attach`)."""
+        return (self.image_key,)
+
     def allocate(self, capacity: int) -> None:
         """Preallocate ``capacity`` slots and the ring of desired frames."""
         super().allocate(capacity)

@@ -1114,3 +1114,89 @@ def test_demonstration_flags_are_sampled_with_their_rows_and_saved() -> None:
     older = state_buffer(200, seed=3)
     older.load_arrays({k: v for k, v in saved.items() if k != "demo"})
     assert not older.demo.any() and older.size == buf.size
+
+
+# --- 10. storage on the learner's device ----------------------------------------------------
+def frames_buffer(device: str | None, n_step: int = 1) -> HindsightReplayBuffer:
+    """State goals over observations with a state and camera frames."""
+    gs = StateGoals(GOAL_DIM, dense_reward)
+    spec = {**OBS_SPEC, "image": (IMG, np.uint8)}
+    return HindsightReplayBuffer(
+        41, spec, (ACT_DIM,), np.float32, gs, k=4, seed=7, n_step=n_step, device=device
+    )
+
+
+def as_numpy(batch: Batch) -> Batch:
+    def conv(x: Any) -> Any:
+        if isinstance(x, dict):
+            return {k: conv(v) for k, v in x.items()}
+        return x.cpu().numpy() if isinstance(x, torch.Tensor) else x
+
+    return Batch(*(conv(x) for x in batch))
+
+
+@pytest.mark.parametrize("n_step", [1, 3])
+def test_device_storage_samples_what_host_storage_does(n_step: int) -> None:
+    host, dev = frames_buffer(None, n_step), frames_buffer("cpu", n_step)
+    assert dev.device_keys == ("state", "image") and host.device_keys == ()
+    rng = np.random.default_rng(60)
+    for e in range(12):  # wraps around
+        ep = image_episode(e, int(rng.integers(2, 9)), rng)
+        host.add_episode(ep)
+        dev.add_episode(ep)
+    for _ in range(3):
+        a, b = host.sample(64), dev.sample(64)
+        assert isinstance(b.obs["image"], torch.Tensor) and b.obs["image"].dtype == torch.uint8
+        assert isinstance(b.next_obs["state"], torch.Tensor)
+        assert isinstance(a.obs["image"], np.ndarray)
+        assert_same_batch(a, as_numpy(b))
+    np.testing.assert_array_equal(
+        dev.host_obs("image", slice(0, dev.high)), host.obs["image"][: host.high]
+    )
+
+
+def test_device_storage_checkpoints_load_into_either_storage() -> None:
+    rng = np.random.default_rng(61)
+    dev = frames_buffer("cpu")
+    for e in range(5):
+        dev.add_episode(image_episode(e, int(rng.integers(2, 6)), rng))
+    saved = dev.arrays()
+    first = as_numpy(dev.sample(128))  # the first batch of a buffer seeded 7
+    assert all(isinstance(v, np.ndarray) for v in saved.values())
+    assert saved["obs.image"].shape[0] == dev.high < dev.capacity
+    for target in (frames_buffer(None), frames_buffer("cpu")):
+        target.load_arrays(saved)
+        assert_same_batch(first, as_numpy(target.sample(128)))
+        # the rows never written stay zero, the written ones are the saved ones
+        np.testing.assert_array_equal(target.host_obs("image", slice(dev.high, None)), 0)
+        np.testing.assert_array_equal(
+            target.host_obs("image", slice(0, dev.high)), saved["obs.image"]
+        )
+
+
+def test_device_storage_keeps_the_frames_image_goals_read_on_the_host() -> None:
+    buf = image_buffer(120, k=4, seed=3, device="cpu")
+    assert buf.device_keys == ("state",)
+    assert isinstance(buf.obs["image"], np.ndarray) and isinstance(buf.obs["state"], torch.Tensor)
+    rng = np.random.default_rng(62)
+    for e in range(4):
+        buf.add_episode(image_episode(e, 25, rng))
+    batch = buf.sample(32)
+    assert isinstance(batch.obs["state"], torch.Tensor)
+    # relabelled goals are frames of the row's episode, read from the host frames
+    frames = buf.goal_space.frames(batch.goal)
+    rel = batch.relabelled
+    assert rel.any()
+    np.testing.assert_array_equal(frames[rel, 0, 0, 0], batch.obs["image"][rel, 0, 0, 0])
+
+
+def test_device_storage_errors_are_one_line() -> None:
+    for device, words in (
+        ("tpu7", "unknown replay storage device 'tpu7'"),
+        ("meta", "not supported"),
+    ):
+        with pytest.raises(LcrlError, match=words):
+            frames_buffer(device)
+    if not torch.cuda.is_available():
+        with pytest.raises(LcrlError, match="needs CUDA, which this machine does not have"):
+            frames_buffer("cuda")

@@ -195,6 +195,31 @@ def test_resume_at_episode_boundary_is_bit_identical(state_full, tmp_path, capsy
     assert steps == sorted(set(steps)) and {100, 200, 300} <= set(steps)
 
 
+def test_buffer_storage_on_the_device_learns_and_resumes_as_on_the_host(state_full, tmp_path):
+    """Observations stored as tensors on the learner's device (the CPU here) give the same
+    run as host storage, bit for bit, and so does a resume of such a run."""
+    out = tmp_path / "dev"
+    device = dict(buffer=dataclasses.replace(state_full.cfg.buffer, storage="device"))
+    first = Trainer(tiny("state2d", out, total_steps=150, **device))
+    assert first.buffer.device_keys and isinstance(first.buffer.obs["observation"], torch.Tensor)
+    first.run()
+    resumed = Trainer(tiny("state2d", out, total_steps=300, resume=True))
+    assert resumed.cfg.buffer.storage == "device" and resumed.buffer.size == first.buffer.size
+    resumed.run()
+    assert_same_tensors(
+        out / "checkpoints" / "step_000000300", state_full.out / "checkpoints" / "step_000000300"
+    )
+
+
+def test_bad_buffer_storage_is_one_line(tmp_path):
+    cfg = tiny("state2d", tmp_path / "bad", buffer=dataclasses.replace(
+        PRESETS["state2d"][1].buffer, storage="gpu"))  # fmt: skip
+    with pytest.raises(
+        LcrlError, match=r"buffer.storage must be one of \('host', 'device'\), got 'gpu'"
+    ):
+        cfg.validate()
+
+
 # --- 3. Ctrl-C ---------------------------------------------------------------------------
 def test_ctrl_c_saves_a_checkpoint_and_resumes_exactly(state_full, tmp_path, monkeypatch, capsys):
     out = tmp_path / "run"

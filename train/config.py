@@ -52,7 +52,13 @@ class BufferConfig:
     n_step: int = 1
     """Rewards summed per sampled transition (multi-step returns, recomputed for relabelled
     goals): values travel back along sparse-reward paths n times faster."""
+    storage: str = "host"
+    """Where the observation arrays live: ``host`` (numpy in memory) or ``device`` (torch
+    tensors on the learner's device, ``agent.device``: on CUDA sampled frames are gathered
+    on the GPU and never copied from the host; the relabelling stays on the host)."""
 
+
+BUFFER_STORAGE = ("host", "device")
 
 RELABELLERS = ("rule", "learned")
 REWARDERS = ("rule", "learned", "captioner")
@@ -548,6 +554,10 @@ class TrainConfig:
             raise LcrlError("updates_per_step must be >= 0")
         if self.buffer.k < 0:
             raise LcrlError("buffer.k must be >= 0")
+        if self.buffer.storage not in BUFFER_STORAGE:
+            raise LcrlError(
+                f"buffer.storage must be one of {BUFFER_STORAGE}, got {self.buffer.storage!r}"
+            )
         if not 0.0 <= self.scripted_fraction <= 1.0:
             raise LcrlError(f"scripted_fraction must be in [0, 1], got {self.scripted_fraction}")
         if self.scripted_noise < 0:

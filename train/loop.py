@@ -349,6 +349,7 @@ class Trainer(BaseTrainer):
             random_fraction=cfg.buffer.random_fraction,
             n_step=cfg.buffer.n_step,
             gamma=getattr(self.agent.cfg, "gamma", 0.99),  # bc has none (n_step 1)
+            device=self.agent.device if cfg.buffer.storage == "device" else None,
         )
 
     def _make_envs(self, stage: int) -> list[Any]:
