@@ -3,13 +3,15 @@ curriculum of training episodes (``--explore.*``)."""
 
 from __future__ import annotations
 
+import dataclasses
 import itertools
+import json
 from types import SimpleNamespace
 
 import gymnasium as gym
 import numpy as np
 import pytest
-from helpers import cli, error_line, tiny
+from helpers import TINY_CLI, cli, error_line, tiny
 
 from lcrl.errors import LcrlError
 from train.config import ExploreConfig
@@ -270,6 +272,12 @@ def test_draw_from_refuses_families_the_env_does_not_have(tmp_path):
         (["--explore.chain", "0.5", "--explore.chain-length", "1"], "chain_length"),
         (["--explore.family-weights", "hard"], "explore.family_weights must be"),
         (["--explore.weight-floor", "2"], "explore.weight_floor must be in [0, 1]"),
+        (["--explore.prelude", "2"], "explore.prelude must be in [0, 1]"),
+        (
+            ["--explore.prelude", "0.5", "--explore.prelude-families", "lift"],
+            "explore.prelude_families names lift",
+        ),
+        (["--explore.prelude", "0.5", "--explore.prelude-steps", "0"], "prelude_steps"),
     ],
 )
 def test_bad_explore_settings_are_one_line_errors(tmp_path, capsys, args, message):
@@ -282,3 +290,80 @@ def test_explore_needs_language_goals(tmp_path, capsys):
     status = cli("train", "state2d", "--out", str(tmp_path / "r"), "--explore.chain", "0.5")
     assert status != 0
     assert "train language goals" in error_line(capsys.readouterr().err)
+
+
+def test_prelude_episodes_start_where_the_teacher_left_the_scene(tmp_path, monkeypatch):
+    import train.loop as loop
+    from captioner.rule import RuleCaptioner
+
+    switches: list[tuple] = []
+    original = loop.switch_in_place
+
+    def spy(env, obs):
+        wrapper = find_language_wrapper(env)
+        before = (wrapper.meaning, wrapper.s0, env.unwrapped.scene())
+        out = original(env, obs)
+        switches.append((*before, wrapper.meaning, out))
+        return out
+
+    monkeypatch.setattr(loop, "switch_in_place", spy)
+    cfg = tiny(
+        "lang2d",
+        tmp_path / "run",
+        learning_starts=10_000,  # random actions: the teacher alone leaves the scenes
+        scripted_fraction=0.0,
+        explore=ExploreConfig(prelude=1.0, prelude_families=("reach",), prelude_steps=60),
+    )
+    cfg.env = dataclasses.replace(cfg.env, families=("push",))
+    trainer = Trainer(cfg)
+    try:
+        eps = _collect(trainer, 8)
+    finally:
+        trainer.close()
+    explorer = trainer.explorer
+    assert explorer.preludes == len(eps) == len(switches)
+    assert explorer.prelude_successes >= 0.75 * len(eps)
+    # the teacher's steps are not stored and not counted in the run's steps
+    assert explorer.prelude_steps > 0
+    assert trainer.step == sum(len(ep.actions) for ep in eps)
+    rule = RuleCaptioner()
+    succeeded = 0
+    for ep, (meaning, s0, scene, new, out) in zip(eps, switches, strict=True):
+        assert meaning.family == "reach" and new.family == "push"
+        assert out is not None and ep.goal is not None
+        succeeded += rule.satisfied(meaning, s0, scene)
+        # the policy's episode starts in the scene the teacher left, judged from there
+        np.testing.assert_array_equal(ep.stored[0]["observation"], out["observation"])
+        assert out["instruction"] == new.text or rule.parse(out["instruction"]) == new
+    assert succeeded == explorer.prelude_successes
+    cols = explorer.columns()
+    assert cols["prelude_episodes"] == len(eps) and cols["prelude_steps"] == explorer.prelude_steps
+    # the policy's own success from where the preludes left the scene
+    assert all(ep.prelude for ep in eps) and len(explorer.prelude_recent) == len(eps)
+    assert cols["prelude_policy_success"] == np.mean([ep.succeeded for ep in eps])
+    # checkpoints keep the counts
+    again = Explorer(cfg.explore, ("push",), np.random.default_rng(0))
+    again.load_state_dict(explorer.state_dict())
+    assert again.columns() == cols
+
+
+def test_a_resumed_run_takes_the_explore_options_given(tmp_path, capsys):
+    out = tmp_path / "run"
+    base = ["--out", str(out), *TINY_CLI, "--learning-starts", "50"]
+    assert cli("train", "lang2d", *base, "--explore.chain", "0.5", "--total-steps", "100") == 0
+    capsys.readouterr()
+    status = cli(
+        "train", "lang2d", "--out", str(out), "--resume", "--total-steps", "200",
+        "--explore.prelude", "1.0", "--explore.prelude-families", "reach",
+        "--batch-size", "64", "--no-progress",
+    )  # fmt: skip
+    assert status == 0
+    err = capsys.readouterr().err
+    assert "--batch-size 64" in err and "explore" not in err  # only batch-size is ignored
+    cfg = json.loads((out / "config.json").read_text())
+    # the given explore fields replace the saved ones; the others stay as saved
+    assert cfg["explore"]["prelude"] == 1.0 and cfg["explore"]["prelude_families"] == ["reach"]
+    assert cfg["explore"]["chain"] == 0.5 and cfg["batch_size"] == 32
+    rows = (out / "progress.csv").read_text().splitlines()
+    last = dict(zip(rows[0].split(","), rows[-1].split(","), strict=True))
+    assert float(last["prelude_episodes"]) > 0

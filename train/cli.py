@@ -468,6 +468,20 @@ def _saved_offline(cfg: Any) -> bool:
 RESUME_KEEPS = ("resume", "out", "total_steps", "progress", "torch_threads", "overwrite")
 
 
+def explore_given(argv: Sequence[str], cfg: Any) -> dict[str, Any]:
+    """The ``explore`` fields a ``--resume`` command line gives (``--explore.NAME``), with
+    their parsed values: a resumed run takes them (where its next episodes start)."""
+    if not getattr(cfg, "resume", False):
+        return {}
+    out = {}
+    for token in argv:
+        if token.startswith("--explore."):
+            name = token[len("--explore.") :].split("=", 1)[0].replace("-", "_")
+            if hasattr(cfg.explore, name):
+                out[name] = getattr(cfg.explore, name)
+    return out
+
+
 def ignored_on_resume(argv: Sequence[str], cfg: Any) -> list[str]:
     """The options on a ``--resume`` command line that differ from the run's saved config
     (which the resumed run keeps), as ``--name value (the run has saved)``."""
@@ -486,7 +500,7 @@ def ignored_on_resume(argv: Sequence[str], cfg: Any) -> list[str]:
         parts = name.replace("-", "_").split(".")
         if parts[-1].startswith("no_"):  # --no-x / --a.no-x of a boolean flag
             parts[-1] = parts[-1][3:]
-        if parts[0] in RESUME_KEEPS:
+        if parts[0] in RESUME_KEEPS or parts[0] == "explore":
             continue
         value, old, found = cfg, saved, True
         for part in parts:
@@ -521,7 +535,7 @@ def _train(argv: Sequence[str]) -> None:
 
         trainer = BCTrainer(cfg)
     else:
-        trainer = Trainer(cfg)
+        trainer = Trainer(cfg, explore_given(argv, cfg))
     results = trainer.run()
     out = trainer.out
     tb = ", tb/ (TensorBoard)" if trainer.cfg.tensorboard else ""

@@ -261,16 +261,34 @@ class ExploreConfig:
     families the policy has mastered give their share to those it has not."""
     weight_floor: float = 0.1
     """The weight a mastered family keeps with ``family_weights failure``."""
+    prelude: float = 0.0
+    """Starts where another instruction left the scene: the fraction of the policy's
+    training episodes (from a reset) in which the env's scripted teacher first follows an
+    instruction of ``prelude_families`` (any of the env's families, not only the run's
+    ``env.families``), unstored; the run's instruction is then drawn among those feasible
+    in the scene it left (a cube displaced, lifted or stacked, the gripper elsewhere), as
+    the second instruction of an evaluation chain starts. The teacher's steps are counted
+    in progress.csv (``prelude_steps``), not in ``total_steps``. 0: off."""
+    prelude_families: tuple[str, ...] = ()
+    """Families of the teacher's instructions (with ``prelude``); empty: every family of
+    the env."""
+    prelude_steps: int = 80
+    """Most steps the teacher acts (with ``prelude``); the policy's episode starts where it
+    stopped, whether its instruction succeeded or not."""
 
     @property
     def active(self) -> bool:
         return bool(
-            self.chain or self.handover or self.curriculum or self.family_weights != "uniform"
+            self.chain
+            or self.handover
+            or self.curriculum
+            or self.family_weights != "uniform"
+            or self.prelude
         )
 
     def validate(self, families: tuple[str, ...]) -> None:
         """Raise :class:`LcrlError` for settings that cannot train."""
-        for name in ("chain", "handover", "curriculum_threshold", "weight_floor"):
+        for name in ("chain", "handover", "curriculum_threshold", "weight_floor", "prelude"):
             value = getattr(self, name)
             if not 0.0 <= value <= 1.0:
                 raise LcrlError(f"explore.{name} must be in [0, 1], got {value}")
@@ -281,8 +299,11 @@ class ExploreConfig:
             )
         if self.chain_length < 2 and self.chain:
             raise LcrlError("explore.chain_length must be at least 2 (instructions in a row)")
-        if self.handover_steps < 1 or self.curriculum_window < 1:
-            raise LcrlError("explore.handover_steps and explore.curriculum_window must be >= 1")
+        if self.handover_steps < 1 or self.curriculum_window < 1 or self.prelude_steps < 1:
+            raise LcrlError(
+                "explore.handover_steps, explore.curriculum_window and explore.prelude_steps "
+                "must be >= 1"
+            )
         bad = [f for f in self.curriculum if f not in families]
         if bad:
             raise LcrlError(
@@ -637,6 +658,23 @@ class TrainConfig:
             raise LcrlError("explore.curriculum and sequential.stages both order the families")
         if self.explore.chain and self.env.perception:
             raise LcrlError("explore.chain is not supported with env.perception yet")
+        if self.explore.prelude:
+            from train.environments import env_spec
+
+            spec = env_spec(self.env.kind)
+            if spec.teacher is None and spec.scripted is None:
+                raise LcrlError(
+                    f"explore.prelude needs the env's scripted teacher; the {self.env.kind} env "
+                    "has none"
+                )
+            bad = [f for f in self.explore.prelude_families if f not in spec.families]
+            if bad:
+                raise LcrlError(
+                    f"explore.prelude_families names {', '.join(bad)}; the {self.env.kind} env "
+                    f"has the families {spec.families}"
+                )
+            if self.env.perception:
+                raise LcrlError("explore.prelude is not supported with env.perception yet")
 
     def _validate_tasks(self) -> None:
         """Multi-task settings: the task set, no relabelling over task ids, per-task heads

@@ -13,6 +13,10 @@ Three aids for long-horizon manipulation, each off by default:
 - **A curriculum over families** (``explore.curriculum``): instructions come from the
   first family until the policy's live success on the family opened last reaches a
   threshold, then the next family opens.
+- **Preludes** (``explore.prelude``): the env's scripted teacher first follows an
+  instruction of another family (unstored), and the policy's episode starts in the scene
+  it left, as the second instruction of a chain does: a run that trains one family learns
+  to start from where the others leave the table.
 - **Families drawn by failure** (``explore.family_weights failure``): among the open
   families, one is drawn with probability proportional to a floor plus the policy's live
   failure rate on it, so that mastered families give their share of the episodes to
@@ -63,6 +67,11 @@ class Explorer:
         }
         self.handovers = 0  # episodes the scripted controller began
         self.chained = 0  # episodes that began where the previous one ended
+        self.preludes = 0  # episodes that began after a teacher's instruction
+        self.prelude_successes = 0  # of those, the teacher's instruction succeeded
+        self.prelude_steps = 0  # steps the teacher acted in preludes (not stored)
+        #: The policy's own success on its last episodes that began after a prelude.
+        self.prelude_recent: deque[float] = deque(maxlen=100)
         #: (step, family) of each family the curriculum opened after the first.
         self.openings: list[tuple[int, str]] = []
 
@@ -117,6 +126,10 @@ class Explorer:
         self.handovers += 1
         return int(self.rng.integers(1, c.handover_steps + 1))
 
+    def prelude_due(self) -> bool:
+        """Whether the next policy episode from a reset begins with a prelude."""
+        return self.cfg.prelude > 0 and self.rng.random() < self.cfg.prelude
+
     def continuation(self, slot: int, env: Any) -> tuple[dict[str, Any], int] | None:
         """The observation and chain position of the episode that goes on in ``env``'s
         scene, or None when it resets (no chain pending, or no instruction feasible)."""
@@ -148,6 +161,8 @@ class Explorer:
             self.pending[ep.slot] = (ep.obs, ep.chain_index)
         if ep.scripted or ep.handover:
             return None
+        if getattr(ep, "prelude", False):
+            self.prelude_recent.append(float(ep.succeeded))
         return self._judge(ep.family, ep.succeeded, step)
 
     def drop_pending(self) -> None:
@@ -161,6 +176,8 @@ class Explorer:
             "recent": {f: list(v) for f, v in self.recent.items()},
             "handovers": self.handovers,
             "chained": self.chained,
+            "preludes": [self.preludes, self.prelude_successes, self.prelude_steps],
+            "prelude_recent": list(self.prelude_recent),
             "openings": [list(o) for o in self.openings],
         }
 
@@ -174,6 +191,11 @@ class Explorer:
                 self.recent[f].extend(float(v) for v in values)
         self.handovers = int(state.get("handovers", 0))
         self.chained = int(state.get("chained", 0))
+        self.preludes, self.prelude_successes, self.prelude_steps = (
+            int(x) for x in state.get("preludes", (0, 0, 0))
+        )
+        self.prelude_recent.clear()
+        self.prelude_recent.extend(float(v) for v in state.get("prelude_recent", ()))
         self.openings = [(int(s), str(f)) for s, f in state.get("openings", [])]
 
     def columns(self) -> dict[str, float]:
@@ -184,6 +206,13 @@ class Explorer:
             "chained_episodes": float(self.chained),
             "families_open": float(len(self.families())),
         }
+        if self.cfg.prelude:
+            out["prelude_episodes"] = float(self.preludes)
+            out["prelude_success"] = self.prelude_successes / max(1, self.preludes)
+            out["prelude_steps"] = float(self.prelude_steps)
+            # the policy's success from where the preludes left the scene (last 100)
+            recent = self.prelude_recent
+            out["prelude_policy_success"] = float(np.mean(recent)) if recent else float("nan")
         if self.weighted:  # each family's draw weight
             out.update({f"weight_{f}": w for f, w in self.weights().items()})
         return out

@@ -14,6 +14,7 @@ from __future__ import annotations
 import copy
 import dataclasses
 from collections import deque
+from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
 
@@ -24,7 +25,7 @@ from lcrl.buffer import HindsightReplayBuffer
 from lcrl.errors import LcrlError
 from lcrl.multitask import CONFLICT_KEYS, TaskSampler
 from train.config import TrainConfig, config_to_dict
-from train.environments import canonical_kind
+from train.environments import canonical_kind, env_spec
 from train.evaluate import build_agent, build_task
 from train.explore import Explorer
 from train.machine import set_threads
@@ -35,6 +36,7 @@ from train.tasks import (
     is_language,
     make_env,
     reset_feasible,
+    switch_in_place,
     task_texts,
 )
 from train.trainer import BaseTrainer, eval_row, open_run
@@ -143,6 +145,8 @@ class _Episode:
     chain_index: int = 0
     #: The family of its instruction (language goals), for a curriculum.
     family: str = ""
+    #: It began where the scripted teacher's prelude left the scene (``explore.prelude``).
+    prelude: bool = False
 
     @property
     def scripted_now(self) -> bool:
@@ -243,13 +247,15 @@ class Trainer(BaseTrainer):
     Args:
         cfg: the run's configuration. With ``cfg.resume`` the latest checkpoint in
             ``cfg.out`` is loaded, with the config saved there (and ``cfg.total_steps``).
+        resume_explore: ``explore`` fields a resumed run takes from ``cfg`` (the options
+            given on its command line; see :func:`train.trainer.open_run`).
     """
 
-    def __init__(self, cfg: TrainConfig) -> None:
+    def __init__(self, cfg: TrainConfig, resume_explore: Mapping[str, Any] | None = None) -> None:
         cfg.validate()
         self.check_algo(cfg)
         self.out = Path(cfg.out)
-        cfg, ckpt = open_run(cfg)
+        cfg, ckpt = open_run(cfg, resume_explore)
         self.cfg = cfg
         models = _learned_models(cfg)
         env_cfg = cfg.env
@@ -726,6 +732,13 @@ class Trainer(BaseTrainer):
                 rng=self.rng,
                 scripted_rng=self.scripted_rng,
             )
+            if self.explorer is not None and not ep.scripted and self.explorer.prelude_due():
+                after = self._prelude(env, ep.obs)
+                if after is not None:
+                    ep = start_episode(
+                        self.cfg, self.task, env, after, {}, scripted, self.rng, self.scripted_rng
+                    )
+                    ep.prelude = not ep.scripted
         ep.slot = slot
         if self.explorer is not None:
             ep.family = find_language_wrapper(env).meaning.family
@@ -734,6 +747,43 @@ class Trainer(BaseTrainer):
                 if ep.handover:
                     scripted.reset()
         return ep
+
+    def _prelude(self, env: Any, obs: Any) -> dict[str, Any] | None:
+        """The env's scripted teacher follows an instruction of ``explore.prelude_families``
+        from ``obs`` (unstored); the observation the run's next instruction starts from
+        there, or None when none is feasible in the scene it left (the env then resets)."""
+        c = self.cfg.explore
+        wrapper = find_language_wrapper(env)
+        if getattr(self, "_prelude_texts", None) is None:
+            families = c.prelude_families or env_spec(self.cfg.env.kind).families
+            split = wrapper.split
+            self._prelude_texts = [
+                t
+                for t, m in zip(split.texts("train"), split.instructions("train"), strict=True)
+                if m.family in families
+            ]
+            self._prelude_actor = ScriptedActor(self.cfg.env, self.task, 0.0, teacher=True)
+        if wrapper.switch_instruction(candidates=self._prelude_texts) is None:
+            return None
+        obs = dict(obs)
+        obs["instruction"] = wrapper.instruction
+        actor, explorer = self._prelude_actor, self.explorer
+        actor.reset()
+        explorer.preludes += 1
+        succeeded = False
+        for _ in range(c.prelude_steps):
+            action = actor.act(env, self.scripted_rng)
+            obs, _, terminated, truncated, info = env.step(self.task.scale_action(action))
+            explorer.prelude_steps += 1
+            succeeded = bool(info.get("is_success", False))
+            if succeeded or terminated or truncated:
+                break
+        explorer.prelude_successes += int(succeeded)
+        after = switch_in_place(env, obs)
+        if after is None:
+            obs, _ = env.reset(seed=int(self.scripted_rng.integers(2**31)))
+            return obs
+        return after
 
     def _explored(self, ep: _Episode) -> None:
         """After storing ``ep``: chain its environment's next episode, move the

@@ -34,6 +34,7 @@ from __future__ import annotations
 
 import contextlib
 import csv
+import dataclasses
 import json
 import math
 import os
@@ -196,17 +197,23 @@ class StopSignals:
             raise RunInterrupted(signum)
 
 
-def open_run(cfg: TrainConfig) -> tuple[TrainConfig, Any]:
+def open_run(cfg: TrainConfig, explore: Mapping[str, Any] | None = None) -> tuple[TrainConfig, Any]:
     """Prepare ``cfg.out`` for a run: with ``cfg.resume``, load its latest checkpoint and
     the config saved there (keeping ``total_steps``, ``out`` and ``resume`` from ``cfg``),
     remove what a killed process left half-written and cut the logs back to the
     checkpoint's step; otherwise refuse a folder that already holds a run unless
     ``cfg.overwrite``, in which case its checkpoints and logs are removed.
 
+    Args:
+        cfg: the run's config (from the command line).
+        explore: ``explore`` fields a resumed run takes from ``cfg`` instead of its saved
+            config (those given on the command line): they change where the next
+            episodes start, not what the run has learned.
+
     Returns:
         The config to run with and the checkpoint to resume from (None for a new run).
         A resumed run keeps its saved config, apart from ``total_steps``, ``out``,
-        ``progress`` and ``torch_threads``.
+        ``progress``, ``torch_threads`` and the ``explore`` fields named.
 
     Raises:
         RunAlreadyDone: ``--resume`` with ``total_steps`` at or below the checkpoint's step.
@@ -234,6 +241,9 @@ def open_run(cfg: TrainConfig) -> tuple[TrainConfig, Any]:
         saved.out = cfg.out
         # how this process shows and paces its work, not what the run learns
         saved.progress, saved.torch_threads = cfg.progress, cfg.torch_threads
+        if explore:
+            saved.explore = dataclasses.replace(saved.explore, **explore)
+            saved.validate()
         for name in ("progress.csv", "eval.csv"):
             truncate_log(out / name, meta.step)
         return saved, ckpt
