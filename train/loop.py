@@ -750,8 +750,10 @@ class Trainer(BaseTrainer):
 
     def _prelude(self, env: Any, obs: Any) -> dict[str, Any] | None:
         """The env's scripted teacher follows an instruction of ``explore.prelude_families``
-        from ``obs`` (unstored); the observation the run's next instruction starts from
-        there, or None when none is feasible in the scene it left (the env then resets)."""
+        from ``obs`` (unstored). Returns the observation the run's next instruction starts
+        from, in the scene the teacher left (after a fresh reset where none of the run's
+        instructions is feasible there), or None when no prelude instruction is feasible
+        at ``obs`` (the episode then starts there)."""
         c = self.cfg.explore
         wrapper = find_language_wrapper(env)
         if getattr(self, "_prelude_texts", None) is None:
