@@ -390,6 +390,12 @@ class Workspace:
                 for src in _positionals(argv, 3)[:1]:
                     if not (self.folder / src).exists():
                         write_robomimic(self.folder / src)
+            elif sub == "train" and "--resume" in argv:  # a run the page did not train
+                self.train(argv[2], _option(argv, "--out"))
+            elif sub == "distill":  # a robosuite teacher the page did not train
+                for name in _positionals(argv, 2)[:1]:
+                    if "robosuite" in name:
+                        self.train("robosuite-manip", name)
             runs += [v for v in [_option(argv, "--policy")] if v]
             demos += [v for v in [_option(argv, "--demos")] if v]
             instructions = _option(argv, "--instructions")
@@ -404,6 +410,12 @@ class Workspace:
             if not (self.folder / name).exists():
                 (self.folder / name).parent.mkdir(parents=True, exist_ok=True)
                 shutil.copy(self.cache.demos(), self.folder / name)
+
+    def train(self, preset: str, out: str | None) -> None:
+        """A tiny run of ``preset`` at ``out``, unless the page has one there."""
+        if out and not (self.folder / out).exists():
+            with working_directory(self.folder):
+                _check(shrink(["lcrl", "train", preset, "--out", out]))
 
     def run(self, step: Step) -> None:
         self.provide(step)
