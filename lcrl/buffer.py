@@ -276,8 +276,9 @@ class HindsightReplayBuffer:
         """Write observation rows ``[start, end)`` of ``key`` (host or device storage)."""
         arr = self.obs[key]
         if isinstance(arr, torch.Tensor):
-            src = torch.as_tensor(np.asarray(values, self.obs_spec[key][1]))
-            arr[start:end] = src.to(self.device, non_blocking=False)
+            arr[start:end] = torch.as_tensor(np.asarray(values, self.obs_spec[key][1])).to(
+                arr.device
+            )
         else:
             arr[start:end] = values
 
@@ -504,7 +505,7 @@ class HindsightReplayBuffer:
                 continue
             per_slot = arr.ndim >= 1 and arr.shape[0] == self.capacity
             if per_slot and saved.shape == (high, *arr.shape[1:]):
-                if isinstance(arr, torch.Tensor):  # device storage: the rows past high stay 0
+                if key.startswith("obs."):  # written row by row below; the rest stays 0
                     full[key] = saved
                     continue
                 saved = np.concatenate([saved, arr[high:]]) if high < self.capacity else saved
@@ -533,20 +534,11 @@ class HindsightReplayBuffer:
         self._valid_idx = None
 
 
-_TORCH_DTYPES = {
-    np.dtype(np.uint8): torch.uint8,
-    np.dtype(np.float32): torch.float32,
-    np.dtype(np.float64): torch.float64,
-    np.dtype(np.int64): torch.int64,
-    np.dtype(bool): torch.bool,
-}
-
-
 def torch_dtype(dtype: Any) -> torch.dtype:
     """The torch dtype of a numpy observation dtype (device storage)."""
     try:
-        return _TORCH_DTYPES[np.dtype(dtype)]
-    except KeyError:
+        return torch.from_numpy(np.empty(0, dtype)).dtype
+    except TypeError:
         raise LcrlError(
             f"observations of dtype {np.dtype(dtype)} cannot be stored on a device"
         ) from None
