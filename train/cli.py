@@ -19,6 +19,7 @@ Subcommands:
     demos import-robomimic   convert a robomimic / LIBERO file into a demonstration dataset
     perception collect | train | eval   learn to read object slots from camera frames
     distill  distil privileged-state teachers into a student (camera frames, or one policy)
+    route    one policy of per-family runs: each instruction goes to its family's expert
 
 User mistakes (bad options, unparseable instructions, missing files) print one line
 starting with ``lcrl: error:`` and exit with status 2; Ctrl-C exits with status 130.
@@ -807,6 +808,33 @@ class DistillCommand:
 
 
 @dataclass
+class RouteCommand:
+    """One policy of runs trained apart: each instruction goes to the expert of its family
+    (the family of the base run's nearest training instruction), the other families to
+    the base run. Writes a checkpoint folder for ``lcrl eval``, ``lcrl act`` and
+    ``lcrl.load``; the experts must read the base's observation features."""
+
+    out: tyro.conf.Positional[str]
+    """The routed checkpoint folder to write."""
+    base: str
+    """The run (or checkpoint) that defines the environment and the routing table, and
+    acts for the families without an expert."""
+    expert: tuple[str, ...] = ()
+    """``FAMILY=RUN``: the run (or checkpoint) that acts for that family."""
+    overwrite: bool = False
+    """Replace ``out`` if it exists."""
+
+    def run(self) -> None:
+        from train.route import expert_entries, write_router
+
+        experts = expert_entries(self.expert)
+        check_out_dir(Path(self.out).parent, "the folder of the routed checkpoint")
+        out = write_router(self.out, self.base, experts, self.overwrite)
+        names = ", ".join(f"{f} <- {r}" for f, r in experts.items())
+        print(f"saved {out}: {names}; other families <- {self.base}")
+
+
+@dataclass
 class DemosStub:
     """Demonstration datasets: ``lcrl demos record --help`` (also relabel, info,
     import-robomimic)."""
@@ -845,6 +873,7 @@ def main(argv: Sequence[str] | None = None) -> None:
         "perception": PerceptionStub,
         "demos": DemosStub,
         "distill": DistillCommand,
+        "route": RouteCommand,
     }
     try:
         if args and args[0] == "train":

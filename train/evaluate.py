@@ -350,7 +350,12 @@ def load_policy(
     agent = build_agent(meta.algo, problem, cfg, task.goal_space.embed, env)
     for name, module in agent.modules().items():
         ckpt.load_module(name, module)
-    return LoadedPolicy(cfg, agent, task, env, ckpt)
+    loaded = LoadedPolicy(cfg, agent, task, env, ckpt)
+    if "router" in ckpt.meta:  # experts routed by instruction family (lcrl route)
+        from train.route import routed
+
+        loaded = routed(loaded, device)
+    return loaded
 
 
 def _describe(p: Problem) -> str:
