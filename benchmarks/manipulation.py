@@ -29,7 +29,11 @@ replay buffer. Then its latest checkpoint is evaluated:
 - with ``--chain-run RUN``: ``chain2`` and every family's figures of that run too: one
   policy over all five families that another route gave (a student of ``lcrl distill
   --state``, which merges per-family teachers over chains); the one RL policy's chain
-  figure stays beside as ``chain2_rl_policy``.
+  figure stays beside as ``chain2_rl_policy``;
+- with ``--routed-run FOLDER`` (written by ``lcrl route``: each instruction acted by its
+  family's expert): ``chain2`` and every family's figures of that policy; a distilled
+  student's chain figure stays beside as ``chain2_distilled``, and the routed policy's
+  budget is the sum over the runs it is made of.
 
 Writes ``benchmarks/results/robosuite-manipulation.{json,md,png}``. Headline: seen
 success per family (``reach`` ... ``stack``, targets 0.90, 0.80, 0.70, 0.50, 0.30),
@@ -77,6 +81,15 @@ def has_checkpoint(work: Path) -> bool:
     return any((work / "checkpoints").glob("step_*"))
 
 
+def routed_meta(folder: Path) -> dict[str, Any] | None:
+    """The ``meta.json`` of a folder written by ``lcrl route`` (None for anything else)."""
+    try:
+        meta = json.loads((folder / "meta.json").read_text())
+    except (OSError, ValueError):
+        return None
+    return meta if isinstance(meta, dict) and "router" in meta else None
+
+
 def child_env(args: argparse.Namespace) -> dict[str, str]:
     """The environment of a child lcrl process: its share of the cores, offscreen MuJoCo."""
     return side_by_side_env(args.processes, MUJOCO_GL=os.environ.get("MUJOCO_GL", "egl"))
@@ -99,7 +112,11 @@ def train(args: argparse.Namespace) -> None:
 
 
 def latest_step(work: Path) -> int | None:
-    """The step of the run's latest checkpoint (``latest.json``), or None."""
+    """The step of the run's latest checkpoint (``latest.json``; a routed folder: its
+    base's step), or None."""
+    routed = routed_meta(work)
+    if routed is not None:
+        return int(routed.get("step", 0))
     try:
         name = json.loads((work / "latest.json").read_text())["checkpoint"]
         return int(Path(name).name.removeprefix("step_"))
@@ -165,6 +182,8 @@ def evaluate(args: argparse.Namespace) -> dict[str, Any]:
         "chain": None,
         "chain_run": {},
         "rl_chain": None,
+        "routed": {},
+        "distilled_chain": None,
     }
     for family in args.families:
         out["one_policy"][family] = evaluate_family(args, args.work, family)
@@ -188,7 +207,38 @@ def evaluate(args: argparse.Namespace) -> dict[str, Any]:
             args, folder / "chain2.json", "--chain", "2", "--sets", "train", work=args.chain_run
         )
         out["chain"] = None if doc is None else doc["sets"]["train"].get("chain")
+    if getattr(args, "routed_run", ""):
+        if getattr(args, "chain_run", ""):
+            out["distilled_chain"] = out["chain"]
+        else:
+            out["rl_chain"] = out["chain"]
+        for family in args.families:
+            out["routed"][family] = evaluate_family(args, args.routed_run, family)
+        folder = Path(args.routed_run) / "evals" / "manipulation"
+        folder.mkdir(parents=True, exist_ok=True)
+        doc = lcrl_eval(
+            args, folder / "chain2.json", "--chain", "2", "--sets", "train", work=args.routed_run
+        )
+        out["chain"] = None if doc is None else doc["sets"]["train"].get("chain")
     return out
+
+
+def routed_budget(folder: Path) -> dict[str, Any]:
+    """The runs a routed policy is made of (base and experts, from its ``meta.json``) with
+    each one's budget, and their sum: the cost of the routed policy."""
+    meta = routed_meta(folder) or {}
+    router = meta.get("router", {})
+    sources = {"base": router.get("base", ""), **router.get("sources", {})}
+    runs: dict[str, Any] = {}
+    for who, ckpt in sources.items():
+        run = Path(ckpt).parent.parent  # RUN/checkpoints/step_N
+        spent = budget(run) if (run / "progress.csv").is_file() else {}
+        runs[who] = {"run": str(run), "checkpoint": ckpt, **spent}
+    total = {
+        key: round(sum(float(r.get(key, 0)) for r in runs.values()), 1)
+        for key in ("steps", "wall_clock_s")
+    }
+    return {"runs": runs, **total}
 
 
 def distilled(run: Path) -> dict[str, Any]:
@@ -379,12 +429,19 @@ def headline(
     chain = ev.get("chain")
     head["chain2"] = chain["success"][1].get("success") if chain else None
     head["chain2_first"] = chain["success"][0].get("success") if chain else None
-    if ev.get("chain_run"):
+    if ev.get("chain_run") or ev.get("routed"):
         rl = ev.get("rl_chain")
         head["chain2_rl_policy"] = rl["success"][1].get("success") if rl else None
-        for family, sets in ev["chain_run"].items():
+        for family, sets in ev.get("chain_run", {}).items():
             seen = sets.get("train")
             head[f"{family}_distilled"] = None if seen is None else seen["success"]
+    if ev.get("routed"):
+        dist = ev.get("distilled_chain")
+        if dist is not None:
+            head["chain2_distilled"] = dist["success"][1].get("success")
+        for family, sets in ev["routed"].items():
+            seen = sets.get("train")
+            head[f"{family}_routed"] = None if seen is None else seen["success"]
     head.update(spent)
     for family, budget_ in (own or {}).items():
         one = (ev.get("one_policy", {}).get(family) or {}).get("train")
@@ -418,6 +475,8 @@ def figure(
     ]
     if ev.get("chain_run"):
         bars.append((ev["chain_run"], "train", "one distilled policy, seen"))
+    if ev.get("routed"):
+        bars.append((ev["routed"], "train", "experts routed by family, seen"))
     w = 0.8 / (len(bars) + 1)
     for i, (sets, key, label) in enumerate(bars):
         vals = [((sets.get(f) or {}).get(key) or {}).get("success") or 0.0 for f in fams]
@@ -487,6 +546,13 @@ def main(argv: list[str] | None = None) -> int:
         "lcrl distill --state) and report its per-family figures beside",
     )
     parser.add_argument(
+        "--routed-run",
+        default="",
+        metavar="FOLDER",
+        help="take chain2 from this routed policy (lcrl route: each instruction acted by "
+        "its family's expert) and report its per-family figures beside",
+    )
+    parser.add_argument(
         "--compare",
         nargs="*",
         default=[],
@@ -498,6 +564,8 @@ def main(argv: list[str] | None = None) -> int:
     args.family_runs = family_runs(args.family_runs)
     if args.chain_run and not has_checkpoint(Path(args.chain_run)):
         raise SystemExit(f"--chain-run: {args.chain_run} has no checkpoint")
+    if args.routed_run and routed_meta(Path(args.routed_run)) is None:
+        raise SystemExit(f"--routed-run: {args.routed_run} is not a folder of lcrl route")
     missing = [r for r in args.compare if not (Path(r) / "config.json").is_file()]
     if missing:
         raise SystemExit(f"--compare: no run (config.json) at {', '.join(missing)}")
@@ -517,6 +585,11 @@ def main(argv: list[str] | None = None) -> int:
         head["chain2_run"] = args.chain_run
         for key in ("rounds", "labelled_states", "wall_clock_s"):
             head[f"distilled_{key}"] = student.get(key)
+    routed = routed_budget(Path(args.routed_run)) if args.routed_run else {}
+    if routed:
+        head["chain2_run"] = args.routed_run
+        head["routed_steps"] = routed["steps"]
+        head["routed_wall_clock_s"] = routed["wall_clock_s"]
     reached = {
         k: (head.get(k) is not None and head[k] >= t) for k, t in TARGETS.items() if k in head
     }
@@ -537,6 +610,10 @@ def main(argv: list[str] | None = None) -> int:
             "rl_chain": ev["rl_chain"],
             "distilled": {"run": args.chain_run, **student, "families": ev["chain_run"]}
             if student
+            else None,
+            "distilled_chain": ev["distilled_chain"],
+            "routed": {"folder": args.routed_run, **routed, "families": ev["routed"]}
+            if routed
             else None,
             "scripted": script,
             "curve": rows,
@@ -594,15 +671,33 @@ def main(argv: list[str] | None = None) -> int:
         lines += ["| family | seen | held-out combinations | paraphrases |", "|---|---|---|---|"]
         for f, sets in ev["chain_run"].items():
             lines.append(f"| {f} | {' | '.join(cells(sets))} |")
+    if routed:
+        who = ", ".join(
+            f"{w}: `{r['run']}` ({r.get('steps', 0):,} steps, "
+            f"{r.get('wall_clock_s', 0) / 3600:.2f} h)"
+            for w, r in routed["runs"].items()
+        )
+        lines.append(
+            f"\nExperts routed by instruction family (`{args.routed_run}`, `lcrl route`): "
+            f"{who}; together {routed['steps']:,} steps and "
+            f"{routed['wall_clock_s'] / 3600:.2f} h of training:\n"
+        )
+        lines += ["| family | seen | held-out combinations | paraphrases |", "|---|---|---|---|"]
+        for f, sets in ev["routed"].items():
+            lines.append(f"| {f} | {' | '.join(cells(sets))} |")
+    chain_policy = args.routed_run if routed else args.chain_run if student else ""
     lines.append(
         f"\nTwo instructions in a row (`lcrl eval --chain 2`, {args.episodes} chains"
-        + (f", the policy of `{args.chain_run}`" if student else "")
+        + (f", the policy of `{chain_policy}`" if chain_policy else "")
         + "): "
         + ("n/a" if c2 is None else f"{c2:.2f}")
         + ("" if head.get("chain2_first") is None else f" (first {head['chain2_first']:.2f})")
         + f", target {TARGETS['chain2']} ({'reached' if reached.get('chain2') else 'NOT reached'})."
     )
-    if student:
+    if head.get("chain2_distilled") is not None:
+        dist = head["chain2_distilled"]
+        lines.append(f"The distilled student of `{args.chain_run}`: {dist:.2f}.")
+    if student or routed:
         rl = head.get("chain2_rl_policy")
         lines.append(
             f"The RL policy of `{args.work}`: " + ("n/a" if rl is None else f"{rl:.2f}") + "."

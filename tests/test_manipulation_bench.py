@@ -211,3 +211,55 @@ def test_a_chain_run_gives_chain2_and_its_family_figures_beside(tmp_path, monkey
         "wall_clock_s": 99.9,
         "teachers": meta["distill"],
     }
+
+
+def test_a_routed_run_gives_chain2_with_the_student_and_rl_policy_beside(tmp_path, monkeypatch):
+    """``--routed-run``: chain2 comes from the routed policy (each instruction acted by its
+    family's expert), the distilled student's and the RL policy's chain figures beside,
+    and its budget is the sum over the runs it is made of."""
+    import argparse
+    import json
+
+    rl, student, routed = (str(tmp_path / n) for n in ("rl", "student", "routed"))
+    chains = {rl: 0.2, student: 0.3, routed: 0.45}
+    seen = {rl: 0.1, student: 0.6, routed: 0.8}
+
+    def fake_eval(args, out, *options, work=None):
+        work = work or args.work
+        if "--chain" in options:
+            links = [{"success": 0.9}, {"success": chains[work]}]
+            return {"sets": {"train": {"chain": {"success": links}}}}
+        sets = {n: {"success": seen[work], "ci": [0, 1], "episodes": 9} for n in manipulation.SETS}
+        return {"step": 1, "sets": sets}
+
+    monkeypatch.setattr(manipulation, "lcrl_eval", fake_eval)
+    args = argparse.Namespace(
+        work=rl, families=["put"], family_runs={}, chain_run=student, routed_run=routed
+    )
+    ev = manipulation.evaluate(args)
+    head = manipulation.headline(ev, {"steps": 9})
+    assert head["chain2"] == 0.45 and head["chain2_first"] == 0.9
+    assert head["chain2_distilled"] == 0.3 and head["chain2_rl_policy"] == 0.2
+    assert head["put_routed"] == 0.8 and head["put_distilled"] == 0.6 and head["put"] == 0.1
+
+    # the routed folder's budget: its base and experts, each from its run's logs
+    for name, steps, secs in (("base", 100, 10.0), ("put", 50, 5.5)):
+        run = tmp_path / name
+        (run / "checkpoints" / f"step_{steps:09d}").mkdir(parents=True)
+        (run / "progress.csv").write_text(f"step,updates\n{steps},{steps}\n")
+        (run / "eval.csv").write_text(f"step,train_s\n{steps},{secs}\n")
+    folder = tmp_path / "routed"  # made by evaluate(), which writes its evals there
+    meta = {
+        "step": 100,
+        "router": {
+            "base": str(tmp_path / "base" / "checkpoints" / "step_000000100"),
+            "sources": {"put": str(tmp_path / "put" / "checkpoints" / "step_000000050")},
+        },
+    }
+    (folder / "meta.json").write_text(json.dumps(meta))
+    assert manipulation.latest_step(folder) == 100
+    spent = manipulation.routed_budget(folder)
+    assert spent["steps"] == 150 and spent["wall_clock_s"] == 15.5
+    assert spent["runs"]["put"]["run"] == str(tmp_path / "put")
+    with pytest.raises(SystemExit, match="not a folder of lcrl route"):
+        manipulation.main(["--work", str(tmp_path / "base"), "--eval-only", "--routed-run", rl])
