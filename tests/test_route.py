@@ -81,6 +81,15 @@ def test_each_instruction_is_acted_by_its_familys_expert(runs, routed):
     env.close()
 
 
+def test_act_names_the_expert_that_acts(routed, capsys):
+    policy = lcrl.load(routed)
+    agent = policy.agent
+    for family, who in (("push", "the push expert"), ("reach", "the base policy")):
+        text = agent.texts[agent.families.index(family)]
+        assert cli("act", str(routed), "--instruction", text, "--episodes", "1") == 0
+        assert f"routed as {family}: {who} acts" in capsys.readouterr().out
+
+
 def test_routed_folder_evaluates_chains_like_a_checkpoint(routed, tmp_path):
     out = tmp_path / "chain.json"
     args = ["eval", str(routed), "--episodes", "3", "--chain", "2", "--sets", "train"]

@@ -285,6 +285,12 @@ class ActSession:
         self._print("nearest training instructions (cosine similarity):")
         for n in result.nearest:
             self._print(f"  {n.similarity:.3f}  {n.text}")
+        route = getattr(self.policy.agent, "route", None)
+        if route is not None:  # experts routed by family (lcrl route)
+            family = route(self.policy.embed([text]))[0]
+            owner = self.policy.agent.expert_of(family)
+            who = "the base policy" if owner == "base" else f"the {owner} expert"
+            self._print(f"routed as {family}: {who} acts")
         return self._run_episodes(result, meaning, vector, text, video)
 
     def run_task(self, task: int | str, video: Path | None = None) -> InstructionResult:
