@@ -121,4 +121,8 @@ def test_bad_experts_get_one_line(runs, routed, tmp_path, capsys):
         assert line.startswith("lcrl: error:") and message in line, line
     assert cli("route", str(routed), "--base", base, "--expert", f"push={push}") == 2
     assert "already exists" in error_line(capsys.readouterr().err)
+    args = ["--base", base, "--expert", f"push={push}", "--overwrite"]
+    assert cli("route", push, *args) == 2  # would delete the expert it copies
+    assert "which it is made from" in error_line(capsys.readouterr().err)
+    assert (Path(push) / "latest.json").is_file()
     assert not Path(out).exists()

@@ -203,6 +203,11 @@ def write_router(
         check_expert(base, family, expert, str(paths[family]))
         expert.env.close()
     base.env.close()
+    target = out.resolve()
+    for path in (base_path, *paths.values()):
+        source = Path(path).resolve()
+        if source == target or target in source.parents:
+            raise LcrlError(f"{out} holds {path}, which it is made from: choose another folder")
     tmp = out.parent / f".{out.name}.tmp-{uuid.uuid4().hex[:8]}"
     try:
         _copy_checkpoint(base_path, tmp)
