@@ -223,16 +223,36 @@ def evaluate(args: argparse.Namespace) -> dict[str, Any]:
     return out
 
 
+def is_distilled(run: Path) -> bool:
+    """Whether ``run`` is a student of ``lcrl distill`` (its config names a teacher)."""
+    try:
+        cfg = json.loads((run / "config.json").read_text())
+    except (OSError, ValueError):
+        return False
+    return bool((cfg.get("distill") or {}).get("teacher")) and (run / "progress.csv").is_file()
+
+
 def routed_budget(folder: Path) -> dict[str, Any]:
     """The runs a routed policy is made of (base and experts, from its ``meta.json``) with
-    each one's budget, and their sum: the cost of the routed policy."""
+    each one's budget, and their sum: the cost of the routed policy. A distilled run
+    counts the states its DAgger rounds visited and its seconds (its teachers' own
+    training not counted)."""
     meta = routed_meta(folder) or {}
     router = meta.get("router", {})
     sources = {"base": router.get("base", ""), **router.get("sources", {})}
     runs: dict[str, Any] = {}
     for who, ckpt in sources.items():
         run = Path(ckpt).parent.parent  # RUN/checkpoints/step_N
-        spent = budget(run) if (run / "progress.csv").is_file() else {}
+        spent: dict[str, Any] = {}
+        if is_distilled(run):  # DAgger rounds: the states it visited, its seconds
+            student = distilled(run)
+            spent = {
+                "steps": student.get("labelled_states", 0),
+                "wall_clock_s": student.get("wall_clock_s", 0.0),
+                "distilled": True,
+            }
+        elif (run / "progress.csv").is_file():
+            spent = budget(run)
         runs[who] = {"run": str(run), "checkpoint": ckpt, **spent}
     total = {
         key: round(sum(float(r.get(key, 0)) for r in runs.values()), 1)
@@ -679,8 +699,9 @@ def main(argv: list[str] | None = None) -> int:
         )
         lines.append(
             f"\nExperts routed by instruction family (`{args.routed_run}`, `lcrl route`): "
-            f"{who}; together {routed['steps']:,} steps and "
-            f"{routed['wall_clock_s'] / 3600:.2f} h of training:\n"
+            f"{who}; together {routed['steps']:,.0f} steps and "
+            f"{routed['wall_clock_s'] / 3600:.2f} h of training (a distilled run: the "
+            "states its DAgger rounds visited and its seconds, its teachers not counted):\n"
         )
         lines += ["| family | seen | held-out combinations | paraphrases |", "|---|---|---|---|"]
         for f, sets in ev["routed"].items():

@@ -248,18 +248,28 @@ def test_a_routed_run_gives_chain2_with_the_student_and_rl_policy_beside(tmp_pat
         (run / "checkpoints" / f"step_{steps:09d}").mkdir(parents=True)
         (run / "progress.csv").write_text(f"step,updates\n{steps},{steps}\n")
         (run / "eval.csv").write_text(f"step,train_s\n{steps},{secs}\n")
+    # a distilled student counts the states its rounds visited, not its rounds
+    run = tmp_path / "student"
+    (run / "checkpoints" / "step_000000003").mkdir(parents=True, exist_ok=True)
+    (run / "config.json").write_text(json.dumps({"distill": {"teacher": "runs/t"}}))
+    (run / "progress.csv").write_text("step,episodes,rows\n3,90,4000\n")
+    (run / "eval.csv").write_text("step,train_s\n3,7.0\n")
     folder = tmp_path / "routed"  # made by evaluate(), which writes its evals there
     meta = {
         "step": 100,
         "router": {
             "base": str(tmp_path / "base" / "checkpoints" / "step_000000100"),
-            "sources": {"put": str(tmp_path / "put" / "checkpoints" / "step_000000050")},
+            "sources": {
+                "put": str(tmp_path / "put" / "checkpoints" / "step_000000050"),
+                "reach": str(tmp_path / "student" / "checkpoints" / "step_000000003"),
+            },
         },
     }
     (folder / "meta.json").write_text(json.dumps(meta))
     assert manipulation.latest_step(folder) == 100
     spent = manipulation.routed_budget(folder)
-    assert spent["steps"] == 150 and spent["wall_clock_s"] == 15.5
+    assert spent["steps"] == 4150 and spent["wall_clock_s"] == 22.5
+    assert spent["runs"]["reach"]["distilled"] is True
     assert spent["runs"]["put"]["run"] == str(tmp_path / "put")
     with pytest.raises(SystemExit, match="not a folder of lcrl route"):
         manipulation.main(["--work", str(tmp_path / "base"), "--eval-only", "--routed-run", rl])
