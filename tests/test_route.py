@@ -79,6 +79,9 @@ def test_each_instruction_is_acted_by_its_familys_expert(runs, routed):
     np.testing.assert_allclose(both[0], base.act(obs, reach_text), atol=1e-6)
     np.testing.assert_allclose(both[1], push.act(obs, push_text), atol=1e-6)
     env.close()
+    # narrowed to one family (lcrl eval --families push), it still routes among both
+    narrowed = lcrl.load(routed, env_overrides={"families": ("push",)}).agent
+    assert narrowed.texts == texts and narrowed.route(vectors) == agent.families
 
 
 def test_act_names_the_expert_that_acts(routed, capsys):

@@ -45,23 +45,28 @@ class RoutedAgent:
         experts: ``{family: LoadedPolicy}``.
     """
 
-    def __init__(self, base: Any, experts: Mapping[str, Any]) -> None:
+    def __init__(
+        self, base: Any, experts: Mapping[str, Any], families: Sequence[str] | None = None
+    ) -> None:
+        from train.eval_suite import goal_vectors
         from train.tasks import find_language_wrapper
 
         self.base_agent, self.task, self.experts = base.agent, base.task, dict(experts)
-        task = base.task
         split = find_language_wrapper(base.env).split
-        families = set(base.cfg.env.families)
+        # the families it was trained on, also when the env is narrowed to fewer
+        # (lcrl eval --families): routing then still chooses among all of them
+        known = set(families or base.cfg.env.families)
         rows = [
             (t, m.family)
             for t, m in zip(split.texts("train"), split.instructions("train"), strict=True)
-            if m.family in families and t in task.ids
+            if m.family in known
         ]
         if not rows:
             raise LcrlError("the base policy has no training instructions to route by")
         self.texts = [t for t, _ in rows]
         self.families = [f for _, f in rows]
-        table = np.stack([task.embeddings[task.ids[t]] for t in self.texts]).astype(np.float32)
+        vectors = goal_vectors(base.task, self.texts)  # its table's rows, else the encoder's
+        table = np.stack([vectors[t] for t in self.texts]).astype(np.float32)
         self._table = table / np.maximum(np.linalg.norm(table, axis=1, keepdims=True), 1e-8)
 
     def __getattr__(self, name: str) -> Any:
@@ -241,5 +246,6 @@ def routed(loaded: Any, device: str | None = None) -> Any:
         if not (path / META_FILE).is_file():
             raise LcrlError(f"the routed checkpoint {loaded.checkpoint.path} lacks {path}")
         experts[family] = load_policy(path, device=device)
-    loaded.agent = RoutedAgent(loaded, experts)
+    saved = loaded.checkpoint.meta.get("config", {}).get("env", {}).get("families")
+    loaded.agent = RoutedAgent(loaded, experts, saved)
     return loaded
