@@ -199,28 +199,24 @@ def evaluate(args: argparse.Namespace) -> dict[str, Any]:
         out["chain"] = doc["sets"]["train"].get("chain")
     if getattr(args, "chain_run", ""):
         out["rl_chain"] = out["chain"]
-        for family in args.families:
-            out["chain_run"][family] = evaluate_family(args, args.chain_run, family)
-        folder = Path(args.chain_run) / "evals" / "manipulation"
-        folder.mkdir(parents=True, exist_ok=True)
-        doc = lcrl_eval(
-            args, folder / "chain2.json", "--chain", "2", "--sets", "train", work=args.chain_run
-        )
-        out["chain"] = None if doc is None else doc["sets"]["train"].get("chain")
+        out["chain_run"], out["chain"] = evaluate_policy(args, args.chain_run)
     if getattr(args, "routed_run", ""):
         if getattr(args, "chain_run", ""):
             out["distilled_chain"] = out["chain"]
         else:
             out["rl_chain"] = out["chain"]
-        for family in args.families:
-            out["routed"][family] = evaluate_family(args, args.routed_run, family)
-        folder = Path(args.routed_run) / "evals" / "manipulation"
-        folder.mkdir(parents=True, exist_ok=True)
-        doc = lcrl_eval(
-            args, folder / "chain2.json", "--chain", "2", "--sets", "train", work=args.routed_run
-        )
-        out["chain"] = None if doc is None else doc["sets"]["train"].get("chain")
+        out["routed"], out["chain"] = evaluate_policy(args, args.routed_run)
     return out
+
+
+def evaluate_policy(args: argparse.Namespace, work: str) -> tuple[dict[str, Any], Any]:
+    """Every family's figures and the two-instruction chain figure of the policy at
+    ``work`` (a run, or a folder of ``lcrl route``)."""
+    families = {family: evaluate_family(args, work, family) for family in args.families}
+    folder = Path(work) / "evals" / "manipulation"
+    folder.mkdir(parents=True, exist_ok=True)
+    doc = lcrl_eval(args, folder / "chain2.json", "--chain", "2", "--sets", "train", work=work)
+    return families, None if doc is None else doc["sets"]["train"].get("chain")
 
 
 def is_distilled(run: Path) -> bool:

@@ -406,8 +406,11 @@ class DistillConfig:
         family_teachers(self.teachers)
 
 
-def family_teachers(entries: Sequence[str]) -> dict[str, str]:
-    """``FAMILY=RUN`` entries as ``{family: run}``.
+def family_teachers(
+    entries: Sequence[str], what: str = "a family's teacher", plural: str = "teachers"
+) -> dict[str, str]:
+    """``FAMILY=RUN`` entries as ``{family: run}`` (``what``/``plural`` name them in the
+    messages: a family's teacher, an expert).
 
     Raises:
         LcrlError: an entry without ``=``, an empty side, or a family named twice.
@@ -417,9 +420,9 @@ def family_teachers(entries: Sequence[str]) -> dict[str, str]:
         family, sep, run = str(entry).partition("=")
         family, run = family.strip(), run.strip()
         if not sep or not family or not run:
-            raise LcrlError(f"a family's teacher is FAMILY=RUN (put=runs/put), got {entry!r}")
+            raise LcrlError(f"{what} is FAMILY=RUN (put=runs/put), got {entry!r}")
         if family in out:
-            raise LcrlError(f"two teachers for the family {family!r}: {out[family]} and {run}")
+            raise LcrlError(f"two {plural} for the family {family!r}: {out[family]} and {run}")
         out[family] = run
     return out
 

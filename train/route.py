@@ -112,16 +112,20 @@ class RoutedAgent:
 
 def expert_entries(entries: Sequence[str]) -> dict[str, str]:
     """``FAMILY=RUN`` entries as ``{family: run}``, one line per mistake."""
-    out: dict[str, str] = {}
-    for entry in entries:
-        family, sep, run = str(entry).partition("=")
-        family, run = family.strip(), run.strip()
-        if not sep or not family or not run:
-            raise LcrlError(f"an expert is FAMILY=RUN (put=runs/put), got {entry!r}")
-        if family in out:
-            raise LcrlError(f"two experts for the family {family!r}: {out[family]} and {run}")
-        out[family] = run
-    return out
+    from train.config import family_teachers
+
+    return family_teachers(entries, "an expert", "experts")
+
+
+def _check_language(policy: Any, who: str) -> None:
+    """Refuse a policy without language goals, or one that is itself routed."""
+    if policy.task.query != "text":
+        raise LcrlError(
+            f"{who} was not trained with language goals ({policy.cfg.env.goal_type} goals): "
+            "routing goes by instruction"
+        )
+    if ROUTER in policy.checkpoint.meta:
+        raise LcrlError(f"{who} is itself routed: name the runs it is made of instead")
 
 
 def _describe_problem(policy: Any) -> str:
@@ -132,13 +136,7 @@ def _describe_problem(policy: Any) -> str:
 
 def check_expert(base: Any, family: str, expert: Any, where: str) -> None:
     """Refuse an expert that cannot stand in for ``base`` on ``family``, naming both."""
-    if expert.task.query != "text":
-        raise LcrlError(
-            f"the expert {where} was not trained with language goals "
-            f"({expert.cfg.env.goal_type} goals): routing goes by instruction"
-        )
-    if ROUTER in expert.checkpoint.meta:
-        raise LcrlError(f"the expert {where} is itself routed: name its experts instead")
+    _check_language(expert, f"the expert {where}")
     if expert.cfg.env.kind != base.cfg.env.kind:
         raise LcrlError(
             f"the expert {where} was trained on the {expert.cfg.env.kind} env, the base "
@@ -189,13 +187,7 @@ def write_router(
         raise LcrlError(f"{out} already exists: choose another folder or pass --overwrite")
     base_path = resolve_checkpoint(base_run)
     base = load_policy(base_path)
-    if base.task.query != "text":
-        raise LcrlError(
-            f"the base {base_path} was not trained with language goals "
-            f"({base.cfg.env.goal_type} goals): routing goes by instruction"
-        )
-    if ROUTER in base.checkpoint.meta:
-        raise LcrlError(f"the base {base_path} is itself routed: name its own base instead")
+    _check_language(base, f"the base {base_path}")
     paths: dict[str, Path] = {}
     for family, run in experts.items():
         if family not in base.cfg.env.families:
