@@ -40,6 +40,7 @@ __all__ = [
     "LoadedPolicy",
     "build_agent",
     "build_task",
+    "describe_problem",
     "evaluate",
     "evaluate_tasks",
     "format_results",
@@ -345,7 +346,7 @@ def load_policy(
     if problem != saved:
         raise LcrlError(
             f"checkpoint {ckpt.path} does not match the environment: it was trained with "
-            f"{_describe(saved)}, the environment gives {_describe(problem)}"
+            f"{describe_problem(saved)}, the environment gives {describe_problem(problem)}"
         )
     agent = build_agent(meta.algo, problem, cfg, task.goal_space.embed, env)
     for name, module in agent.modules().items():
@@ -358,7 +359,8 @@ def load_policy(
     return loaded
 
 
-def _describe(p: Problem) -> str:
+def describe_problem(p: Problem) -> str:
+    """Observation, goal and action shapes of a problem, for messages."""
     obs = ", ".join(f"{k} {tuple(v)}" for k, v in p.obs_shapes.items())
     kind = f"{p.action_dim} discrete actions" if p.discrete else f"{p.action_dim}-d actions"
     return f"observations [{obs}], {p.goal_kind} goals {tuple(p.goal_shape)}, {kind}"

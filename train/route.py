@@ -128,12 +128,6 @@ def _check_language(policy: Any, who: str) -> None:
         raise LcrlError(f"{who} is itself routed: name the runs it is made of instead")
 
 
-def _describe_problem(policy: Any) -> str:
-    p = policy.task.problem()
-    obs = ", ".join(f"{k} {tuple(v)}" for k, v in p.obs_shapes.items())
-    return f"observations [{obs}], goals {tuple(p.goal_shape)}, {p.action_dim}-d actions"
-
-
 def check_expert(base: Any, family: str, expert: Any, where: str) -> None:
     """Refuse an expert that cannot stand in for ``base`` on ``family``, naming both."""
     _check_language(expert, f"the expert {where}")
@@ -148,10 +142,12 @@ def check_expert(base: Any, family: str, expert: Any, where: str) -> None:
             f"{', '.join(expert.cfg.env.families)}, not {family}"
         )
     if expert.task.problem() != base.task.problem():
+        from train.evaluate import describe_problem
+
         raise LcrlError(
-            f"the expert {where} reads {_describe_problem(expert)}; the base "
-            f"{base.checkpoint.path} reads {_describe_problem(base)}: experts must read "
-            "the same observation features"
+            f"the expert {where} reads {describe_problem(expert.task.problem())}; the base "
+            f"{base.checkpoint.path} reads {describe_problem(base.task.problem())}: experts "
+            "must read the same observation features"
         )
     if expert.cfg.text_encoder.model != base.cfg.text_encoder.model:
         raise LcrlError(
