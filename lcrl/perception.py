@@ -198,23 +198,47 @@ class Perception(nn.Module):
         """Positions in the env's units from normalised ones."""
         return normalised * self.pos_std + self.pos_mean
 
-    def estimate(self, frames: torch.Tensor, proprio: torch.Tensor) -> torch.Tensor:
+    def estimate(
+        self, frames: torch.Tensor, proprio: torch.Tensor, present: torch.Tensor | None = None
+    ) -> torch.Tensor:
         """The estimated privileged observation ``(B, dim)`` as a tensor (differentiable in
         the positions): the proprioception, then per slot the estimated position and
-        presence (1 or 0; an absent object's position is 0, as the envs write it)."""
+        presence (1 or 0; an absent object's position is 0, as the envs write it).
+
+        With ``present`` ``(B, count)`` (bool or 0/1), those flags replace the thresholded
+        presence logits. The tabletops place their objects at reset and an object's
+        ``present`` flag holds for the whole episode, so the flags estimated in the
+        episode's first frame, where the robot hides nothing, serve its later frames,
+        where the gripper can cover an object (see :meth:`presence`)."""
         pos, logit = self(frames, proprio)
-        present = (logit > 0).float()
+        if present is None:
+            present = (logit > 0).float()
+        else:
+            present = present.to(device=pos.device, dtype=pos.dtype)
         pos = self.positions(pos) * present[..., None]
         slots = torch.cat([pos, present[..., None]], -1).flatten(1)
         return torch.cat([proprio, slots], -1)
 
     @torch.no_grad()
-    def observation(self, frames: np.ndarray, proprio: np.ndarray) -> np.ndarray:
-        """:meth:`estimate` of numpy frames ``(B, H, W, 3)`` uint8 and proprioception."""
+    def observation(
+        self, frames: np.ndarray, proprio: np.ndarray, present: np.ndarray | None = None
+    ) -> np.ndarray:
+        """:meth:`estimate` of numpy frames ``(B, H, W, 3)`` uint8 and proprioception (and
+        presence flags ``(B, count)`` to use instead of the estimated ones)."""
         device = self.pos_mean.device
         f = torch.as_tensor(np.asarray(frames, np.uint8), device=device)
         p = torch.as_tensor(np.asarray(proprio, np.float32), device=device)
-        return self.estimate(f, p).cpu().numpy()
+        flags = None if present is None else torch.as_tensor(np.asarray(present, np.float32))
+        return self.estimate(f, p, flags).cpu().numpy()
+
+    def presence(self, observation: np.ndarray) -> np.ndarray:
+        """The presence flags ``(..., count)`` of observations as :meth:`observation`
+        assembles them: what :meth:`observation` takes as ``present`` for the later frames
+        of the episode whose first frame gave ``observation``."""
+        lay = self.layout
+        x = np.asarray(observation, np.float32)
+        slots = x[..., lay.start : lay.dim].reshape(*x.shape[:-1], lay.count, lay.width)
+        return slots[..., -1] > 0.5
 
 
 class PerceivedSlots(nn.Module):
@@ -249,10 +273,13 @@ class PerceivedSlots(nn.Module):
         self, image: torch.Tensor, proprio: torch.Tensor, origin: torch.Tensor
     ) -> torch.Tensor:
         """``(B, out_dim)`` observations of frames ``(B, H, W, 3)``, proprioception
-        ``(B, start)`` and first-frame slot positions ``(B, count * d)``."""
+        ``(B, start)`` and first-frame slot positions ``(B, count * d)``. The presence
+        flags are the first frame's (an object absent there has the origin 0, as the
+        envs write it), as :class:`train.perception.PerceptionObservation` gives them."""
         lay = self.perception.layout
         d = lay.position_dims
-        x = self.perception.estimate(image, proprio)
+        present = (origin.view(-1, lay.count, d) != 0).any(-1)
+        x = self.perception.estimate(image, proprio, present)
         slots = x[:, lay.start :].reshape(-1, lay.count, lay.width)
         present = slots[..., -1:]
         parts = [slots]

@@ -88,11 +88,18 @@ def test_evaluation_reports_frames_near_an_object_apart():
     estimate[1, 7] = 0.0  # object 1 missed, far
 
     class Model:
-        def observation(self, frames, proprio):
-            return estimate[: len(frames)]
+        def observation(self, frames, proprio, present=None):
+            assert present is None
+            return estimate[frames[:, 0, 0, 0]]
+
+        def presence(self, observation):
+            return layout.split(observation)[2]
 
     data = SimpleNamespace(
-        frames=np.zeros((4, 1, 1, 3), np.uint8), proprio=state[:, :2], state=state
+        frames=np.arange(4, dtype=np.uint8)[:, None, None, None].repeat(3, -1),
+        proprio=state[:, :2],
+        state=state,
+        episodes=np.arange(4),  # one frame each: every frame judged by its own flags
     )
     res = evaluate(Model(), data, layout)
     assert res["near_frames"] == 2
@@ -101,6 +108,53 @@ def test_evaluation_reports_frames_near_an_object_apart():
     assert res["near_frames_all_present_right"] == 1.0
     assert res["frames_all_present_right"] == 0.75
     assert res["presence_accuracy"] == 7 / 8
+
+
+def test_evaluation_takes_presence_from_each_episodes_first_frame():
+    """Objects are placed at reset and stay: policies read the presence flags of the
+    episode's first frame, so evaluation judges those, re-estimating the position of an
+    object a later frame's own flags missed; each frame's own flags are reported beside."""
+    from types import SimpleNamespace
+
+    layout = SlotLayout(2, 2, 3, 2)
+    state = np.zeros((4, layout.dim), np.float32)
+    state[:, 2:5] = [0.5, 0.5, 1.0]
+    state[:, 5:8] = [0.1, 0.1, 1.0]
+    own = state.copy()
+    own[1, 5:8] = 0.0  # episode 0, second frame: object 1 missed (gripper over it)
+    own[3, 2:5] = 0.0  # episode 1, second frame: object 0 missed
+    own[2, 2:5] = 0.0  # episode 1, first frame: object 0 missed there too
+    calls = []
+
+    class Model:
+        def observation(self, frames, proprio, present=None):
+            rows = frames[:, 0, 0, 0]
+            out = own[rows].copy()
+            if present is not None:
+                calls.append(rows.tolist())
+                for i, r in enumerate(rows):
+                    for k in range(2):
+                        sl = slice(2 + 3 * k, 5 + 3 * k)
+                        out[i, sl] = state[r, sl] if present[i, k] else 0.0
+            return out
+
+        def presence(self, observation):
+            return layout.split(observation)[2]
+
+    data = SimpleNamespace(
+        frames=np.arange(4, dtype=np.uint8)[:, None, None, None].repeat(3, -1),
+        proprio=state[:, :2],
+        state=state,
+        episodes=np.array([0, 0, 1, 1]),
+    )
+    res = evaluate(Model(), data, layout)
+    assert calls == [[1]]  # only the frame whose own flags missed what its first frame saw
+    assert res["presence_accuracy"] == 6 / 8  # episode 1 misses object 0 in both frames
+    assert res["presence_accuracy_per_frame"] == 5 / 8
+    assert res["frames_all_present_right"] == 0.5
+    assert res["frames_all_present_right_per_frame"] == 0.25
+    assert res["position_error_cm"] == pytest.approx(0.0, abs=1e-6)
+    assert res["objects"] == 8
 
 
 def test_position_spreads_have_a_floor_and_init_widens_them(capsys):
@@ -448,3 +502,41 @@ def test_demonstrations_recorded_through_perception_fill_a_perception_run(
     assert cli(*args, "--finetune.demos", str(plain), "--out", str(tmp_path / "p")) == 2
     line = error_line(capsys.readouterr().err)
     assert "stores the true state" in line and "--perception MODEL" in line
+
+
+def test_presence_holds_from_the_first_frame(trained, monkeypatch):
+    """Objects are placed at reset and stay: the env wrapper and the differentiable reader
+    keep the presence flags of the episode's first frame when a later frame's own flags
+    (a gripper over an object) say otherwise, and the next reset reads them again."""
+    from lcrl.perception import PerceivedSlots
+    from train.config import PRESETS
+    from train.perception import find_perception
+    from train.tasks import make_env
+
+    cfg = PRESETS["lang2d-quick"][1].env
+    cfg = type(cfg)(**{**vars(cfg), "perception": str(trained)})
+    env = make_env(cfg, "train")
+    model = find_perception(env).model
+    first, _ = env.reset(seed=2)
+    flags = first["observation"][2:].reshape(8, 7)[:, 2]
+    assert 0 < flags.sum() < 8
+
+    forward = type(model).forward
+
+    def nothing_seen(self, frames, proprio, generator=None):
+        pos, logit = forward(self, frames, proprio, generator)
+        return pos, torch.full_like(logit, -10.0)
+
+    monkeypatch.setattr(type(model), "forward", nothing_seen)
+    obs, *_ = env.step(env.action_space.sample())
+    slots = obs["observation"][2:].reshape(8, 7)
+    np.testing.assert_array_equal(slots[:, 2], flags)
+    assert (np.abs(slots[flags > 0, :2]) > 0).all()  # positions of the first frame's objects
+    reader = PerceivedSlots(model, cfg.relative_positions, cfg.displacements)
+    origin = torch.as_tensor(reader.origin(first["observation"])[None])
+    with torch.no_grad():
+        image, proprio = obs["image"][None], obs["privileged"][None, :2]
+        x = reader(torch.as_tensor(image), torch.as_tensor(proprio), origin)
+    np.testing.assert_allclose(x[0].numpy(), obs["observation"], atol=1e-5)
+    again, _ = env.reset(seed=2)
+    assert again["observation"][2:].reshape(8, 7)[:, 2].sum() == 0  # read anew at reset

@@ -415,8 +415,13 @@ class Policy:
         if proprio.shape != want:
             raise LcrlError(f"{name}['proprio'] has shape {proprio.shape}; expected {want}")
         check_finite(proprio, f"{name}['proprio']")
-        estimate = model.observation(image.reshape(-1, *frame), proprio.reshape(-1, start))
-        if starts or getattr(self, "_origin", None) is None or len(self._origin) != len(estimate):
+        rows = 1 if batch is None else batch
+        origin = getattr(self, "_origin", None)
+        new_episode = starts or origin is None or len(origin) != rows
+        # presence is the episode's first frame's, as in training (PerceptionObservation)
+        present = None if new_episode else model.presence(origin)
+        estimate = model.observation(image.reshape(-1, *frame), proprio.reshape(-1, start), present)
+        if new_episode:
             self._origin = estimate
         x = estimate if features is None else features.features(estimate, self._origin)
         out = {k: v for k, v in observation.items() if k != "proprio"}
