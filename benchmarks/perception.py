@@ -15,10 +15,12 @@ model, and is evaluated on more datasets as well, e.g. episodes of policies::
 
 Writes ``benchmarks/results/perception-robosuite.{json,md,png}``; the headline is the mean
 position error of present objects in cm (target <= 1.0) and the presence accuracy
-(target >= 0.99), on held-out episodes, with the same figures for the objects the gripper
-is within 5 cm of (``near_*``) and the fraction of frames whose every presence flag is
-right. Wall-clock of each phase is recorded, also in ``WORK/times.json`` (what
-``benchmarks/image_policy.py`` counts when it reuses the model).
+(target >= 0.99; the flags of each episode's first frame, as policies read them, with each
+frame's own beside as ``*_per_frame``), on held-out episodes, with the same figures for
+the objects the gripper is within 5 cm of (``near_*``) and the fraction of frames whose
+every presence flag is right. Wall-clock of each phase is recorded, also in
+``WORK/times.json`` (what ``benchmarks/image_policy.py`` counts when it reuses the model).
+``--eval-only`` evaluates ``WORK/model`` again and writes the results.
 """
 
 from __future__ import annotations
@@ -66,6 +68,12 @@ def main(argv: list[str] | None = None) -> int:
         action="store_true",
         help="only the model and WORK/times.json (a stage of benchmarks/image_policy.py)",
     )
+    parser.add_argument(
+        "--eval-only",
+        action="store_true",
+        help="evaluate WORK/model again (trained by an earlier run of this command) and "
+        "write the results; its training times come from WORK/times.json",
+    )
     args = parser.parse_args(argv)
 
     import torch
@@ -95,24 +103,30 @@ def main(argv: list[str] | None = None) -> int:
             parser.error(f"no such file or folder: {path}")
     data = args.data or str(work / "train.h5")
     layouts_path = args.layouts or str(work / "layouts.h5")
-    if not args.data:
+    if args.eval_only:
+        if not (work / "times.json").is_file() or not (work / "model").is_dir():
+            parser.error(f"--eval-only: no model trained by this command in {work}")
+        times = json.loads((work / "times.json").read_text())
+        heldout = PerceptionEvalCommand(str(work / "model")).run()
+    if not args.data and not args.eval_only:
         collect(CollectConfig(out=data, episodes=args.episodes, seed=0, **common))
-    if not args.layouts:
+    if not args.layouts and not args.eval_only:
         collect(CollectConfig(out=layouts_path, episodes=args.layout_episodes, seed=1, **common))
-    times["collect_s"] = time.perf_counter() - t0
-    t0 = time.perf_counter()
-    cfg = PerceptionTrainConfig(
-        data=data,
-        out=str(work / "model"),
-        steps=args.steps,
-        lr=args.lr,
-        init=args.init,
-        threads=args.threads,
-        progress=False,
-    )
-    heldout = train(cfg)
-    times["train_s"] = time.perf_counter() - t0
-    (work / "times.json").write_text(json.dumps(times, indent=1))
+    if not args.eval_only:
+        times["collect_s"] = time.perf_counter() - t0
+        t0 = time.perf_counter()
+        cfg = PerceptionTrainConfig(
+            data=data,
+            out=str(work / "model"),
+            steps=args.steps,
+            lr=args.lr,
+            init=args.init,
+            threads=args.threads,
+            progress=False,
+        )
+        heldout = train(cfg)
+        times["train_s"] = time.perf_counter() - t0
+        (work / "times.json").write_text(json.dumps(times, indent=1))
     if args.no_results:
         return 0
     layouts = PerceptionEvalCommand(str(work / "model"), data=layouts_path).run()
@@ -124,6 +138,7 @@ def main(argv: list[str] | None = None) -> int:
     headline = {
         "position_error_cm": round(heldout["position_error_cm"], 3),
         "presence_accuracy": round(heldout["presence_accuracy"], 4),
+        "presence_accuracy_per_frame": _round(heldout.get("presence_accuracy_per_frame"), 4),
         "position_error_cm_new_layouts": round(layouts["position_error_cm"], 3),
         "presence_accuracy_new_layouts": round(layouts["presence_accuracy"], 4),
         "within_reach_margin": round(heldout["within_reach_margin"], 3),
@@ -131,6 +146,9 @@ def main(argv: list[str] | None = None) -> int:
         "frames_all_present_right": _round(heldout.get("frames_all_present_right"), 4),
         "near_position_error_cm": _round(heldout.get("near_position_error_cm"), 3),
         "near_frames_all_present_right": _round(heldout.get("near_frames_all_present_right"), 4),
+        "frames_all_present_right_per_frame": _round(
+            heldout.get("frames_all_present_right_per_frame"), 4
+        ),
         "wall_clock_s": round(times["collect_s"] + times["train_s"], 1),
     }
     for path, res in extra.items():
