@@ -502,7 +502,29 @@ def figure(
     )
     for i, f in enumerate(fams):
         ax.plot([i - 0.45, i + 0.45], [TARGETS[f]] * 2, "k--", lw=1)
-    ax.set_xticks(x, fams)
+    # two instructions in a row: the headline policy and the ones it improved on
+    chains = [
+        (ev.get("rl_chain"), "one RL policy"),
+        (
+            ev.get("distilled_chain") or (ev.get("chain_run") and ev.get("chain")),
+            "one distilled policy",
+        ),
+        (ev.get("chain") if ev.get("routed") else None, "experts routed by family"),
+    ]
+    chains = [(c, label) for c, label in chains if c and len(c.get("success", [])) > 1]
+    if ev.get("chain") and not chains:
+        chains = [(ev["chain"], "one RL policy")]
+    c0 = len(fams)
+    for j, (c, label) in enumerate(chains):
+        cw = 0.8 / len(chains)
+        ax.bar(c0 - 0.4 + (j + 0.5) * cw, c["success"][1]["success"], cw * 0.9, color=f"C{j + 6}")
+        ax.text(c0 - 0.4 + (j + 0.5) * cw, 0.02, label, rotation=90, fontsize=6, ha="center")
+    if chains:
+        ax.plot([c0 - 0.45, c0 + 0.45], [TARGETS["chain2"]] * 2, "k--", lw=1)
+        fams_ticks = [*fams, "2 in a row"]
+    else:
+        fams_ticks = fams
+    ax.set_xticks(np.arange(len(fams_ticks)), fams_ticks)
     ax.set_ylim(0, 1.05)
     ax.set_ylabel("success (dashed: target)")
     ax.legend(fontsize=7)
