@@ -18,6 +18,8 @@ a smoke test):
    ``--seconds`` (it saves its checkpoint and curves).
 3. **Evaluation.** ``lcrl eval`` of the last checkpoint, ``--episodes`` per set.
 
+``--updates-only`` runs part 1 alone and writes ``pixel-sac-gpu-updates.{json,md,png}``.
+
 Writes ``pixel-sac-gpu.{json,md,png}`` to ``--results`` (default benchmarks/results):
 ``headline`` holds the seen, held-out and paraphrase success, the steps and updates the
 budget allowed, the training steps/s and the update milliseconds.
@@ -239,6 +241,45 @@ def _set_rate(res: dict[str, Any], name: str) -> float | None:
     return None
 
 
+def write_updates(args: argparse.Namespace, updates: dict[str, Any], info: dict) -> int:
+    """``--updates-only``: the update times alone."""
+    names = [k[:-3] for k in updates if k.endswith("_ms")]
+    headline = {f"update_ms_{n}": round(updates[f"{n}_ms"], 2) for n in names}
+    headline["compile_s"] = None if updates["compile_s"] is None else round(updates["compile_s"], 1)
+    headline["device"] = info.get("gpu", "cpu")
+    name = f"{NAME}-updates"
+    common.save_json(
+        name,
+        {"headline": headline, "command": common.command(), "machine": info,
+         "settings": vars(args), "update_timing": updates},
+    )  # fmt: skip
+    rows = "".join(f"| {n} | {updates[f'{n}_ms']:.2f} |\n" for n in names)
+    compiled = (
+        f" Compiling (the first three updates) took {updates['compile_s']:.0f} s."
+        if updates["compile_s"] is not None
+        else ""
+    )
+    body = (
+        f"One SAC update of `{PRESET}` (64x64 frames, batch {updates['batch_size']}, the "
+        f"buffer's frames on the device) on {headline['device']}: median of {args.rounds} "
+        f"rounds of {args.updates} updates.{compiled}\n\n| update | ms |\n|---|---:|\n" + rows
+    )
+    common.save_markdown(name, "Pixel SAC update on a GPU: float32, bf16, compiled", body, info)
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(5, 3.5))
+    ax.bar(names, [updates[f"{n}_ms"] for n in names])
+    ax.set(ylabel=f"ms per update (batch {updates['batch_size']})")
+    ax.set_title(f"pixel SAC update, {headline['device']}", fontsize=9)
+    fig.tight_layout()
+    common.save_figure(name, fig, info)
+    print(json.dumps(headline), flush=True)
+    return 0
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--device", default="cuda")
@@ -255,6 +296,11 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--encoder", default="", help="text encoder folder (default: packaged)")
     parser.add_argument("--work", default="runs/bench/pixel-sac-gpu")
     parser.add_argument("--results", default=str(common.RESULTS_DIR))
+    parser.add_argument(
+        "--updates-only",
+        action="store_true",
+        help=f"only part 1: write {NAME}-updates.{{json,md,png}}",
+    )
     args = parser.parse_args(argv)
 
     import torch
@@ -266,6 +312,8 @@ def main(argv: list[str] | None = None) -> int:
     info = common.machine()
     t_start = time.perf_counter()
     updates = time_updates(args)
+    if args.updates_only:
+        return write_updates(args, updates, info)
     run = train(args)
     final = evaluate(args)
     seen, heldout, para = (_set_rate(final, s) for s in ("train", "heldout", "paraphrase"))
