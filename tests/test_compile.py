@@ -37,6 +37,18 @@ def test_compile_mode_records_cuda_graphs_on_cuda_only():
     assert compile_mode(torch.device("cpu")) == "default"
 
 
+def test_compiling_on_cuda_is_refused_with_the_reason():
+    """On CUDA the CUDA-graph replay overwrote outputs still in use (measured on an H100):
+    a clear error before training, not a traceback at the first update."""
+    from types import SimpleNamespace
+
+    from lcrl.algos.base import Agent
+    from lcrl.errors import LcrlError
+
+    with pytest.raises(LcrlError, match="does not work on CUDA yet"):
+        Agent.compile_networks(SimpleNamespace(device=torch.device("cuda")))
+
+
 def test_to_device_on_cpu_converts_without_pinning(monkeypatch):
     import numpy as np
 

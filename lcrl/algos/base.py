@@ -654,7 +654,19 @@ class Agent:
     def compile_networks(self) -> None:
         """``torch.compile`` every network in place (``nn.Module.compile``, so parameter
         names and checkpoints stay as they are), as CUDA graphs on CUDA
-        (:func:`compile_mode`); the perception model is left alone."""
+        (:func:`compile_mode`); the perception model is left alone.
+
+        Raises:
+            LcrlError: on CUDA, where it does not work yet: replaying a compiled network's
+                CUDA graph overwrites an output still in use (measured on an H100,
+                docs/scale.md).
+        """
+        if self.device.type == "cuda":
+            raise LcrlError(
+                "--agent.compile does not work on CUDA yet (replaying a compiled network's "
+                "CUDA graph overwrites an output still in use; docs/scale.md): train on "
+                "CUDA without --agent.compile"
+            )
         mode = compile_mode(self.device)
         for name, module in self.modules().items():
             if name != "perceiver":
