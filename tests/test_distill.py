@@ -92,10 +92,17 @@ def test_a_resumed_distillation_continues_exactly(teacher, perception, tmp_path)
     whole, parts = tmp_path / "whole", tmp_path / "parts"
     assert cli("distill", str(teacher), "--out", str(whole), "--rounds", "3", *common) == 0
     assert cli("distill", str(teacher), "--out", str(parts), "--rounds", "2", *common) == 0
-    args = ["distill", str(teacher), "--out", str(parts), "--rounds", "3", "--resume", *common]
-    assert cli(*args) == 0
     from lcrl.checkpoint import load_checkpoint
     from train.evaluate import resolve_checkpoint
+
+    before = load_checkpoint(resolve_checkpoint(parts)).state("trainer")["train_s"]
+    args = ["distill", str(teacher), "--out", str(parts), "--rounds", "3", "--resume", *common]
+    assert cli(*args) == 0
+    # the seconds of training count both sessions
+    after = load_checkpoint(resolve_checkpoint(parts)).state("trainer")["train_s"]
+    assert after > before > 0
+    last = (parts / "eval.csv").read_text().strip().splitlines()[-1].split(",")[-1]
+    assert float(last) >= before
 
     a, b = (load_checkpoint(resolve_checkpoint(p)).weights("actor") for p in (whole, parts))
     assert a.keys() == b.keys()

@@ -511,7 +511,12 @@ class DistillTrainer(BaseTrainer):
             )
         states = {
             **self.agent.states(),
-            "trainer": {"step": self.step, "episodes": self.episodes, "round": self._round},
+            "trainer": {
+                "step": self.step,
+                "episodes": self.episodes,
+                "round": self._round,
+                "train_s": self.train_seconds(),
+            },
             "rng": self.rng.bit_generator.state,
         }
         arrays = {f"data_{k}": v for k, v in self._arrays().items()} if self.rows else None
@@ -527,6 +532,8 @@ class DistillTrainer(BaseTrainer):
         self.step = int(trainer["step"])
         self.episodes = int(trainer["episodes"])
         self._round = dict(trainer.get("round") or {})
+        # seconds before this resume, so a run's train_s counts every session of it
+        self.train_s_before = float(trainer.get("train_s", 0.0))
         self.rng.bit_generator.state = ckpt.state("rng")
         if ckpt.has_arrays():
             arrays = ckpt.arrays()
