@@ -906,6 +906,11 @@ def _make_renderer(mj: Any, model: Any, size: int) -> Any:
     """
     from mujoco import gl_context
 
+    for name in ("_gl_context", "_mjr_context"):
+        # A renderer whose __init__ is cut short (Ctrl-C while a scene is built) lacks
+        # these, and its __del__ then prints a traceback; as class defaults it frees none.
+        if not hasattr(mj.Renderer, name):
+            setattr(mj.Renderer, name, None)
     wanted = os.environ.get("MUJOCO_GL", "").lower().strip()
     current = getattr(gl_context, "GLContext", None)
     if (

@@ -242,3 +242,42 @@ def test_progress_log_widens_its_header_for_columns_that_start_later(tmp_path):
     again = CsvLog(path)  # a resumed run keeps the widened header
     again.write({"step": 4000, "success": 0.3, "critic_loss": 0.125, "q": 3.0})
     assert path.read_text().splitlines()[-1] == "4000,0.3,0.125,3"
+
+
+#: ``lcrl train`` whose start-up (loading the encoder, building scenes) takes 60 s: it
+#: prints "starting" and sleeps inside the command, before any training loop exists.
+SLOW_START = """
+import sys, time
+import train.cli
+def slow_train(argv):
+    print("starting", flush=True)
+    time.sleep(60)
+train.cli._train = slow_train
+train.cli.main(["train", "state2d"])
+"""
+
+
+@pytest.mark.parametrize(("sig", "status", "said"), [
+    (signal.SIGINT, 130, "lcrl: interrupted"),
+    (signal.SIGTERM, 143, "lcrl: interrupted by SIGTERM"),
+])  # fmt: skip
+def test_a_signal_during_start_up_stops_a_command_started_in_the_background(sig, status, said):
+    # A shell script's `lcrl train ... &` starts lcrl with SIGINT ignored; a kill -INT
+    # during start-up was lost and the run trained on.
+    proc = subprocess.Popen(
+        [sys.executable, "-c", SLOW_START],
+        cwd=ROOT,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+        preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_IGN),
+    )
+    assert proc.stdout.readline().strip() == "starting"
+    proc.send_signal(sig)
+    try:
+        _, err = proc.communicate(timeout=20)
+    except subprocess.TimeoutExpired:
+        proc.kill()
+        raise AssertionError("the command ignored the signal") from None
+    assert proc.returncode == status
+    assert said in err and "Traceback" not in err

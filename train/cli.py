@@ -23,12 +23,16 @@ Subcommands:
 
 User mistakes (bad options, unparseable instructions, missing files) print one line
 starting with ``lcrl: error:`` and exit with status 2; Ctrl-C exits with status 130.
+SIGINT and SIGTERM stop every command the same way from its first instant, even where the
+shell started ``lcrl`` in the background with SIGINT ignored (:func:`stop_on_signals`).
 """
 
 from __future__ import annotations
 
 import json
+import signal
 import sys
+import threading
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -856,9 +860,29 @@ def _demos(argv: Sequence[str]) -> None:
     cfg.run()
 
 
+def stop_on_signals() -> None:
+    """SIGINT raises ``KeyboardInterrupt`` and SIGTERM :class:`RunInterrupted` (one too),
+    so every command keeps what it finished and stops (130, 143).
+
+    A shell that starts a command in the background (``lcrl train ... &`` in a script)
+    leaves SIGINT ignored, and Python keeps it so; the training loop's own handlers then
+    took a ``kill -INT`` only once training began, and one sent during start-up was lost.
+    """
+    if threading.current_thread() is not threading.main_thread():
+        return
+    signal.signal(signal.SIGINT, signal.default_int_handler)
+    signal.signal(signal.SIGTERM, _terminated)
+
+
+def _terminated(signum: int, frame: Any) -> None:
+    raise RunInterrupted(signum)
+
+
 def main(argv: Sequence[str] | None = None) -> None:
     """Entry point of the ``lcrl`` console script."""
     from train.demo import DemoConfig, run_demo
+
+    stop_on_signals()
 
     args = list(sys.argv[1:] if argv is None else argv)
     commands = {
@@ -907,7 +931,9 @@ def main(argv: Sequence[str] | None = None) -> None:
         where = f" {e.filename}" if e.filename else ""
         print(f"lcrl: error: cannot use{where}: {e.strerror or e}", file=sys.stderr)
         sys.exit(2)
-    except RunInterrupted as e:  # the run saved a checkpoint (train/trainer.py)
+    except RunInterrupted as e:  # a training run says what it saved (train/trainer.py)
+        if not e.reported:
+            print(f"lcrl: interrupted by {e.args[0]}", file=sys.stderr)
         sys.exit(e.exit_status)
     except KeyboardInterrupt:
         print("lcrl: interrupted", file=sys.stderr)

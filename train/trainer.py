@@ -129,6 +129,7 @@ class RunInterrupted(KeyboardInterrupt):
     def __init__(self, signum: int) -> None:
         super().__init__(signal.Signals(signum).name)
         self.signum = int(signum)
+        self.reported = False  # set once a run has said what it saved
 
     @property
     def exit_status(self) -> int:
@@ -674,4 +675,6 @@ class BaseTrainer(ABC):
             "--resume",
             flush=True,
         )
+        if isinstance(why, RunInterrupted):
+            why.reported = True
         self.close()
