@@ -34,6 +34,7 @@ from pathlib import Path
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
 from benchmarks.common import command, machine, save_figure, save_json, save_markdown
+from lcrl.perception import PerceptionConfig
 
 NAME = "perception-robosuite"
 TARGETS = {"position_error_cm": 1.0, "presence_accuracy": 0.99}
@@ -56,6 +57,18 @@ def main(argv: list[str] | None = None) -> int:
         "--data", default="", help="train on this caption dataset instead of collecting one"
     )
     parser.add_argument("--init", default="", help="start from this perception model")
+    parser.add_argument(
+        "--extra-data",
+        nargs="*",
+        default=[],
+        help="more caption datasets whose every episode trains too (held out: --data's)",
+    )
+    parser.add_argument(
+        "--hold-radius",
+        type=float,
+        default=PerceptionConfig.hold_radius,
+        help="object permanence while acting (lcrl.perception.HeldSlots); 0: off",
+    )
     parser.add_argument("--lr", type=float, default=1e-3)
     parser.add_argument(
         "--layouts", default="", help="the new-layout set (default: collect WORK/layouts.h5)"
@@ -75,6 +88,8 @@ def main(argv: list[str] | None = None) -> int:
         "write the results; its training times come from WORK/times.json",
     )
     args = parser.parse_args(argv)
+    if not args.hold_radius >= 0:
+        parser.error(f"--hold-radius must be >= 0, got {args.hold_radius}")
 
     import torch
 
@@ -98,7 +113,7 @@ def main(argv: list[str] | None = None) -> int:
         overwrite=True,
         progress=False,
     )
-    for path in [args.data, args.init, args.layouts, *args.eval_data]:
+    for path in [args.data, args.init, args.layouts, *args.eval_data, *args.extra_data]:
         if path and not Path(path).exists():
             parser.error(f"no such file or folder: {path}")
     data = args.data or str(work / "train.h5")
@@ -121,6 +136,8 @@ def main(argv: list[str] | None = None) -> int:
             steps=args.steps,
             lr=args.lr,
             init=args.init,
+            extra_data=tuple(args.extra_data),
+            model=PerceptionConfig(hold_radius=args.hold_radius),
             threads=args.threads,
             progress=False,
         )
@@ -138,6 +155,8 @@ def main(argv: list[str] | None = None) -> int:
     headline = {
         "position_error_cm": round(heldout["position_error_cm"], 3),
         "presence_accuracy": round(heldout["presence_accuracy"], 4),
+        "position_error_cm_without_hold": _round(heldout.get("position_error_cm_without_hold"), 3),
+        "hold_radius": heldout.get("hold_radius", 0.0),
         "presence_accuracy_per_frame": _round(heldout.get("presence_accuracy_per_frame"), 4),
         "position_error_cm_new_layouts": round(layouts["position_error_cm"], 3),
         "presence_accuracy_new_layouts": round(layouts["presence_accuracy"], 4),

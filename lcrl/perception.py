@@ -48,6 +48,11 @@ class PerceptionConfig:
     """Width of the two hidden layers of the head."""
     augment_pad: int = 2
     """Random-shift augmentation in training: pixels of padding (0: off)."""
+    hold_radius: float = 0.06
+    """Object permanence when acting (:class:`HeldSlots`): an object's estimated position
+    is held from frame to frame while the gripper is farther than this from it on the
+    table (in the env's units, metres); 0: every frame's own estimate. Models saved
+    before this setting existed hold nothing."""
 
     def validate(self) -> None:
         """Raise :class:`LcrlError` for inconsistent settings."""
@@ -57,6 +62,8 @@ class PerceptionConfig:
             raise LcrlError("perception channels, strides and hidden must be positive")
         if self.augment_pad < 0:
             raise LcrlError("augment_pad must be >= 0")
+        if not self.hold_radius >= 0:
+            raise LcrlError(f"hold_radius must be >= 0, got {self.hold_radius}")
 
 
 @dataclass(frozen=True)
@@ -241,6 +248,55 @@ class Perception(nn.Module):
         return slots[..., -1] > 0.5
 
 
+class HeldSlots:
+    """Object permanence for perception's estimates, frame after frame of one episode.
+
+    Objects move only when the robot moves them, and a frame with the arm over the table
+    reads every object less well than the episode's first frame, where the arm is away.
+    So each object's estimated position is held while the gripper (the first two values of
+    the proprioception: its place on the table) is farther than ``radius`` from it, in
+    this frame and in the one before; near it, the frame's own estimate is taken, and held
+    from then on. Presence flags and the proprioception pass through unchanged.
+
+    Args:
+        layout: the slot layout of the estimates.
+        radius: in the env's units; 0 passes every estimate through.
+    """
+
+    def __init__(self, layout: SlotLayout, radius: float) -> None:
+        self.layout, self.radius = layout, float(radius)
+        self.reset()
+
+    def reset(self) -> None:
+        """A new episode: the next estimate is taken whole."""
+        self._held: np.ndarray | None = None
+        self._agent: np.ndarray | None = None
+
+    def __call__(self, estimate: np.ndarray) -> np.ndarray:
+        """The estimates ``(B, dim)`` (one row per episode in parallel) with the
+        positions of objects the gripper is away from held; a new number of rows starts
+        new episodes."""
+        x = np.array(estimate, np.float32, copy=True)
+        if not self.radius:
+            return x
+        lay = self.layout
+        agent = x[:, :2]
+        if self._held is None or self._held.shape != x.shape:
+            self._held, self._agent = x, agent
+            return x.copy()
+        d = lay.position_dims
+        slots = x[:, lay.start : lay.dim].reshape(len(x), lay.count, lay.width)
+        held = self._held[:, lay.start : lay.dim].reshape(len(x), lay.count, lay.width)
+        near = np.zeros(slots.shape[:2], bool)
+        for where in (agent, self._agent):
+            near |= np.linalg.norm(held[..., :2] - where[:, None, :], axis=-1) < self.radius
+        slots[..., :d] = np.where(near[..., None], slots[..., :d], held[..., :d])
+        slots[..., :d] *= slots[..., d:]  # an object absent has the position 0
+        x[:, lay.start : lay.dim] = slots.reshape(len(x), -1)
+        self._held, self._agent = x, agent
+        return x.copy()
+
+
 class PerceivedSlots(nn.Module):
     """Camera frames -> the observation a policy reads, as a differentiable module: for
     fine-tuning perception end to end with the policy's losses.
@@ -396,7 +452,8 @@ def load_model(path: str | Path, device: str = "cpu") -> tuple[Perception, dict[
     ckpt = load_checkpoint(p)
     try:
         layout = SlotLayout.of(meta["slot_layout"])
-        model = Perception(meta["frame_shape"], layout, PerceptionConfig(**meta["model"]))
+        settings = {"hold_radius": 0.0, **meta["model"]}  # older models hold nothing
+        model = Perception(meta["frame_shape"], layout, PerceptionConfig(**settings))
     except (KeyError, TypeError, ValueError) as e:
         raise CheckpointError(
             f"{p / 'meta.json'}: a perception field is missing or wrong: {e}"

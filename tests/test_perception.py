@@ -101,7 +101,7 @@ def test_evaluation_reports_frames_near_an_object_apart():
         state=state,
         episodes=np.arange(4),  # one frame each: every frame judged by its own flags
     )
-    res = evaluate(Model(), data, layout)
+    res = evaluate(Model(), data, layout, hold_radius=0.0)
     assert res["near_frames"] == 2
     assert res["near_position_error_cm"] == pytest.approx(1.5, abs=1e-4)  # (3 + 0) / 2
     assert res["near_within_reach_margin"] == 0.5
@@ -147,7 +147,7 @@ def test_evaluation_takes_presence_from_each_episodes_first_frame():
         state=state,
         episodes=np.array([0, 0, 1, 1]),
     )
-    res = evaluate(Model(), data, layout)
+    res = evaluate(Model(), data, layout, hold_radius=0.0)
     assert calls == [[1]]  # only the frame whose own flags missed what its first frame saw
     assert res["presence_accuracy"] == 6 / 8  # episode 1 misses object 0 in both frames
     assert res["presence_accuracy_per_frame"] == 5 / 8
@@ -306,6 +306,7 @@ def test_cached_estimates_equal_recomputed_ones(trained, tmp_path):
 
     from envs.features import SlotFeatures
     from lcrl.buffer import HindsightReplayBuffer
+    from lcrl.perception import HeldSlots
     from train.evaluate import build_task
     from train.tasks import make_env
 
@@ -343,7 +344,10 @@ def test_cached_estimates_equal_recomputed_ones(trained, tmp_path):
         }
     )
     model, _ = load_model(trained)
+    assert model.cfg.hold_radius > 0  # objects the gripper stays away from are held
     estimate = model.observation(np.stack(frames), np.stack(proprio))
+    held = HeldSlots(model.layout, model.cfg.hold_radius)
+    estimate = np.concatenate([held(row[None]) for row in estimate])
     features = next(w for w in _wrappers(env) if isinstance(w, SlotFeatures))
     recomputed = features.features(estimate, estimate[:1])
     cached = buffer.obs["observation"][: buffer.high]
@@ -353,6 +357,17 @@ def test_cached_estimates_equal_recomputed_ones(trained, tmp_path):
     truth = buffer.obs["privileged"][: buffer.high]
     assert not np.allclose(truth, cached)
     np.testing.assert_array_equal(truth[:, :2], cached[:, :2])  # proprioception is shared
+
+
+def read_every_frame_alone(env) -> None:
+    """Turn object permanence off in ``env``'s perception wrapper: each observation is then
+    its own frame's estimate, what the differentiable reader of a run that fine-tunes
+    perception computes."""
+    from lcrl.perception import HeldSlots
+    from train.perception import find_perception
+
+    wrapper = find_perception(env)
+    wrapper.held = HeldSlots(wrapper.model.layout, 0.0)
 
 
 def _wrappers(env):
@@ -445,6 +460,7 @@ def test_perceived_slots_match_the_env_features(trained):
     cfg = PRESETS["lang2d-quick"][1].env
     cfg = type(cfg)(**{**vars(cfg), "perception": str(trained)})
     env = make_env(cfg, "train")
+    read_every_frame_alone(env)
     first, _ = env.reset(seed=2)
     obs, *_ = env.step(env.action_space.sample())
     model, _ = load_model(trained)
@@ -517,6 +533,7 @@ def test_presence_holds_from_the_first_frame(trained, monkeypatch):
     cfg = type(cfg)(**{**vars(cfg), "perception": str(trained)})
     env = make_env(cfg, "train")
     model = find_perception(env).model
+    read_every_frame_alone(env)
     first, _ = env.reset(seed=2)
     flags = first["observation"][2:].reshape(8, 7)[:, 2]
     assert 0 < flags.sum() < 8
@@ -540,3 +557,113 @@ def test_presence_holds_from_the_first_frame(trained, monkeypatch):
     np.testing.assert_allclose(x[0].numpy(), obs["observation"], atol=1e-5)
     again, _ = env.reset(seed=2)
     assert again["observation"][2:].reshape(8, 7)[:, 2].sum() == 0  # read anew at reset
+
+
+def test_held_slots_keep_what_the_gripper_stays_away_from():
+    """Objects move only when the robot moves them: an object's position is held while
+    the gripper is farther than the radius from it (now and one frame before); near it,
+    the frame's own estimate is taken and held from then on."""
+    from lcrl.perception import HeldSlots
+
+    layout = SlotLayout(2, 2, 3, 2)  # the agent (x, y); two slots [x, y, present]
+
+    def obs(agent, a, b=None):
+        b_slot = [0.0, 0.0, 0.0] if b is None else [*b, 1.0]
+        return np.array([[*agent, *a, 1.0, *b_slot]], np.float32)
+
+    held = HeldSlots(layout, 0.1)
+    first = held(obs((0.0, 0.0), (0.5, 0.5)))
+    np.testing.assert_array_equal(first, obs((0.0, 0.0), (0.5, 0.5)))
+    # far from the object: a later frame's misreading is not taken
+    np.testing.assert_array_equal(held(obs((0.1, 0.0), (0.53, 0.48))), obs((0.1, 0.0), (0.5, 0.5)))
+    # the gripper arrives: the frame's own estimate
+    np.testing.assert_array_equal(
+        held(obs((0.45, 0.5), (0.52, 0.5))), obs((0.45, 0.5), (0.52, 0.5))
+    )
+    # it leaves at once: still taken (near one frame before), then held
+    np.testing.assert_array_equal(held(obs((0.0, 0.0), (0.65, 0.5))), obs((0.0, 0.0), (0.65, 0.5)))
+    np.testing.assert_array_equal(held(obs((0.0, 0.0), (0.7, 0.4))), obs((0.0, 0.0), (0.65, 0.5)))
+    # the absent object stays 0; a reset takes the next estimate whole
+    held.reset()
+    np.testing.assert_array_equal(held(obs((0.0, 0.0), (0.7, 0.4))), obs((0.0, 0.0), (0.7, 0.4)))
+    # rows are episodes in parallel; radius 0 passes everything through
+    two = np.concatenate([obs((0.0, 0.0), (0.5, 0.5), (0.2, 0.2)), obs((0.5, 0.5), (0.5, 0.5))])
+    held.reset()
+    held(two)
+    moved = two.copy()
+    moved[:, 2:4] += 0.05
+    out = held(moved)
+    np.testing.assert_array_equal(out[0], two[0])  # gripper far: held
+    np.testing.assert_array_equal(out[1], moved[1])  # gripper on it: taken
+    np.testing.assert_array_equal(HeldSlots(layout, 0.0)(moved), moved)
+
+
+def test_evaluation_judges_held_positions_and_each_frame_alone():
+    """Evaluation reads positions as policies do (held away from the gripper) and reports
+    each frame's own estimates beside."""
+    from types import SimpleNamespace
+
+    layout = SlotLayout(2, 1, 3, 2)
+    state = np.zeros((4, layout.dim), np.float32)
+    state[:, 2:5] = [0.5, 0.5, 1.0]  # the object never moves; the agent stays at (0, 0)
+    seen = state.copy()
+    seen[[1, 3], 2] += 0.02  # later frames misread it by 2 cm
+
+    class Model:
+        cfg = SimpleNamespace(hold_radius=0.1)
+
+        def observation(self, frames, proprio, present=None):
+            return seen[frames[:, 0, 0, 0]].copy()
+
+        def presence(self, observation):
+            return layout.split(observation)[2]
+
+    data = SimpleNamespace(
+        frames=np.arange(4, dtype=np.uint8)[:, None, None, None].repeat(3, -1),
+        proprio=state[:, :2],
+        state=state,
+        episodes=np.array([0, 0, 1, 1]),
+    )
+    res = evaluate(Model(), data, layout)
+    assert res["hold_radius"] == 0.1
+    assert res["position_error_cm"] == pytest.approx(0.0, abs=1e-4)
+    assert res["position_error_cm_without_hold"] == pytest.approx(1.0, abs=1e-4)
+    alone = evaluate(Model(), data, layout, hold_radius=0.0)
+    assert alone["position_error_cm"] == pytest.approx(1.0, abs=1e-4)
+
+
+def test_models_saved_before_object_permanence_hold_nothing(trained, tmp_path):
+    import shutil
+
+    old = tmp_path / "old"
+    shutil.copytree(trained, old)
+    meta_path = old / "model" / "meta.json"
+    meta = json.loads(meta_path.read_text())
+    del meta["model"]["hold_radius"]
+    meta_path.write_text(json.dumps(meta))
+    assert load_model(old)[0].cfg.hold_radius == 0.0
+    assert load_model(trained)[0].cfg.hold_radius == 0.06
+
+
+def test_extra_datasets_train_too_and_must_match(trained, dataset, capsys, tmp_path):
+    """--extra-data adds every episode of more datasets to training (held out: --data's
+    alone); one of another frame size is refused, naming both."""
+    more = tmp_path / "more.h5"
+    collect = ["perception", "collect", "--env", "lang2d", "--max-episode-steps", "5"]
+    assert (
+        cli(*collect, "--episodes", "20", "--seed", "7", "--out", str(more), "--no-progress") == 0
+    )
+    out = tmp_path / "model"
+    args = ["perception", "train", "--data", str(dataset), "--heldout-fraction", "0.15"]
+    args += ["--steps", "20", "--no-progress"]
+    assert cli(*args, "--out", str(out), "--extra-data", str(more)) == 0
+    _, meta = load_model(out)
+    assert meta["heldout_episodes"] == load_model(trained)[1]["heldout_episodes"]
+    assert meta["train"]["extra_data"] == [str(more)]
+    small = tmp_path / "small.h5"
+    assert cli(*collect, "--episodes", "2", "--image-size", "32", "--out", str(small),
+               "--no-progress") == 0  # fmt: skip
+    capsys.readouterr()
+    assert cli(*args, "--out", str(tmp_path / "x"), "--extra-data", str(small)) == 2
+    line = error_line(capsys.readouterr().err)
+    assert "(32, 32, 3) frames" in line and "(64, 64, 3)" in line

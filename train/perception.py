@@ -16,7 +16,7 @@ from __future__ import annotations
 import json
 import time
 from collections.abc import Mapping
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
@@ -30,6 +30,7 @@ from lcrl.errors import LcrlError
 from lcrl.perception import (
     FORMAT,
     MIN_POSITION_STD,
+    HeldSlots,
     Perception,
     PerceptionConfig,
     SlotLayout,
@@ -79,14 +80,17 @@ class PerceptionTrainConfig:
     """Fraction of the episodes (layouts) kept out of training, for evaluation."""
     seed: int = 0
     """Seed of the held-out episodes, the batches and the augmentation."""
+    extra_data: tuple[str, ...] = ()
+    """More caption datasets of the same env, camera and objects, every episode of which
+    trains as well (more layouts); the held-out episodes come from ``data`` alone."""
     model: PerceptionConfig = field(default_factory=PerceptionConfig)
     """The network."""
     init: str = ""
     """Start from this perception model's weights and normalisers instead of a new network
     (continue training, e.g. at a lower ``--lr``; its network settings replace
-    ``--model.*``). It must read frames of the dataset's size and its slot layout, and
-    have been trained with the same held-out episodes (same ``--seed`` and
-    ``--heldout-fraction``)."""
+    ``--model.*``, all but ``--model.hold-radius``). It must read frames of the dataset's
+    size and its slot layout, and have been trained with the same held-out episodes (same
+    ``--seed`` and ``--heldout-fraction``)."""
     device: str = "cpu"
     """Torch device."""
     threads: int = 0
@@ -111,6 +115,8 @@ class Frames:
     proprio: np.ndarray
     state: np.ndarray
     episodes: np.ndarray
+
+    FIELDS = ("frames", "proprio", "state", "episodes")
 
 
 def read_dataset(path: str, episodes: np.ndarray | None = None) -> tuple[Frames, dict[str, Any]]:
@@ -140,6 +146,32 @@ def read_dataset(path: str, episodes: np.ndarray | None = None) -> tuple[Frames,
         )
 
 
+def with_extra_data(data: Frames, meta: Mapping[str, Any], paths: tuple[str, ...]) -> Frames:
+    """``data`` followed by every episode of the datasets at ``paths`` (episode numbers
+    continue after ``data``'s).
+
+    Raises:
+        LcrlError: a dataset of another env, frame size or slot layout than ``meta``'s.
+    """
+    parts, top = [data], int(np.max(data.episodes)) + 1 if len(data.episodes) else 0
+    for path in paths:
+        more, more_meta = read_dataset(path)
+        for key, what in (("env", "env"), ("slot_layout", "slot layout")):
+            if more_meta.get(key) != meta.get(key):
+                raise LcrlError(
+                    f"--extra-data {path} has the {what} {more_meta.get(key)}; the training "
+                    f"dataset has {meta.get(key)}"
+                )
+        if more.frames.shape[1:] != data.frames.shape[1:]:
+            raise LcrlError(
+                f"--extra-data {path} holds {more.frames.shape[1:]} frames; the training "
+                f"dataset holds {data.frames.shape[1:]}"
+            )
+        parts.append(Frames(more.frames, more.proprio, more.state, more.episodes + top))
+        top += int(np.max(more.episodes)) + 1 if len(more.episodes) else 0
+    return Frames(*(np.concatenate([getattr(p, k) for p in parts]) for k in Frames.FIELDS))
+
+
 def split_episodes(num: int, fraction: float, seed: int) -> tuple[np.ndarray, np.ndarray]:
     """Training and held-out episode indices (at least one of each when ``fraction > 0``)."""
     order = np.random.default_rng(seed).permutation(num)
@@ -165,6 +197,8 @@ def train(cfg: PerceptionTrainConfig) -> dict[str, Any]:
     train_eps, held_eps = split_episodes(num, cfg.heldout_fraction, cfg.seed)
     data, meta = read_dataset(cfg.data, train_eps)
     layout = SlotLayout.of(meta["slot_layout"])
+    if cfg.extra_data:
+        data = with_extra_data(data, meta, cfg.extra_data)
     device = torch.device(cfg.device)
     torch.manual_seed(cfg.seed)
     if cfg.init:
@@ -257,7 +291,8 @@ def initial_model(
                 "evaluation would read frames it trained on (use its --seed and "
                 "--heldout-fraction)"
             )
-    cfg.model = model.cfg
+    # the network is the checkpoint's; holding positions while acting is this command's
+    model.cfg = cfg.model = replace(model.cfg, hold_radius=cfg.model.hold_radius)
     return model
 
 
@@ -317,7 +352,11 @@ def find_perception(env: gym.Env) -> PerceptionObservation | None:
 
 
 def evaluate(
-    model: Perception, data: Frames, layout: SlotLayout, batch: int = 256
+    model: Perception,
+    data: Frames,
+    layout: SlotLayout,
+    batch: int = 256,
+    hold_radius: float | None = None,
 ) -> dict[str, Any]:
     """Position error (cm) of present objects per object kind and overall, presence
     accuracy (per object and whole frames), and the fractions of errors within the reach
@@ -326,7 +365,12 @@ def evaluate(
 
     Presence is judged as policies read it: the flags of each episode's first frame (the
     dataset's episodes start at reset) hold for its later frames
-    (:class:`PerceptionObservation`); ``*_per_frame`` judges every frame's own flags."""
+    (:class:`PerceptionObservation`); ``*_per_frame`` judges every frame's own flags.
+
+    Positions too are judged as policies read them: those of objects the gripper stays
+    away from held from frame to frame (:class:`lcrl.perception.HeldSlots`, the model's
+    ``hold_radius`` or the one given); ``position_error_cm_without_hold`` judges every
+    frame's own estimate."""
     frames, proprio = data.frames, data.proprio[:, : layout.start]
     estimate = np.concatenate(
         [
@@ -344,10 +388,18 @@ def evaluate(
     for s in range(0, len(redo), batch):
         idx = redo[s : s + batch]
         estimate[idx] = model.observation(frames[idx], proprio[idx], present_hat[idx])
-    _, pos_hat, _ = layout.split(estimate)
     _, pos, present = layout.split(data.state)
-    err = np.linalg.norm(pos_hat - pos, axis=-1)  # metres
     seen = present & present_hat
+    _, pos_hat, _ = layout.split(estimate)
+    err_alone = np.linalg.norm(pos_hat - pos, axis=-1)[seen]
+    radius = model.cfg.hold_radius if hold_radius is None else float(hold_radius)
+    held = HeldSlots(layout, radius)
+    for i in range(len(estimate) if radius else 0):  # the frames of an episode in order
+        if starts[i]:
+            held.reset()
+        estimate[i] = held(estimate[i : i + 1])[0]
+    _, pos_hat, _ = layout.split(estimate)
+    err = np.linalg.norm(pos_hat - pos, axis=-1)  # metres
     per_kind = {}
     for k in range(layout.count):
         e = err[seen[:, k], k]
@@ -367,6 +419,8 @@ def evaluate(
     own_ok = frame_present == present
     return {
         "position_error_cm": float(e.mean() * 100) if e.size else None,
+        "position_error_cm_without_hold": float(err_alone.mean() * 100) if e.size else None,
+        "hold_radius": radius,
         "position_error_cm_median": float(np.median(e) * 100) if e.size else None,
         "position_error_cm_p90": float(np.percentile(e, 90) * 100) if e.size else None,
         "within_reach_margin": float((e < REACH_MARGIN).mean()) if e.size else None,
@@ -394,7 +448,13 @@ def format_results(res: dict[str, Any], name: str) -> str:
         return f"{name}: no present object was seen"
     return (
         f"{name}: position error {res['position_error_cm']:.2f} cm (median "
-        f"{res['position_error_cm_median']:.2f}, 90% {res['position_error_cm_p90']:.2f}), "
+        f"{res['position_error_cm_median']:.2f}, 90% {res['position_error_cm_p90']:.2f}"
+        + (
+            f"; each frame alone {res['position_error_cm_without_hold']:.2f}"
+            if res.get("hold_radius")
+            else ""
+        )
+        + "), "
         f"presence accuracy {res['presence_accuracy']:.3f}"
         + (
             f" (each frame's own flags {res['presence_accuracy_per_frame']:.3f})"
@@ -432,8 +492,13 @@ class PerceptionEvalCommand:
     """Dataset to evaluate on (default: the training dataset's held-out episodes)."""
     json: str = ""
     """Also write the figures to this JSON file."""
+    hold_radius: float | None = None
+    """Judge positions held this far from the gripper (:class:`lcrl.perception.HeldSlots`;
+    0: every frame alone; default: the model's own ``hold_radius``)."""
 
     def run(self) -> dict[str, Any]:
+        if self.hold_radius is not None and not self.hold_radius >= 0:
+            raise LcrlError(f"--hold-radius must be >= 0, got {self.hold_radius}")
         if self.json:  # before the work: a --json that cannot be written fails now
             from train.trainer import check_output_file
 
@@ -451,7 +516,7 @@ class PerceptionEvalCommand:
         else:
             data, _ = read_dataset(meta["train"]["data"], np.asarray(meta["heldout_episodes"]))
             name = "held-out episodes"
-        results = evaluate(model, data, layout)
+        results = evaluate(model, data, layout, hold_radius=self.hold_radius)
         print(format_results(results, name))
         if self.json:
             Path(self.json).write_text(json.dumps(results, indent=1))
@@ -510,10 +575,13 @@ class PerceptionObservation(gym.ObservationWrapper):
             )
         self.observation_space = gym.spaces.Dict({**space.spaces, "privileged": box})
         self._present: np.ndarray | None = None
+        self.held = HeldSlots(model.layout, model.cfg.hold_radius)
 
     def reset(self, **kwargs: Any) -> tuple[Any, dict[str, Any]]:
-        """Reset; the first frame's presence flags then hold for the episode."""
+        """Reset; the first frame's presence flags then hold for the episode, and the
+        positions of objects the gripper stays away from (:class:`HeldSlots`)."""
         self._present = None
+        self.held.reset()
         return super().reset(**kwargs)
 
     def observation(self, observation: Mapping[str, Any]) -> dict[str, Any]:
@@ -529,6 +597,7 @@ class PerceptionObservation(gym.ObservationWrapper):
         )[0]
         if present is None:
             self._present = self.model.presence(estimate)
+        estimate = self.held(estimate[None])[0]
         out["observation"] = estimate.astype(np.float32)
         out["privileged"] = state
         return out

@@ -59,6 +59,7 @@ import numpy as np
 from lcrl.algos import Agent
 from lcrl.checkpoint import Checkpoint
 from lcrl.errors import LcrlError
+from lcrl.perception import HeldSlots
 from train.config import TrainConfig
 from train.environments import describe
 from train.tasks import Task, goal_modality, make_env, task_texts
@@ -421,8 +422,14 @@ class Policy:
         # presence is the episode's first frame's, as in training (PerceptionObservation)
         present = None if new_episode else model.presence(origin)
         estimate = model.observation(image.reshape(-1, *frame), proprio.reshape(-1, start), present)
+        held = getattr(self, "_held", None)
+        if held is None or held.layout is not model.layout:
+            held = self._held = HeldSlots(model.layout, model.cfg.hold_radius)
         if new_episode:
+            held.reset()
             self._origin = estimate
+        # objects the gripper stays away from keep their positions, as in training
+        estimate = held(estimate)
         x = estimate if features is None else features.features(estimate, self._origin)
         out = {k: v for k, v in observation.items() if k != "proprio"}
         out["observation"] = x.astype(np.float32) if batch is not None else x[0].astype(np.float32)
