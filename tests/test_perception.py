@@ -110,11 +110,23 @@ def test_evaluation_reports_frames_near_an_object_apart():
     assert res["presence_accuracy"] == 7 / 8
 
 
+def two_episodes_of_two_frames(state):
+    """Evaluation data of four frames, two episodes of two: frame ``i`` is filled with the
+    value ``i``, so a fake model knows which frame it reads."""
+    from types import SimpleNamespace
+
+    return SimpleNamespace(
+        frames=np.arange(4, dtype=np.uint8)[:, None, None, None].repeat(3, -1),
+        proprio=state[:, :2],
+        state=state,
+        episodes=np.array([0, 0, 1, 1]),
+    )
+
+
 def test_evaluation_takes_presence_from_each_episodes_first_frame():
     """Objects are placed at reset and stay: policies read the presence flags of the
     episode's first frame, so evaluation judges those, re-estimating the position of an
     object a later frame's own flags missed; each frame's own flags are reported beside."""
-    from types import SimpleNamespace
 
     layout = SlotLayout(2, 2, 3, 2)
     state = np.zeros((4, layout.dim), np.float32)
@@ -141,12 +153,7 @@ def test_evaluation_takes_presence_from_each_episodes_first_frame():
         def presence(self, observation):
             return layout.split(observation)[2]
 
-    data = SimpleNamespace(
-        frames=np.arange(4, dtype=np.uint8)[:, None, None, None].repeat(3, -1),
-        proprio=state[:, :2],
-        state=state,
-        episodes=np.array([0, 0, 1, 1]),
-    )
+    data = two_episodes_of_two_frames(state)
     res = evaluate(Model(), data, layout, hold_radius=0.0)
     assert calls == [[1]]  # only the frame whose own flags missed what its first frame saw
     assert res["presence_accuracy"] == 6 / 8  # episode 1 misses object 0 in both frames
@@ -618,12 +625,7 @@ def test_evaluation_judges_held_positions_and_each_frame_alone():
         def presence(self, observation):
             return layout.split(observation)[2]
 
-    data = SimpleNamespace(
-        frames=np.arange(4, dtype=np.uint8)[:, None, None, None].repeat(3, -1),
-        proprio=state[:, :2],
-        state=state,
-        episodes=np.array([0, 0, 1, 1]),
-    )
+    data = two_episodes_of_two_frames(state)
     res = evaluate(Model(), data, layout)
     assert res["hold_radius"] == 0.1
     assert res["position_error_cm"] == pytest.approx(0.0, abs=1e-4)
