@@ -218,7 +218,7 @@ def main(argv: list[str] | None = None) -> int:
         )
         lines.append(
             f"| {name} | {r['position_error_cm']:.2f} | "
-            f"{r.get('position_error_cm_without_hold', r['position_error_cm']):.2f} | "
+            f"{r['position_error_cm_without_hold']:.2f} | "
             f"{r['position_error_cm_median']:.2f} | "
             f"{r['position_error_cm_p90']:.2f} | {r['within_reach_margin']:.2f} | "
             f"{r['within_push_distance']:.2f} | {r['presence_accuracy']:.3f} | "

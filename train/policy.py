@@ -423,7 +423,7 @@ class Policy:
         present = None if new_episode else model.presence(origin)
         estimate = model.observation(image.reshape(-1, *frame), proprio.reshape(-1, start), present)
         held = getattr(self, "_held", None)
-        if held is None or held.layout is not model.layout:
+        if held is None:
             held = self._held = HeldSlots(model.layout, model.cfg.hold_radius)
         if new_episode:
             held.reset()
