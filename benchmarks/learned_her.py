@@ -199,7 +199,12 @@ def main(argv: list[str] | None = None) -> int:
     agreement = {}
     with open(Path(args.work) / "learned" / "progress.csv") as f:
         rows = list(csv.DictReader(f))
-    for key in ("labels_precision", "labels_recall", "rewards_precision", "rewards_recall"):
+    keys = [  # over all instructions, then per family (labels_push_precision, ...)
+        k
+        for k in (rows[0] if rows else {})
+        if k.startswith(("labels_", "rewards_")) and k.endswith(("_precision", "_recall"))
+    ]
+    for key in keys:
         values = [float(r[key]) for r in rows[-5:] if r.get(key) not in (None, "", "nan")]
         if values:
             agreement[key] = round(sum(values) / len(values), 3)

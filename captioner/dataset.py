@@ -408,6 +408,12 @@ class CollectConfig:
     """Hold each random action for this many steps (held actions travel and push)."""
     scripted_noise: float = 0.3
     """Standard deviation of the Gaussian noise on scripted actions."""
+    after_success: int = 0
+    """Scripted episodes go on for this many steps of held random actions once their
+    instruction is satisfied (0: they end there; ``max_episode_steps`` still bounds
+    them). Without them a moved object is nearly always seen with the robot beside it
+    (a push ends in contact), and a reward model can read "reached" into any moved
+    object."""
     heldout_fraction: float = 0.25
     """Fraction of scripted episodes that follow a held-out combination (so that held-out
     evaluation has examples; training code decides whether to use them)."""
@@ -439,6 +445,8 @@ class CollectConfig:
         for name in ("episodes", "max_episode_steps", "random_action_repeat"):
             if getattr(self, name) <= 0:
                 raise LcrlError(f"{name} must be positive, got {getattr(self, name)}")
+        if self.after_success < 0:
+            raise LcrlError(f"after_success must be >= 0, got {self.after_success}")
         if not 0.0 <= self.heldout_fraction <= 1.0:
             raise LcrlError("heldout_fraction must be in [0, 1]")
         if self.scripted_noise < 0:
@@ -658,9 +666,10 @@ def _episode(
     scenes = [s0]
     low, high = env.action_space.low, env.action_space.high
     action = None
+    done_at = -1  # the step a scripted episode's instruction was satisfied at
     for t in range(cfg.max_episode_steps):
-        if kind == "random":
-            if t % cfg.random_action_repeat == 0:
+        if kind == "random" or done_at >= 0:  # held random actions (after success too)
+            if (t - max(done_at, 0)) % cfg.random_action_repeat == 0:
                 action = rng.uniform(low, high).astype(np.float32)
         else:
             a = src.controller.act(table[target], s0, scenes[-1])
@@ -671,8 +680,13 @@ def _episode(
         proprio.append(_proprio(obs, src.proprio_dim))
         states.append(np.asarray(obs["observation"], np.float32))
         scenes.append(src.scene())
-        if kind == "scripted" and src.captioner.satisfied(table[target], s0, scenes[-1]):
-            break
+        if done_at >= 0:
+            if t + 1 - done_at >= cfg.after_success:
+                break
+        elif kind == "scripted" and src.captioner.satisfied(table[target], s0, scenes[-1]):
+            if cfg.after_success <= 0:
+                break
+            done_at = t + 1
         if terminated or truncated or info.get("sim_error"):
             break
     labels = [writer.ids([i.text for i in src.captioner.caption(s0, s)]) for s in scenes]

@@ -154,6 +154,12 @@ class CaptionModelConfig:
     """Reward model: width of the projection of the frozen text embedding."""
     max_len: int = 12
     """Captions are at most ``max_len - 2`` words."""
+    slot_query: bool = True
+    """Reward model over ``perception``: the instruction also picks the object slot it
+    names (attention with the instruction as the query) and the model reads that slot's
+    own inputs, not only the frame pair's features pooled the same way for every
+    instruction (which follow whatever object moved, so that "reach the red cube" could
+    be read into a pushed blue one). Checkpoints saved before the option read without."""
 
     def validate(self) -> None:
         if self.encoder not in ENCODERS:
@@ -507,8 +513,15 @@ class RewardModel(nn.Module):
         nn.init.zeros_(self.film.weight)
         nn.init.zeros_(self.film.bias)
         self.widths = widths
+        self.out_features = cfg.features
+        mlp_in = cfg.features + cfg.text_features
+        enc = self.encoder
+        self.slot_query = enc.kind == "perception" and cfg.slot_query
+        if self.slot_query:  # the instruction picks its slot: its features and inputs
+            self.query = nn.Linear(cfg.text_features, cfg.hidden)
+            mlp_in += cfg.hidden + enc.slot_dim
         self.mlp = nn.Sequential(
-            nn.Linear(cfg.features + cfg.text_features, cfg.hidden),
+            nn.Linear(mlp_in, cfg.hidden),
             nn.ReLU(),
             nn.Linear(cfg.hidden, cfg.hidden),
             nn.ReLU(),
@@ -526,6 +539,10 @@ class RewardModel(nn.Module):
     ) -> torch.Tensor:
         """What :meth:`forward` needs of a frame pair, as one ``(B, D)`` tensor."""
         enc = self.encoder
+        if self.slot_query:  # pooled features, then each slot's inputs and presence
+            x, present = enc.slot_features(first, current)
+            x = (x - enc.feat_mean) / enc.feat_std
+            return torch.cat([enc(first, current, p0, p), x.flatten(1), present.float()], -1)
         if enc.kind != "spatial":
             return enc(first, current, p0, p)
         parts = [enc.early(first, current).flatten(1)]
@@ -533,8 +550,27 @@ class RewardModel(nn.Module):
             parts += [p0, p]
         return torch.cat(parts, -1)
 
+    def pick(
+        self, ctx: torch.Tensor, t: torch.Tensor
+    ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """With ``slot_query``: how much the instruction (projected text ``t``) attends to
+        each object slot ``(B, K)`` (absent slots get none), the slots' features
+        ``(B, K, W)`` and their standardised inputs ``(B, K, 1 + 2d)``."""
+        enc = self.encoder
+        n, k, d = self.out_features, enc.layout.count, enc.slot_dim
+        x = ctx[:, n : n + k * d].view(-1, k, d)
+        present = ctx[:, n + k * d :] > 0.5
+        h = enc.slot(x)
+        q = self.query(t)
+        score = ((h + enc.identity) * q[:, None]).sum(-1) / float(q.shape[-1]) ** 0.5
+        return torch.softmax(score.masked_fill(~present, -1e4), 1), h, x
+
+    def text_features(self, text: torch.Tensor) -> torch.Tensor:
+        """The projected instruction embedding the model is conditioned on."""
+        return F.relu(self.text((text - self.text_mean) / self.text_std))
+
     def forward(self, ctx: torch.Tensor, text: torch.Tensor) -> torch.Tensor:
-        t = F.relu(self.text((text - self.text_mean) / self.text_std))
+        t = self.text_features(text)
         film = list(self.film(t).split(self.widths, -1))
         enc = self.encoder
         if enc.kind == "spatial":
@@ -543,6 +579,12 @@ class RewardModel(nn.Module):
             pd = enc.proprio_dim
             p0, p = ctx[:, n : n + pd], ctx[:, n + pd :]
             z = enc.pool(enc.late(x, film), p0, p)
+        elif self.slot_query:
+            gamma, beta = film[0].chunk(2, -1)
+            z = ctx[:, : self.out_features] * (1.0 + gamma) + beta
+            attn, h, x = self.pick(ctx, t)
+            parts = [z, t, (attn[..., None] * h).sum(1), (attn[..., None] * x).sum(1)]
+            return self.mlp(torch.cat(parts, -1)).squeeze(-1)
         else:  # the instruction picks which frame features matter
             gamma, beta = film[0].chunk(2, -1)
             z = ctx * (1.0 + gamma) + beta
@@ -1110,7 +1152,8 @@ class LearnedCaptioner:
         vocab.words = list(words)
         vocab.index = {w: i for i, w in enumerate(words)}
         table = ckpt.json("instructions")
-        saved = {"encoder": "flatten", **meta["model"]}  # checkpoints from before the option
+        # checkpoints from before an option read as they were trained
+        saved = {"encoder": "flatten", "slot_query": False, **meta["model"]}
         mcfg = CaptionModelConfig(
             **{
                 **saved,
@@ -1696,6 +1739,7 @@ class LearnedLabeller:
         min_logprob: captions less likely than this are skipped.
         beam: beam width (0 or 1: greedy, one caption per observation).
         threshold: reward-model probability that counts as satisfied.
+        family_thresholds: per-family overrides of ``threshold`` (``{"push": 0.9}``).
         agree: count an instruction as achieved at an observation only where the
             captioner's labels of that observation hold it too (both models agree).
     """
@@ -1712,6 +1756,7 @@ class LearnedLabeller:
         beam: int = 3,
         threshold: float = 0.5,
         agree: bool = False,
+        family_thresholds: dict[str, float] | None = None,
     ) -> None:
         if captioner and models.captioner is None:
             raise LcrlError("learned relabelling needs a checkpoint with a captioner")
@@ -1730,30 +1775,38 @@ class LearnedLabeller:
         self.agree = bool(agree)
         self.skipped = 0  # captions dropped by the threshold
         self.kept = 0
-        self._agreement: dict[str, list[int]] = {}
+        # each instruction's family (its first word), for the agreement of each family
+        self.families = [t.split()[0] if t.split() else "" for t in self.table]
+        self.family_names = sorted(set(self.families[:num_train]) - {""})
+        self.family_thresholds = dict(family_thresholds or {})
+        self._agreement: dict[str, dict[str, int]] = {}
 
     def compare(self, kind: str, learned: Sequence[Sequence[int]], rule: Sequence[Sequence[int]],
                 among: Sequence[int] | None = None) -> None:  # fmt: skip
         """Count how the learned ``kind`` (``labels`` or ``rewards``) agree with the rule
         captioner's, observation by observation (only ids in ``among``, if given)."""
-        tp_fp_fn = self._agreement.setdefault(kind, [0, 0, 0])
         keep = None if among is None else set(int(i) for i in among)
         for pred, true in zip(learned, rule, strict=True):
             a, b = set(int(i) for i in pred), set(int(i) for i in true)
             if keep is not None:
                 a, b = a & keep, b & keep
-            tp_fp_fn[0] += len(a & b)
-            tp_fp_fn[1] += len(a - b)
-            tp_fp_fn[2] += len(b - a)
+            for key, ids in (("tp", a & b), ("fp", a - b), ("fn", b - a)):
+                for i in ids:
+                    for name in (kind, f"{kind}_{self.families[i]}"):
+                        self._agreement.setdefault(name, {"tp": 0, "fp": 0, "fn": 0})[key] += 1
 
     def agreement(self) -> dict[str, float]:
         """Precision and recall of the learned labels / rewards against the rule captioner
-        since the last call (``nan`` where there was nothing to count), then reset."""
+        since the last call (``nan`` where there was nothing to count), then reset: over
+        all instructions (``labels_precision``, ...) and per family of the training
+        instructions (``labels_push_precision``, ``rewards_reach_recall``, ...)."""
         out = {}
         for kind in ("labels", "rewards"):
-            tp, fp, fn = self._agreement.get(kind, (0, 0, 0))
-            out[f"{kind}_precision"] = tp / (tp + fp) if tp + fp else float("nan")
-            out[f"{kind}_recall"] = tp / (tp + fn) if tp + fn else float("nan")
+            for name in (kind, *(f"{kind}_{f}" for f in self.family_names)):
+                n = self._agreement.get(name, {"tp": 0, "fp": 0, "fn": 0})
+                tp, fp, fn = n["tp"], n["fp"], n["fn"]
+                out[f"{name}_precision"] = tp / (tp + fp) if tp + fp else float("nan")
+                out[f"{name}_recall"] = tp / (tp + fn) if tp + fn else float("nan")
         self._agreement = {}
         return out
 
@@ -1792,7 +1845,8 @@ class LearnedLabeller:
         first = np.repeat(frames[:1], len(frames), 0)
         p0 = np.repeat(proprio[:1], len(proprio), 0)
         probs = self.models.score_matrix([self.table[c] for c in cands], first, frames, p0, proprio)
-        hit = probs >= self.threshold
+        bar = [self.family_thresholds.get(self.families[c], self.threshold) for c in cands]
+        hit = probs >= np.asarray(bar, np.float32)
         hit[0] = False
         out = [[cands[k] for k in np.flatnonzero(row)] for row in hit]
         if self.agree:

@@ -68,6 +68,36 @@ def test_collected_file_layout_and_labels(small):
         assert "16 episodes" in data.summary()
 
 
+def test_scripted_episodes_go_on_after_success(tmp_path):
+    """With after_success, a scripted episode runs that many held random steps past the
+    step its instruction was first satisfied (bounded by the time limit)."""
+    cfg = CollectConfig(
+        out=str(tmp_path / "a.h5"),
+        sources=("scripted",),
+        families=("reach", "push"),
+        episodes=8,
+        image_size=32,
+        max_episode_steps=40,
+        after_success=6,
+        progress=False,
+    )
+    collect(cfg)
+    went_on = 0
+    with CaptionDataset(cfg.out) as data:
+        for e in range(data.num_episodes):
+            ep = data.episode(e)
+            hit = [t for t, lab in enumerate(ep["labels"]) if ep["instruction"] in lab]
+            if not hit:  # never satisfied: the time limit ended it
+                assert len(ep["frames"]) == cfg.max_episode_steps + 1
+                continue
+            # the observation after the success step, then six more (or the time limit)
+            assert len(ep["frames"]) == min(hit[0] + 1 + 6, cfg.max_episode_steps + 1)
+            went_on += 1
+    assert went_on >= 6
+    with pytest.raises(LcrlError, match="after_success"):
+        CollectConfig(after_success=-1).validate()
+
+
 def test_labels_name_what_the_rule_captioner_says(tmp_path):
     """An episode's label ids, written and read back, name the captioner's instructions."""
     cfg = CollectConfig(out=str(tmp_path / "x.h5"), sources=("scripted",), progress=False)

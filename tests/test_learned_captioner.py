@@ -213,6 +213,20 @@ def test_agreement_counts_against_the_rule_labels(trained):
     assert all(np.isnan(v) for v in lab.agreement().values())  # reset after reading
 
 
+def test_agreement_per_family(trained):
+    from captioner.learned import LearnedLabeller
+
+    table = ["reach the red cube", "push the red cube left", "reach the blue cube"]
+    lab = LearnedLabeller(LearnedCaptioner.load(trained), table, 3)
+    # reach: tp 1 (0), fp 1 (2), fn 0; push: tp 0, fp 0, fn 1 (1)
+    lab.compare("rewards", [[0, 2]], [[0, 1]])
+    got = lab.agreement()
+    assert got["rewards_precision"] == 0.5 and got["rewards_recall"] == 0.5
+    assert got["rewards_reach_precision"] == 0.5 and got["rewards_reach_recall"] == 1.0
+    assert np.isnan(got["rewards_push_precision"]) and got["rewards_push_recall"] == 0.0
+    assert np.isnan(got["labels_push_recall"])  # no labels compared
+
+
 def test_labeller_thresholds_and_candidates(trained, dataset):
     from captioner.learned import LearnedLabeller
 
@@ -236,6 +250,16 @@ def test_labeller_thresholds_and_candidates(trained, dataset):
         assert achieved[0] == [] and all(set(a) <= set(cands) for a in achieved)
         strict = LearnedLabeller(lc, table, num_train, threshold=1.01)
         assert not any(strict.achieved(frames, proprio, cands))
+        # a family's own threshold: that family never counts, the others as by default
+        family = next(table[c].split()[0] for a in achieved for c in a)
+        of_family = {c for c in cands if table[c].split()[0] == family}
+        without = LearnedLabeller(lc, table, num_train, family_thresholds={family: 1.01})
+        assert without.achieved(frames, proprio, cands) == [
+            [c for c in a if c not in of_family] for a in achieved
+        ]
+        assert LearnedLabeller(
+            lc, table, num_train, threshold=1.01, family_thresholds={family: 0.5}
+        ).achieved(frames, proprio, cands) == [[c for c in a if c in of_family] for a in achieved]
         # agreement: what the reward model judges achieved where the captioner reads it too
         both = LearnedLabeller(lc, table, num_train, min_logprob=-1e9, beam=3, agree=True)
         agreed = both.achieved(frames, proprio, cands, labels)
@@ -264,6 +288,9 @@ def test_learned_relabelling_settings_are_checked(trained, tmp_path):
         Trainer(_small_run(tmp_path / "b", trained, reward="clip"))
     with pytest.raises(LcrlError, match=r"relabel\.agree"):
         Trainer(_small_run(tmp_path / "g", trained, reward="rule", agree=True))
+    for bad in ("push", "push=2", "shove=0.9", "push=high"):
+        with pytest.raises(LcrlError, match=r"relabel\.family_thresholds entry .*FAMILY=P"):
+            Trainer(_small_run(tmp_path / "h", trained, family_thresholds=(bad,)))
     state = dataclasses.replace(
         PRESETS["state2d"][1],
         out=str(tmp_path / "c"),
@@ -435,6 +462,40 @@ def test_models_over_perception_learn_from_the_slots(slots_dataset, tmp_path, mo
         seen = evaluate_models(lc, data)["seen"]
     # chance is about 1 in 30 instructions for the captioner, 0.5 for the reward AUC
     assert seen["exact_match"] >= 0.5 and seen["auc"] >= 0.85, seen
+    # the reward model's instruction picks the slot of the object it names (0.85 here)
+    assert lc.reward.slot_query
+    from envs.scene import OBJECT_KINDS
+
+    with CaptionDataset(slots_dataset) as data:
+        j = np.arange(1, data.num_observations, 7)
+        first, current = data.read_frames(data.first_of(j)), data.read_frames(j)
+        p0, p = data.proprio[data.first_of(j)], data.proprio[j]
+        state = data.state[j]
+    present = state[:, 2:].reshape(len(j), 8, 3)[..., 2] > 0.5
+    hits = total = 0
+    with torch.no_grad():
+        ctx = lc._context("reward model", first, current, p0, p)
+        for slot, (colour, shape) in enumerate(OBJECT_KINDS):
+            rows = present[:, slot]
+            if not rows.any():
+                continue
+            t = lc.reward.text_features(lc.encode_texts([f"reach the {colour} {shape}"]))
+            attn = lc.reward.pick(ctx[rows], t.expand(int(rows.sum()), -1))[0]
+            hits += int((attn.argmax(1) == slot).sum())
+            total += int(rows.sum())
+    assert hits >= 0.75 * total, (hits, total)  # chance: 1 in 2 or 3 objects on the table
+
+
+def test_checkpoints_saved_before_slot_query_read_without_it(trained, tmp_path):
+    import shutil
+
+    assert LearnedCaptioner.load(trained).cfg.slot_query  # saved with the option: on
+    old = tmp_path / "old"
+    shutil.copytree(trained, old)
+    meta = json.loads((old / "meta.json").read_text())
+    del meta["model"]["slot_query"]
+    (old / "meta.json").write_text(json.dumps(meta))
+    assert LearnedCaptioner.load(old).cfg.slot_query is False
 
 
 def test_models_over_perception_refuse_another_camera(dataset, tmp_path):

@@ -86,6 +86,10 @@ class RelabelConfig:
     ``min_logprob``; 0 or 1: one greedy caption)."""
     threshold: float = 0.5
     """Reward-model probability that counts as satisfied."""
+    family_thresholds: tuple[str, ...] = ()
+    """Per-family overrides of ``threshold``, as ``FAMILY=P`` (``push=0.9``): a family
+    whose false rewards cost more (a push rewarded just short of its distance teaches the
+    policy to stop there) can ask for more certainty than one whose misses cost more."""
     agree: bool = False
     """With the learned captioner and reward model: an instruction counts as achieved at
     an observation only where both say so (the reward model's probability reaches
@@ -95,6 +99,30 @@ class RelabelConfig:
     @property
     def learned(self) -> bool:
         return "learned" in (self.captioner, self.reward)
+
+
+def family_thresholds(entries: Sequence[str]) -> dict[str, float]:
+    """``("push=0.9", ...)`` as ``{"push": 0.9}``.
+
+    Raises:
+        LcrlError: an entry that is not ``FAMILY=P`` with a known family and P in [0, 1].
+    """
+    from captioner.grammar import FAMILIES
+
+    out: dict[str, float] = {}
+    for entry in entries:
+        family, sep, value = str(entry).partition("=")
+        try:
+            p = float(value) if sep else float("nan")
+        except ValueError:
+            p = float("nan")
+        if family not in FAMILIES or not 0.0 <= p <= 1.0:
+            raise LcrlError(
+                f"relabel.family_thresholds entry {entry!r}: give FAMILY=P with a family of "
+                f"{FAMILIES} and P in [0, 1] (e.g. push=0.9)"
+            )
+        out[family] = p
+    return out
 
 
 COLLECT_BACKENDS = ("local", "ray")
@@ -604,6 +632,7 @@ class TrainConfig:
                 "relabel.agree asks the learned captioner and reward model to agree: it needs "
                 "relabel.captioner=learned and relabel.reward=learned"
             )
+        family_thresholds(self.relabel.family_thresholds)  # raises on a bad entry
         if self.relabel.learned and not self.relabel.checkpoint:
             raise LcrlError(
                 "learned relabelling needs --relabel.checkpoint (train one with lcrl caption train)"

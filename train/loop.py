@@ -24,7 +24,7 @@ from lcrl.algos import ALGOS, Agent
 from lcrl.buffer import HindsightReplayBuffer
 from lcrl.errors import LcrlError
 from lcrl.multitask import CONFLICT_KEYS, TaskSampler
-from train.config import TrainConfig, config_to_dict
+from train.config import TrainConfig, config_to_dict, family_thresholds
 from train.environments import canonical_kind, env_spec
 from train.evaluate import build_agent, build_task
 from train.explore import Explorer
@@ -290,6 +290,7 @@ class Trainer(BaseTrainer):
                 min_logprob=r.min_logprob,
                 beam=r.beam,
                 threshold=r.threshold,
+                family_thresholds=family_thresholds(r.family_thresholds),
                 agree=r.agree,
             )
         self.problem = self.task.problem()
