@@ -57,6 +57,8 @@ def run_args(args: argparse.Namespace, name: str) -> list[str]:
         cmd += ["--relabel.captioner", "learned", "--relabel.reward", "learned"]
         cmd += ["--relabel.checkpoint", args.captioner]
         cmd += ["--relabel.threshold", str(args.threshold)]
+        if getattr(args, "family_thresholds", None):
+            cmd += ["--relabel.family-thresholds", *args.family_thresholds]
         if getattr(args, "agree", False):
             cmd += ["--relabel.agree"]
     return cmd
@@ -122,6 +124,13 @@ def main(argv: list[str] | None = None) -> int:
         type=float,
         default=0.5,
         help="reward-model probability that counts as satisfied (--relabel.threshold)",
+    )
+    parser.add_argument(
+        "--family-thresholds",
+        nargs="+",
+        default=[],
+        metavar="FAMILY=P",
+        help="per-family reward thresholds (--relabel.family-thresholds), e.g. push=0.9",
     )
     parser.add_argument(
         "--agree",

@@ -276,6 +276,17 @@ def test_labeller_thresholds_and_candidates(trained, dataset):
             LearnedLabeller(lc, table, num_train, reward=False, agree=True)
 
 
+def test_learned_rewards_do_not_end_training_episodes_at_the_privileged_success(trained, tmp_path):
+    from train.loop import Trainer
+    from train.tasks import find_language_wrapper
+
+    for reward, ends in (("learned", False), ("captioner", False), ("rule", True)):
+        cfg = _small_run(tmp_path / reward, trained, captioner="learned", reward=reward)
+        trainer = Trainer(cfg)
+        assert cfg.env.train_until_success  # the setting stays; the learned rewards win
+        assert find_language_wrapper(trainer.envs[0]).terminate_on_success is ends, reward
+
+
 def test_learned_relabelling_settings_are_checked(trained, tmp_path):
     import dataclasses
 

@@ -76,7 +76,9 @@ class RelabelConfig:
     """Rewards of stored transitions: ``rule``, ``learned`` (the learned reward model,
     scored once per stored episode for every candidate) or ``captioner`` (the learned
     captioner's captions of each step are what it achieved, as in HIGhER; needs
-    ``captioner=learned``)."""
+    ``captioner=learned``). With either learned kind, training episodes run to the time
+    limit (``env.train_until_success`` does not apply): the env's own success is the
+    privileged rule, and the value target ends where the learned reward says."""
     checkpoint: str = ""
     """The learned models' checkpoint (``lcrl caption train --out``)."""
     min_logprob: float = -1.0

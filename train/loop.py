@@ -264,6 +264,13 @@ class Trainer(BaseTrainer):
             env_cfg = dataclasses.replace(
                 cfg.env, extra={**cfg.env.extra, "image": True, "image_size": size}
             )
+        if cfg.relabel.reward != "rule":
+            # The env's own success is the privileged rule: ending a training episode there
+            # would tell the policy what the learned rewards are to judge, and where they
+            # miss it, teach that reaching the goal ends the episode with nothing. Episodes
+            # run to the time limit; the value target still ends where the learned reward
+            # says the goal was reached.
+            env_cfg = dataclasses.replace(env_cfg, train_until_success=False)
         c = cfg.collect
         local_workers = c.workers if c.backend == "ray" and not c.address else 0
         set_threads(cfg.torch_threads, helpers=local_workers)
