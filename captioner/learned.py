@@ -364,8 +364,16 @@ class SlotPairEncoder(nn.Module):
     def forward(
         self, first: torch.Tensor, current: torch.Tensor, p0: torch.Tensor, p: torch.Tensor
     ) -> torch.Tensor:
+        return self.features_and_slots(first, current, p0, p)[0]
+
+    def features_and_slots(
+        self, first: torch.Tensor, current: torch.Tensor, p0: torch.Tensor, p: torch.Tensor
+    ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """The features, with the standardised per-slot inputs ``(B, K, 1 + 2d)`` and the
+        presence ``(B, K)`` they were computed from."""
         x, present = self.slot_features(first, current)
-        h = self.slot((x - self.feat_mean) / self.feat_std)  # (B, K, W)
+        xs = (x - self.feat_mean) / self.feat_std
+        h = self.slot(xs)  # (B, K, W)
         z = h + self.identity
         score = self.score(h).masked_fill(~present[..., None], -1e4)  # (B, K, heads)
         attn = torch.softmax(score, 1)
@@ -375,7 +383,7 @@ class SlotPairEncoder(nn.Module):
         parts = [picked, h.masked_fill(~present[..., None], 0.0).amax(1), where[:, 0] - where[:, 1]]
         if self.proprio_dim:
             parts += [p0, p]
-        return self.head(torch.cat(parts, -1))
+        return self.head(torch.cat(parts, -1)), xs, present
 
 
 def make_encoder(
@@ -540,9 +548,8 @@ class RewardModel(nn.Module):
         """What :meth:`forward` needs of a frame pair, as one ``(B, D)`` tensor."""
         enc = self.encoder
         if self.slot_query:  # pooled features, then each slot's inputs and presence
-            x, present = enc.slot_features(first, current)
-            x = (x - enc.feat_mean) / enc.feat_std
-            return torch.cat([enc(first, current, p0, p), x.flatten(1), present.float()], -1)
+            z, x, present = enc.features_and_slots(first, current, p0, p)
+            return torch.cat([z, x.flatten(1), present.float()], -1)
         if enc.kind != "spatial":
             return enc(first, current, p0, p)
         parts = [enc.early(first, current).flatten(1)]
