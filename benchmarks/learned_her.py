@@ -61,6 +61,10 @@ def run_args(args: argparse.Namespace, name: str) -> list[str]:
             cmd += ["--relabel.family-thresholds", *args.family_thresholds]
         if getattr(args, "agree", False):
             cmd += ["--relabel.agree"]
+        if getattr(args, "confirm", False):
+            cmd += ["--relabel.confirm"]
+        if getattr(args, "end", "limit") != "limit":
+            cmd += ["--relabel.end", args.end]
     return cmd
 
 
@@ -131,6 +135,19 @@ def main(argv: list[str] | None = None) -> int:
         default=[],
         metavar="FAMILY=P",
         help="per-family reward thresholds (--relabel.family-thresholds), e.g. push=0.9",
+    )
+    parser.add_argument(
+        "--confirm",
+        action="store_true",
+        help="the learned run relabels with a caption only where the reward model judges it "
+        "achieved too (--relabel.confirm)",
+    )
+    parser.add_argument(
+        "--end",
+        choices=("limit", "learned"),
+        default="limit",
+        help="where the learned run's training episodes end (--relabel.end): the time limit, "
+        "or also where the learned reward model judges the instruction achieved",
     )
     parser.add_argument(
         "--agree",

@@ -1749,6 +1749,8 @@ class LearnedLabeller:
         family_thresholds: per-family overrides of ``threshold`` (``{"push": 0.9}``).
         agree: count an instruction as achieved at an observation only where the
             captioner's labels of that observation hold it too (both models agree).
+        confirm: keep a caption as a relabelling candidate of an observation only where
+            the reward model judges it achieved there (:meth:`confirmed`).
     """
 
     def __init__(
@@ -1764,6 +1766,7 @@ class LearnedLabeller:
         threshold: float = 0.5,
         agree: bool = False,
         family_thresholds: dict[str, float] | None = None,
+        confirm: bool = False,
     ) -> None:
         if captioner and models.captioner is None:
             raise LcrlError("learned relabelling needs a checkpoint with a captioner")
@@ -1780,6 +1783,9 @@ class LearnedLabeller:
         if agree and not (captioner and reward):
             raise LcrlError("agreement needs both the learned captioner and the reward model")
         self.agree = bool(agree)
+        if confirm and not (captioner and reward):
+            raise LcrlError("confirmation needs both the learned captioner and the reward model")
+        self.confirm = bool(confirm)
         self.skipped = 0  # captions dropped by the threshold
         self.kept = 0
         # each instruction's family (its first word), for the agreement of each family
@@ -1836,6 +1842,38 @@ class LearnedLabeller:
             out.append(sorted(set(ids)))
         out[0] = []  # nothing is achieved by the first observation relative to itself
         return out
+
+    def satisfied(
+        self,
+        goals: Sequence[int],
+        first: np.ndarray,
+        frames: np.ndarray,
+        p0: np.ndarray,
+        proprio: np.ndarray,
+    ) -> np.ndarray:
+        """Whether the reward model judges each pair's instruction ``goals[i]`` achieved
+        between ``first[i]`` and ``frames[i]`` (its family's threshold), ``(N,)`` bool: the
+        online check that ends a training episode where the learned reward says so."""
+        goals = [int(g) for g in goals]
+        if not goals:
+            return np.zeros(0, bool)
+        cands = sorted(set(goals))
+        col = {c: k for k, c in enumerate(cands)}
+        probs = self.models.score_matrix([self.table[c] for c in cands], first, frames, p0, proprio)
+        p = probs[np.arange(len(goals)), [col[g] for g in goals]]
+        bar = [self.family_thresholds.get(self.families[g], self.threshold) for g in goals]
+        return p >= np.asarray(bar, np.float32)
+
+    def confirmed(
+        self, labels: Sequence[Sequence[int]], achieved: Sequence[Sequence[int]]
+    ) -> list[list[int]]:
+        """With ``confirm``, each observation's labels that the reward model judges achieved
+        there too (else the labels as they are)."""
+        if not self.confirm:
+            return [list(ids) for ids in labels]
+        return [
+            [i for i in ids if i in set(hit)] for ids, hit in zip(labels, achieved, strict=True)
+        ]
 
     def achieved(
         self,

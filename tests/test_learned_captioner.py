@@ -200,6 +200,23 @@ def test_training_with_learned_captioner_and_reward(trained, tmp_path, one_threa
     assert any(0.0 <= float(r["rewards_recall"]) <= 1.0 for r in rows)
 
 
+def test_confirmed_labels_are_rewarded_where_they_were_read(trained, tmp_path, one_thread):
+    from train.loop import Trainer
+
+    cfg = _small_run(
+        tmp_path / "run", trained, captioner="learned", reward="learned", min_logprob=-1e9,
+        threshold=0.3, confirm=True,
+    )  # fmt: skip
+    trainer = Trainer(cfg)
+    trainer.run()
+    gs = trainer.buffer.goal_space
+    slots = np.flatnonzero(gs._nlab[: trainer.buffer.high] > 0)
+    assert slots.size > 0  # something was confirmed
+    for j in slots:  # every stored candidate carries its reward bit at its own observation
+        ids = gs._labels[j, : gs._nlab[j]].astype(np.int64)
+        assert gs.achieved(np.full(ids.size, j), ids).all()
+
+
 def test_agreement_counts_against_the_rule_labels(trained):
     from captioner.learned import LearnedLabeller
 
@@ -260,6 +277,28 @@ def test_labeller_thresholds_and_candidates(trained, dataset):
         assert LearnedLabeller(
             lc, table, num_train, threshold=1.01, family_thresholds={family: 0.5}
         ).achieved(frames, proprio, cands) == [[c for c in a if c in of_family] for a in achieved]
+        # confirm: a caption stays a relabelling candidate only where it is rewarded too
+        confirming = LearnedLabeller(lc, table, num_train, min_logprob=-1e9, confirm=True)
+        assert confirming.confirmed(labels, achieved) == [
+            [i for i in ids if i in hit] for ids, hit in zip(labels, achieved, strict=True)
+        ]
+        assert everything.confirmed(labels, achieved) == labels  # off by default
+        strict_confirm = LearnedLabeller(lc, table, num_train, threshold=1.01, confirm=True)
+        nothing_hit = strict_confirm.achieved(frames, proprio, cands)
+        assert not any(strict_confirm.confirmed(labels, nothing_hit))
+        with pytest.raises(LcrlError, match="confirmation needs both"):
+            LearnedLabeller(lc, table, num_train, reward=False, confirm=True)
+        # the online check of one pair agrees with the episode's batch scoring
+        n = len(frames)
+        for goal in cands[:3]:
+            got = everything.satisfied(
+                [goal] * n, np.repeat(frames[:1], n, 0), frames, np.repeat(proprio[:1], n, 0),
+                proprio,
+            )  # fmt: skip
+            assert got[1:].tolist() == [goal in a for a in achieved[1:]]
+        assert everything.satisfied([], frames[:0], frames[:0], proprio[:0], proprio[:0]).shape == (
+            0,
+        )
         # agreement: what the reward model judges achieved where the captioner reads it too
         both = LearnedLabeller(lc, table, num_train, min_logprob=-1e9, beam=3, agree=True)
         agreed = both.achieved(frames, proprio, cands, labels)
@@ -287,6 +326,36 @@ def test_learned_rewards_do_not_end_training_episodes_at_the_privileged_success(
         assert find_language_wrapper(trainer.envs[0]).terminate_on_success is ends, reward
 
 
+def test_learned_rewards_can_end_training_episodes_where_they_judge_success(
+    trained, tmp_path, one_thread
+):
+    from train.loop import Trainer
+
+    ends = {}
+    for name, threshold, end in (("always", 0.0, "learned"), ("never", 1.01, "learned"),
+                                 ("limit", 0.0, "limit")):  # fmt: skip
+        cfg = _small_run(
+            tmp_path / name, trained, captioner="learned", reward="learned", threshold=threshold,
+            end=end,
+        )  # fmt: skip
+        trainer = Trainer(cfg)
+        trainer.run()
+        b = trainer.buffer
+        n = b.high  # slots written (an episode of T steps takes T + 1)
+        ends[name] = (trainer.episodes, int(b.terminated[:n].sum()))
+        if name == "always":  # each episode ended at its first step, as a terminal one
+            assert trainer.episodes >= cfg.total_steps - 1
+            assert ends[name][1] >= trainer.episodes - 1
+            # and its last reward is its own goal's, so the terminal step is rewarded
+            gs = b.goal_space
+            starts = np.flatnonzero(b.terminated[:n])
+            assert gs.reward(starts, gs.desired(starts)).min() > 0
+    limit = _small_run(tmp_path / "x", trained).env.max_episode_steps
+    for name in ("never", "limit"):  # to the time limit, never terminal
+        episodes, terminal = ends[name]
+        assert episodes <= 300 // limit + 1 and terminal == 0, (name, ends)
+
+
 def test_learned_relabelling_settings_are_checked(trained, tmp_path):
     import dataclasses
 
@@ -299,6 +368,12 @@ def test_learned_relabelling_settings_are_checked(trained, tmp_path):
         Trainer(_small_run(tmp_path / "b", trained, reward="clip"))
     with pytest.raises(LcrlError, match=r"relabel\.agree"):
         Trainer(_small_run(tmp_path / "g", trained, reward="rule", agree=True))
+    with pytest.raises(LcrlError, match=r"relabel\.confirm .* needs relabel\.captioner=learned"):
+        Trainer(_small_run(tmp_path / "d", trained, reward="learned", confirm=True))
+    with pytest.raises(LcrlError, match=r"relabel\.end must be one of"):
+        Trainer(_small_run(tmp_path / "e", trained, reward="learned", end="success"))
+    with pytest.raises(LcrlError, match=r"relabel\.end=learned .* needs relabel\.reward=learned"):
+        Trainer(_small_run(tmp_path / "f", trained, captioner="learned", end="learned"))
     for bad in ("push", "push=2", "shove=0.9", "push=high"):
         with pytest.raises(LcrlError, match=r"relabel\.family_thresholds entry .*FAMILY=P"):
             Trainer(_small_run(tmp_path / "h", trained, family_thresholds=(bad,)))

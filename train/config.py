@@ -97,6 +97,16 @@ class RelabelConfig:
     an observation only where both say so (the reward model's probability reaches
     ``threshold`` and the captioner's beam reads the instruction there); fewer false
     rewards, at the cost of the ones the captioner misses."""
+    confirm: bool = False
+    """With the learned captioner and reward model: a caption is a relabelling candidate at
+    an observation only where the reward model also judges it achieved there, so every
+    relabelled goal is rewarded where it was read (as the rule captioner's always are),
+    and a family the captioner over-reads does not crowd out the others."""
+    end: str = "limit"
+    """Where a training episode ends, with the learned reward model (``reward=learned``):
+    ``limit`` (the time limit) or ``learned`` (also at the first step where the reward
+    model judges the episode's own instruction achieved, scored online on the frames, as
+    a robot without privileged state would stop). Never at the env's privileged success."""
 
     @property
     def learned(self) -> bool:
@@ -126,6 +136,9 @@ def family_thresholds(entries: Sequence[str]) -> dict[str, float]:
         out[family] = p
     return out
 
+
+#: Where a training episode with learned rewards ends (``relabel.end``).
+EPISODE_ENDS = ("limit", "learned")
 
 COLLECT_BACKENDS = ("local", "ray")
 
@@ -634,7 +647,22 @@ class TrainConfig:
                 "relabel.agree asks the learned captioner and reward model to agree: it needs "
                 "relabel.captioner=learned and relabel.reward=learned"
             )
+        if self.relabel.confirm and (self.relabel.captioner, self.relabel.reward) != (
+            "learned",
+            "learned",
+        ):
+            raise LcrlError(
+                "relabel.confirm keeps the learned captions the reward model confirms: it "
+                "needs relabel.captioner=learned and relabel.reward=learned"
+            )
         family_thresholds(self.relabel.family_thresholds)  # raises on a bad entry
+        if self.relabel.end not in EPISODE_ENDS:
+            raise LcrlError(f"relabel.end must be one of {EPISODE_ENDS}, got {self.relabel.end!r}")
+        if self.relabel.end == "learned" and self.relabel.reward != "learned":
+            raise LcrlError(
+                "relabel.end=learned ends training episodes where the learned reward model "
+                "says so: it needs relabel.reward=learned"
+            )
         if self.relabel.learned and not self.relabel.checkpoint:
             raise LcrlError(
                 "learned relabelling needs --relabel.checkpoint (train one with lcrl caption train)"

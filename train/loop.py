@@ -147,6 +147,8 @@ class _Episode:
     family: str = ""
     #: It began where the scripted teacher's prelude left the scene (``explore.prelude``).
     prelude: bool = False
+    #: The learned reward model ended it at its instruction's success (``relabel.end``).
+    learned_end: bool = False
 
     @property
     def scripted_now(self) -> bool:
@@ -299,6 +301,7 @@ class Trainer(BaseTrainer):
                 threshold=r.threshold,
                 family_thresholds=family_thresholds(r.family_thresholds),
                 agree=r.agree,
+                confirm=r.confirm,
             )
         self.problem = self.task.problem()
         self.algo = cfg.resolved_algo(self.problem.discrete)
@@ -699,6 +702,7 @@ class Trainer(BaseTrainer):
                 elif self.step < cfg.learning_starts:
                     ep.action = ep.random_action
                 self._step(ep)
+            self._end_learned(active)
             self.step += len(active)
             self._update(self._updates_due(len(active)))
             active = [ep for ep in active if not ep.done]
@@ -809,9 +813,34 @@ class Trainer(BaseTrainer):
     def _step(self, ep: _Episode) -> None:
         step_episode(self.task, ep)
 
+    def _end_learned(self, episodes: list[_Episode]) -> None:
+        """With ``relabel.end=learned``: end the episodes whose own instruction the learned
+        reward model judges achieved at the frame just stepped to (scored in one batch)."""
+        if self.cfg.relabel.end != "learned":
+            return
+        live = [ep for ep in episodes if not ep.terms[-1]]
+        if not live:
+            return
+        first = [ep.records[0] for ep in live]
+        last = [ep.records[-1] for ep in live]
+        hit = self.task.labeller.satisfied(
+            [ep.goal for ep in live],
+            np.stack([r[1] for r in first]),
+            np.stack([r[1] for r in last]),
+            np.stack([r[2] for r in first]),
+            np.stack([r[2] for r in last]),
+        )
+        for ep, h in zip(live, hit, strict=True):
+            if h:
+                ep.terms[-1] = ep.done = ep.learned_end = True
+
     def _store(self, ep: _Episode) -> None:
         """Label a finished episode and add it to the buffer."""
         episode = episode_record(self.task, ep)
+        if ep.learned_end and ep.goal not in episode["achieved"][-1]:
+            # the episode ended where the online check said its goal was reached: its
+            # last reward says so too (the batch scoring of the episode may round apart)
+            episode["achieved"][-1] = sorted([*episode["achieved"][-1], int(ep.goal)])
         self.buffer.add_episode(episode)
         if self.stages and self.cfg.sequential.replay:
             self._just_stored.append(episode)

@@ -775,11 +775,14 @@ class LanguageTask(Task):
         # the rule captioner's labels are kept only to report how far the learned ones agree
         if lab.use_captioner:
             out["labels"] = lab.labels(frames, proprio)
-            lab.compare("labels", out["labels"], labels)
         if lab.use_reward:
             cands = sorted({i for ids in out["labels"] for i in ids} | {int(goal)})
             out["achieved"] = lab.achieved(frames, proprio, cands, out["labels"])
             lab.compare("rewards", out["achieved"], labels, among=cands)
+            if lab.use_captioner:  # with confirm: only the labels rewarded where read
+                out["labels"] = lab.confirmed(out["labels"], out["achieved"])
+        if lab.use_captioner:
+            lab.compare("labels", out["labels"], labels)
         elif lab.use_captioner and not lab.captioner_rewards:
             out["achieved"] = labels  # learned candidates, rule rewards
         # captioner_rewards: no "achieved", so the learned captions are the rewards too
