@@ -54,7 +54,8 @@ def run_args(args: argparse.Namespace, name: str) -> list[str]:
     if args.target_clip:
         cmd += ["--sac.target-clip", str(args.target_clip)]
     if name == "learned":
-        cmd += ["--relabel.captioner", "learned", "--relabel.reward", "learned"]
+        labels = getattr(args, "labels", "learned")
+        cmd += ["--relabel.captioner", labels, "--relabel.reward", "learned"]
         cmd += ["--relabel.checkpoint", args.captioner]
         cmd += ["--relabel.threshold", str(args.threshold)]
         if getattr(args, "family_thresholds", None):
@@ -137,6 +138,13 @@ def main(argv: list[str] | None = None) -> int:
         help="per-family reward thresholds (--relabel.family-thresholds), e.g. push=0.9",
     )
     parser.add_argument(
+        "--labels",
+        choices=("learned", "reward"),
+        default="learned",
+        help="the learned run's relabelling candidates (--relabel.captioner): the learned "
+        "captioner's captions, or every training instruction the reward model judges achieved",
+    )
+    parser.add_argument(
         "--confirm",
         action="store_true",
         help="the learned run relabels with a caption only where the reward model judges it "
@@ -176,25 +184,197 @@ def main(argv: list[str] | None = None) -> int:
     )
     parser.add_argument(
         "--reuse-rule",
-        default="",
-        help="a finished run of the same preset, seed, budget and perception (e.g. the "
-        "image_policy.py reach run) to take as the rule run instead of training it again",
+        nargs="+",
+        default=[],
+        metavar="RUN",
+        help="finished runs of the same preset, budget and perception, one per seed (e.g. "
+        "the image_policy.py reach run), to take as the rule runs instead of training them",
+    )
+    parser.add_argument(
+        "--seeds",
+        type=int,
+        nargs="+",
+        default=[],
+        help="several seeds, one pair of runs each under WORK/seedS, one pair at a time; the "
+        "headline pools their evaluations (default: --seed alone, runs under WORK)",
     )
     args = parser.parse_args(argv)
     if args.env == "robosuite" and not args.perception:
         parser.error("--env robosuite trains the image policy: pass --perception MODEL")
     args.work = args.work or f"runs/bench/learned-her-{args.env}"
+    seeds = list(dict.fromkeys(args.seeds or [args.seed]))
+    if args.reuse_rule and len(args.reuse_rule) != len(seeds):
+        parser.error(f"--reuse-rule takes one run per seed ({len(seeds)}: {seeds})")
+    per_seed = [seed_args(args, s, multi=len(seeds) > 1) for s in seeds]
 
     if args.commands:
-        for name in ("rule", "learned"):
-            print(" ".join(run_args(args, name)))
+        for ns in per_seed:
+            for name in ("rule", "learned"):
+                print(" ".join(run_args(ns, name)))
         return 0
     info = machine()
+    seconds: dict[str, dict[str, float]] = {}
+    for i, ns in enumerate(per_seed):
+        reused = args.reuse_rule[i] if args.reuse_rule else ""
+        seconds[str(ns.seed)] = train_pair(ns, reused)
+    sets = ("train", "heldout", "paraphrase")
+    runs = ("rule", "learned")
+    final = {
+        str(ns.seed): {n: evaluate(Path(ns.work) / n, args.final_episodes, sets) for n in runs}
+        for ns in per_seed
+    }
+    curves = {
+        str(ns.seed): {n: curve_rows(Path(ns.work) / n / "eval.csv") for n in runs}
+        for ns in per_seed
+    }
+    agreement = {str(ns.seed): last_agreement(Path(ns.work) / "learned") for ns in per_seed}
+    pooled = {n: {k: pool([final[s][n][k] for s in final]) for k in sets} for n in runs}
+    gaps = [final[s]["rule"]["train"]["success"] - final[s]["learned"]["train"]["success"]
+            for s in final]  # fmt: skip
+    headline = {
+        "learned_her_seen": round(pooled["learned"]["train"]["success"], 3),
+        "rule_her_seen": round(pooled["rule"]["train"]["success"], 3),
+        "gap": round(sum(gaps) / len(gaps), 3),
+        "learned_her_heldout": round(pooled["learned"]["heldout"]["success"], 3),
+        "rule_her_heldout": round(pooled["rule"]["heldout"]["success"], 3),
+        "steps": args.steps,
+        "seeds": len(seeds),
+    }
+    if len(seeds) > 1:
+        headline["gap_interval"] = [round(x, 3) for x in mean_interval(gaps)]
+    reached = {"within_10_points": headline["gap"] <= TARGET_GAP}
+    name = f"learned-her-{args.env}"
+    save_json(
+        name,
+        {
+            "headline": headline,
+            "target": f"learned_her_seen >= rule_her_seen - {TARGET_GAP}",
+            "reached": reached,
+            "command": command(),
+            "machine": info,
+            "settings": {**vars(args), "preset": PRESETS[args.env]},
+            "seconds": seconds,
+            "gaps": {s: round(g, 3) for s, g in zip(final, gaps, strict=True)},
+            "agreement_with_rule_last_rows": agreement,
+            "pooled": pooled,
+            "final": {
+                s: {
+                    n: {
+                        k: {"success": v["success"], "ci": v["ci"], **by_family(v)}
+                        for k, v in r.items()
+                    }
+                    for n, r in runs_of_seed.items()
+                }
+                for s, runs_of_seed in final.items()
+            },
+            "curves": curves,
+        },
+    )
+    captioner_file = RESULTS_DIR / f"captioner-{args.env}.json"
+    if captioner_file.exists():  # the captioner's results carry the relabelling figures too
+        doc = json.loads(captioner_file.read_text())
+        doc.setdefault("headline", {}).update(
+            learned_her_seen=headline["learned_her_seen"], rule_her_seen=headline["rule_her_seen"]
+        )
+        doc.setdefault("reached", {})["learned_her_within_10_points"] = reached["within_10_points"]
+        doc["learned_her"] = {"command": command(), "file": f"{name}.json"}
+        captioner_file.write_text(json.dumps(doc, indent=1))
+        update_captioner_markdown(captioner_file.with_suffix(".md"), headline)
+
+    seed_word = "seed" if len(seeds) == 1 else "seeds"
+    lines = [
+        f"{seed_word.capitalize()} {', '.join(map(str, seeds))}; `lcrl eval` with "
+        f"{args.final_episodes} episodes per set and seed; figures pooled over the seeds "
+        "(95% Wilson intervals).",
+        "",
+        "| relabelling | seen | push | reach | held-out combinations | paraphrases |",
+        "|---|---:|---:|---:|---:|---:|",
+    ]
+    for n in runs:
+        cells = [fmt(pooled[n]["train"])]
+        cells += [fmt(pooled[n]["train"]["families"].get(f, {})) for f in ("push", "reach")]
+        cells += [fmt(pooled[n][k]) for k in ("heldout", "paraphrase")]
+        lines.append(f"| {n} | {' | '.join(cells)} |")
+    lines += [
+        "",
+        "Per seed, seen success (push / reach) and training seconds:",
+        "",
+        "| seed | rule | learned | gap |",
+        "|---|---:|---:|---:|",
+    ]
+    for s, gap in zip(final, gaps, strict=True):
+        cells = []
+        for n in runs:
+            fam = by_family(final[s][n]["train"])["families"]
+            cells.append(
+                f"{final[s][n]['train']['success']:.2f} ({fam.get('push', float('nan')):.2f} / "
+                f"{fam.get('reach', float('nan')):.2f}), {seconds[s].get(n, float('nan')):.0f} s"
+            )
+        lines.append(f"| {s} | {' | '.join(cells)} | {gap:+.2f} |")
+    first = next(iter(curves.values()))
+    lines += [
+        "",
+        "Learning curves (seen instructions, 50 episodes per point), mean over seeds:",
+        "",
+        "| run | " + " | ".join(str(int(r["step"])) for r in first["rule"]) + " |",
+        "|---|" + "---:|" * len(first["rule"]),
+        *(f"| {n} | " + " | ".join(f"{v:.2f}" for v in mean_curve(curves, n)) + " |" for n in runs),
+        "",
+        "Agreement of the learned run's labels and rewards with the rule captioner (mean of "
+        "the last progress rows, mean over seeds): "
+        + ", ".join(f"{k} {v:.2f}" for k, v in mean_dicts(list(agreement.values())).items()),
+        "",
+        f"Target: learned within {TARGET_GAP:.2f} of rule on seen instructions: "
+        f"{'reached' if reached['within_10_points'] else 'NOT reached'} (gap "
+        f"{headline['gap']:+.2f}"
+        + (
+            f", 95% interval over seeds [{headline['gap_interval'][0]:+.2f}, "
+            f"{headline['gap_interval'][1]:+.2f}]"
+            if "gap_interval" in headline
+            else ""
+        )
+        + ").",
+    ]
+    title = f"Learned relabelling over perception vs the rule captioner ({args.env})"
+    save_markdown(name, title, "\n".join(lines), info)
+
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(6, 4))
+    for k, n in enumerate(runs):
+        colour = f"C{k}"
+        for by_run in curves.values():
+            rows = by_run[n]
+            ax.plot([r["step"] for r in rows], [r["train/success"] for r in rows], "-",
+                    color=colour, alpha=0.3, lw=1)  # fmt: skip
+        steps = [r["step"] for r in first[n]]
+        ax.plot(steps, mean_curve(curves, n), "o-", color=colour, label=f"{n} (mean)")
+    ax.set(xlabel="environment steps", ylabel="success (seen instructions)", ylim=(0, 1.02))
+    ax.set_title(f"{PRESETS[args.env]}: relabelled by rule or learned models, {seed_word} "
+                 f"{', '.join(map(str, seeds))}")  # fmt: skip
+    ax.legend()
+    fig.tight_layout(rect=(0, 0.08, 1, 1))
+    save_figure(name, fig, info)
+    print(json.dumps(headline, indent=1))
+    return 0
+
+
+def seed_args(args: argparse.Namespace, seed: int, multi: bool) -> argparse.Namespace:
+    """The settings of one seed's pair of runs (under ``WORK/seedS`` with several seeds)."""
+    ns = argparse.Namespace(**vars(args))
+    ns.seed = seed
+    if multi:
+        ns.work = str(Path(args.work) / f"seed{seed}")
+    return ns
+
+
+def train_pair(args: argparse.Namespace, reuse_rule: str) -> dict[str, float]:
+    """Train (or take) one seed's rule and learned runs side by side; their seconds."""
     Path(args.work).mkdir(parents=True, exist_ok=True)
     procs, seconds = {}, {}
-    names = ("rule", "learned")
-    if args.reuse_rule:
-        seconds["rule"] = reuse(Path(args.reuse_rule), Path(args.work) / "rule", args)
+    names: tuple[str, ...] = ("rule", "learned")
+    if reuse_rule:
+        seconds["rule"] = reuse(Path(reuse_rule), Path(args.work) / "rule", args)
         names = ("learned",)
     if args.existing:
         for name in names:
@@ -215,105 +395,84 @@ def main(argv: list[str] | None = None) -> int:
             raise SystemExit(f"the {name} run failed: see {log.name}")
         seconds[name] = round(time.perf_counter() - t0, 1)
         log.close()
-    sets = ("train", "heldout", "paraphrase")
-    runs = ("rule", "learned")
-    final = {name: evaluate(Path(args.work) / name, args.final_episodes, sets) for name in runs}
-    curves = {}
-    for name in runs:
-        with open(Path(args.work) / name / "eval.csv") as f:
-            curves[name] = [{k: float(v) for k, v in r.items() if v} for r in csv.DictReader(f)]
-    agreement = {}
-    with open(Path(args.work) / "learned" / "progress.csv") as f:
+    return seconds
+
+
+def curve_rows(path: Path) -> list[dict[str, float]]:
+    with open(path) as f:
+        return [{k: float(v) for k, v in r.items() if v} for r in csv.DictReader(f)]
+
+
+def last_agreement(run: Path, last: int = 5) -> dict[str, float]:
+    """Mean of the last ``last`` progress rows' agreement columns (``labels_push_precision``,
+    ...: over all instructions, then per family)."""
+    with open(run / "progress.csv") as f:
         rows = list(csv.DictReader(f))
-    keys = [  # over all instructions, then per family (labels_push_precision, ...)
-        k
-        for k in (rows[0] if rows else {})
-        if k.startswith(("labels_", "rewards_")) and k.endswith(("_precision", "_recall"))
-    ]
-    for key in keys:
-        values = [float(r[key]) for r in rows[-5:] if r.get(key) not in (None, "", "nan")]
+    out = {}
+    for key in rows[0] if rows else {}:
+        if not (
+            key.startswith(("labels_", "rewards_")) and key.endswith(("_precision", "_recall"))
+        ):
+            continue
+        values = [float(r[key]) for r in rows[-last:] if r.get(key) not in (None, "", "nan")]
         if values:
-            agreement[key] = round(sum(values) / len(values), 3)
-    learned, rule = final["learned"]["train"]["success"], final["rule"]["train"]["success"]
-    headline = {
-        "learned_her_seen": round(learned, 3),
-        "rule_her_seen": round(rule, 3),
-        "gap": round(rule - learned, 3),
-        "learned_her_heldout": round(final["learned"]["heldout"]["success"], 3),
-        "rule_her_heldout": round(final["rule"]["heldout"]["success"], 3),
-        "steps": args.steps,
+            out[key] = round(sum(values) / len(values), 3)
+    return out
+
+
+def by_family(result: dict) -> dict:
+    """A set's success per family (``{"families": {"push": 0.4, ...}}``)."""
+    fams = result.get("families") or {}
+    return {"families": {f: round(v["success"], 3) for f, v in fams.items()}}
+
+
+def pool(results: list[dict]) -> dict:
+    """Sets of several seeds' evaluations as one: successes over episodes with a 95% Wilson
+    interval, overall and per family."""
+    from train.eval_suite import wilson_interval
+
+    def one(rows: list[dict]) -> dict:
+        n = sum(int(r["episodes"]) for r in rows)
+        k = sum(int(r["successes"]) for r in rows)
+        low, high = wilson_interval(k, n) if n else (float("nan"), float("nan"))
+        return {"success": k / n if n else float("nan"), "ci": [low, high], "episodes": n}
+
+    out = one(results)
+    families = sorted({f for r in results for f in (r.get("families") or {})})
+    out["families"] = {
+        f: one([r["families"][f] for r in results if f in (r.get("families") or {})])
+        for f in families
     }
-    reached = {"within_10_points": headline["gap"] <= TARGET_GAP}
-    name = f"learned-her-{args.env}"
-    save_json(
-        name,
-        {
-            "headline": headline,
-            "target": f"learned_her_seen >= rule_her_seen - {TARGET_GAP}",
-            "reached": reached,
-            "command": command(),
-            "machine": info,
-            "settings": {**vars(args), "preset": PRESETS[args.env]},
-            "seconds": seconds,
-            "agreement_with_rule_last_rows": agreement,
-            "final": {
-                n: {k: {"success": v["success"], "ci": v["ci"]} for k, v in r.items()}
-                for n, r in final.items()
-            },
-            "curves": curves,
-        },
-    )
-    captioner_file = RESULTS_DIR / f"captioner-{args.env}.json"
-    if captioner_file.exists():  # the captioner's results carry the relabelling figures too
-        doc = json.loads(captioner_file.read_text())
-        doc.setdefault("headline", {}).update(
-            learned_her_seen=headline["learned_her_seen"], rule_her_seen=headline["rule_her_seen"]
-        )
-        doc.setdefault("reached", {})["learned_her_within_10_points"] = reached["within_10_points"]
-        doc["learned_her"] = {"command": command(), "file": f"{name}.json"}
-        captioner_file.write_text(json.dumps(doc, indent=1))
-        update_captioner_markdown(captioner_file.with_suffix(".md"), headline)
+    return out
 
-    lines = [
-        "| relabelling | seen | held-out combinations | paraphrases | train time (s) |",
-        "|---|---:|---:|---:|---:|",
-    ]
-    for n, r in final.items():
-        cells = [f"{r[k]['success']:.2f} [{r[k]['ci'][0]:.2f}, {r[k]['ci'][1]:.2f}]" for k in sets]
-        lines.append(f"| {n} | {' | '.join(cells)} | {seconds[n]:.0f} |")
-    lines += [
-        "",
-        "Learning curves (seen instructions):",
-        "",
-        "| run | " + " | ".join(str(int(r["step"])) for r in curves["rule"]) + " |",
-        "|---|" + "---:|" * len(curves["rule"]),
-        *(
-            f"| {n} | " + " | ".join(f"{r['train/success']:.2f}" for r in rows) + " |"
-            for n, rows in curves.items()
-        ),
-        "",
-        "Agreement of the learned run's labels and rewards with the rule captioner (mean of "
-        "the last progress rows): " + ", ".join(f"{k} {v:.2f}" for k, v in agreement.items()),
-        "",
-        f"Target: learned within {TARGET_GAP:.2f} of rule on seen instructions: "
-        f"{'reached' if reached['within_10_points'] else 'NOT reached'} (gap "
-        f"{headline['gap']:+.2f}).",
-    ]
-    title = f"Learned relabelling over perception vs the rule captioner ({args.env})"
-    save_markdown(name, title, "\n".join(lines), info)
 
-    import matplotlib.pyplot as plt
+def fmt(result: dict) -> str:
+    if not result:
+        return "-"
+    low, high = result["ci"]
+    return f"{result['success']:.2f} [{low:.2f}, {high:.2f}]"
 
-    fig, ax = plt.subplots(figsize=(6, 4))
-    for n, rows in curves.items():
-        ax.plot([r["step"] for r in rows], [r["train/success"] for r in rows], "o-", label=n)
-    ax.set(xlabel="environment steps", ylabel="success (seen instructions)", ylim=(0, 1.02))
-    ax.set_title(f"{PRESETS[args.env]}: relabelled by rule or learned models")
-    ax.legend()
-    fig.tight_layout(rect=(0, 0.08, 1, 1))
-    save_figure(name, fig, info)
-    print(json.dumps(headline, indent=1))
-    return 0
+
+def mean_interval(values: list[float]) -> tuple[float, float]:
+    """95% Student-t interval of the mean of ``values`` (over seeds)."""
+    import numpy as np
+
+    v = np.asarray(values, float)
+    t = {2: 12.706, 3: 4.303, 4: 3.182, 5: 2.776, 6: 2.571, 7: 2.447, 8: 2.365, 9: 2.306}
+    half = t.get(len(v), 1.96) * v.std(ddof=1) / np.sqrt(len(v))
+    return float(v.mean() - half), float(v.mean() + half)
+
+
+def mean_curve(curves: dict, name: str) -> list[float]:
+    """Seen success at each evaluation point, mean over seeds (the points all seeds have)."""
+    rows = [by_run[name] for by_run in curves.values()]
+    n = min(len(r) for r in rows)
+    return [sum(r[i]["train/success"] for r in rows) / len(rows) for i in range(n)]
+
+
+def mean_dicts(dicts: list[dict[str, float]]) -> dict[str, float]:
+    keys = [k for k in dicts[0]] if dicts else []
+    return {k: sum(d[k] for d in dicts if k in d) / sum(k in d for d in dicts) for k in keys}
 
 
 if __name__ == "__main__":

@@ -1751,6 +1751,9 @@ class LearnedLabeller:
             captioner's labels of that observation hold it too (both models agree).
         confirm: keep a caption as a relabelling candidate of an observation only where
             the reward model judges it achieved there (:meth:`confirmed`).
+        reward_labels: the relabelling candidates of each observation are the training
+            instructions the reward model judges achieved there, every one of them scored
+            (no captioner).
     """
 
     def __init__(
@@ -1767,6 +1770,7 @@ class LearnedLabeller:
         agree: bool = False,
         family_thresholds: dict[str, float] | None = None,
         confirm: bool = False,
+        reward_labels: bool = False,
     ) -> None:
         if captioner and models.captioner is None:
             raise LcrlError("learned relabelling needs a checkpoint with a captioner")
@@ -1786,6 +1790,10 @@ class LearnedLabeller:
         if confirm and not (captioner and reward):
             raise LcrlError("confirmation needs both the learned captioner and the reward model")
         self.confirm = bool(confirm)
+        if reward_labels and (captioner or not reward):
+            raise LcrlError("reward-model labels need the reward model and no learned captioner")
+        self.reward_labels = bool(reward_labels)
+        self.num_train = int(num_train)
         self.skipped = 0  # captions dropped by the threshold
         self.kept = 0
         # each instruction's family (its first word), for the agreement of each family

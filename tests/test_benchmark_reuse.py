@@ -107,3 +107,24 @@ def test_runs_started_one_by_one_are_taken_only_with_their_own_config(tmp_path):
             argparse.Namespace(**{**vars(args), "target_clip": 0.0}),
             "rule",
         )
+
+
+def test_learned_her_pools_seeds():
+    import argparse
+
+    from benchmarks.learned_her import mean_interval, pool, seed_args
+
+    def result(k, n, push):
+        return {"episodes": n, "successes": k, "success": k / n, "families": {"push": push}}
+
+    a = result(6, 10, {"episodes": 4, "successes": 1, "success": 0.25})
+    b = result(9, 10, {"episodes": 6, "successes": 3, "success": 0.5})
+    got = pool([a, b])
+    assert got["success"] == pytest.approx(15 / 20) and got["episodes"] == 20
+    assert got["ci"][0] < 0.75 < got["ci"][1]
+    assert got["families"]["push"]["success"] == pytest.approx(4 / 10)
+    low, high = mean_interval([0.1, 0.2, 0.3])
+    assert low < 0.2 < high and high - 0.2 == pytest.approx(0.2 - low)
+    args = argparse.Namespace(work="runs/x", seed=0)
+    assert seed_args(args, 2, multi=True).work == "runs/x/seed2"
+    assert seed_args(args, 2, multi=False).work == "runs/x" and args.seed == 0

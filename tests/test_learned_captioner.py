@@ -286,6 +286,8 @@ def test_labeller_thresholds_and_candidates(trained, dataset):
         strict_confirm = LearnedLabeller(lc, table, num_train, threshold=1.01, confirm=True)
         nothing_hit = strict_confirm.achieved(frames, proprio, cands)
         assert not any(strict_confirm.confirmed(labels, nothing_hit))
+        with pytest.raises(LcrlError, match="reward-model labels need"):
+            LearnedLabeller(lc, table, num_train, captioner=True, reward_labels=True)
         with pytest.raises(LcrlError, match="confirmation needs both"):
             LearnedLabeller(lc, table, num_train, reward=False, confirm=True)
         # the online check of one pair agrees with the episode's batch scoring
@@ -324,6 +326,28 @@ def test_learned_rewards_do_not_end_training_episodes_at_the_privileged_success(
         trainer = Trainer(cfg)
         assert cfg.env.train_until_success  # the setting stays; the learned rewards win
         assert find_language_wrapper(trainer.envs[0]).terminate_on_success is ends, reward
+
+
+def test_reward_model_labels_relabel_with_every_instruction_it_rewards(
+    trained, tmp_path, one_thread
+):
+    from train.loop import Trainer
+
+    cfg = _small_run(tmp_path / "run", trained, captioner="reward", reward="learned", threshold=0.3)
+    trainer = Trainer(cfg)
+    trainer.run()
+    lab = trainer.task.labeller
+    assert lab.reward_labels and not lab.use_captioner and lab.kept + lab.skipped == 0
+    gs = trainer.buffer.goal_space
+    high = trainer.buffer.high
+    slots = np.flatnonzero(gs._nlab[:high] > 0)
+    assert slots.size > 0
+    num_train = trainer.task.num_train
+    for j in range(high):  # the candidates are exactly the training ids rewarded there
+        ids = set(gs._labels[j, : gs._nlab[j]].tolist())
+        every = np.arange(num_train)
+        rewarded = set(every[gs.achieved(np.full(num_train, j), every)].tolist())
+        assert ids <= rewarded and len(ids) == min(len(rewarded), gs.max_labels), j
 
 
 def test_learned_rewards_can_end_training_episodes_where_they_judge_success(
@@ -370,6 +394,8 @@ def test_learned_relabelling_settings_are_checked(trained, tmp_path):
         Trainer(_small_run(tmp_path / "g", trained, reward="rule", agree=True))
     with pytest.raises(LcrlError, match=r"relabel\.confirm .* needs relabel\.captioner=learned"):
         Trainer(_small_run(tmp_path / "d", trained, reward="learned", confirm=True))
+    with pytest.raises(LcrlError, match=r"relabel\.captioner=reward .* needs relabel\.reward"):
+        Trainer(_small_run(tmp_path / "r", trained, captioner="reward"))
     with pytest.raises(LcrlError, match=r"relabel\.end must be one of"):
         Trainer(_small_run(tmp_path / "e", trained, reward="learned", end="success"))
     with pytest.raises(LcrlError, match=r"relabel\.end=learned .* needs relabel\.reward=learned"):

@@ -60,7 +60,7 @@ class BufferConfig:
 
 BUFFER_STORAGE = ("host", "device")
 
-RELABELLERS = ("rule", "learned")
+RELABELLERS = ("rule", "learned", "reward")
 REWARDERS = ("rule", "learned", "captioner")
 
 
@@ -70,8 +70,10 @@ class RelabelConfig:
     state) or the learned models of ``lcrl caption train`` (camera frames)."""
 
     captioner: str = "rule"
-    """Relabelling candidates: ``rule`` or ``learned`` (the learned captioner's captions of
-    each step, read from the camera frames)."""
+    """Relabelling candidates: ``rule``, ``learned`` (the learned captioner's captions of
+    each step, read from the camera frames) or ``reward`` (every training instruction the
+    learned reward model judges achieved at each step, all of them scored; needs
+    ``reward=learned`` and no captioner)."""
     reward: str = "rule"
     """Rewards of stored transitions: ``rule``, ``learned`` (the learned reward model,
     scored once per stored episode for every candidate) or ``captioner`` (the learned
@@ -646,6 +648,11 @@ class TrainConfig:
             raise LcrlError(
                 "relabel.agree asks the learned captioner and reward model to agree: it needs "
                 "relabel.captioner=learned and relabel.reward=learned"
+            )
+        if self.relabel.captioner == "reward" and self.relabel.reward != "learned":
+            raise LcrlError(
+                "relabel.captioner=reward relabels with what the learned reward model judges "
+                "achieved: it needs relabel.reward=learned"
             )
         if self.relabel.confirm and (self.relabel.captioner, self.relabel.reward) != (
             "learned",

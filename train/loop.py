@@ -294,6 +294,7 @@ class Trainer(BaseTrainer):
                 self.task.table,
                 self.task.num_train,
                 captioner=r.captioner == "learned",
+                reward_labels=r.captioner == "reward",
                 reward=r.reward == "learned",
                 captioner_rewards=r.reward == "captioner",
                 min_logprob=r.min_logprob,

@@ -776,12 +776,17 @@ class LanguageTask(Task):
         if lab.use_captioner:
             out["labels"] = lab.labels(frames, proprio)
         if lab.use_reward:
-            cands = sorted({i for ids in out["labels"] for i in ids} | {int(goal)})
+            if lab.reward_labels:  # every training instruction is a candidate
+                cands = sorted(set(range(lab.num_train)) | {int(goal)})
+            else:
+                cands = sorted({i for ids in out["labels"] for i in ids} | {int(goal)})
             out["achieved"] = lab.achieved(frames, proprio, cands, out["labels"])
             lab.compare("rewards", out["achieved"], labels, among=cands)
-            if lab.use_captioner:  # with confirm: only the labels rewarded where read
+            if lab.reward_labels:  # relabel with what the reward model judges achieved
+                out["labels"] = [[i for i in a if i < lab.num_train] for a in out["achieved"]]
+            elif lab.use_captioner:  # with confirm: only the labels rewarded where read
                 out["labels"] = lab.confirmed(out["labels"], out["achieved"])
-        if lab.use_captioner:
+        if lab.use_captioner or lab.reward_labels:
             lab.compare("labels", out["labels"], labels)
         elif lab.use_captioner and not lab.captioner_rewards:
             out["achieved"] = labels  # learned candidates, rule rewards
