@@ -6,6 +6,7 @@ from __future__ import annotations
 import dataclasses
 import json
 
+import numpy as np
 import pytest
 
 from benchmarks.learning_curves import SUITES, reusable, run_config
@@ -128,3 +129,16 @@ def test_learned_her_pools_seeds():
     args = argparse.Namespace(work="runs/x", seed=0)
     assert seed_args(args, 2, multi=True).work == "runs/x/seed2"
     assert seed_args(args, 2, multi=False).work == "runs/x" and args.seed == 0
+
+
+def test_reward_onset_counts_steps_around_the_first_success():
+    from benchmarks.reward_onset import first_steps, onset_rates
+
+    labels = [[], [], [0], [0, 1], [1]]
+    assert first_steps(labels, [True, True]) == {0: 2, 1: 3}
+    assert first_steps(labels, [True, False]) == {0: 2}
+    # instruction 0 accepted from its first step on, instruction 1 a step late
+    probs = np.array([[0, 0], [0.1, 0], [0.95, 0.2], [0.95, 0.3], [0.9, 0.95]])
+    rates = onset_rates([(probs, {0: 2, 1: 3})], ["push", "reach"], [-1, 0, 1], 0.9)
+    assert rates["push"] == {-1: (0.0, 1), 0: (1.0, 1), 1: (1.0, 1)}
+    assert rates["reach"][0] == (0.0, 1) and rates["reach"][1] == (1.0, 1)
