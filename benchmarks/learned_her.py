@@ -38,7 +38,7 @@ from benchmarks.common import (
     save_json,
     save_markdown,
 )
-from benchmarks.image_policy import LCRL, child_env, evaluate
+from benchmarks.image_policy import LCRL, child_env, curve, evaluate
 
 TARGET_GAP = 0.10
 PRESETS = {"robosuite": "robosuite-image-reach", "lang2d": "lang2d"}
@@ -223,10 +223,7 @@ def main(argv: list[str] | None = None) -> int:
         str(ns.seed): {n: evaluate(Path(ns.work) / n, args.final_episodes, sets) for n in runs}
         for ns in per_seed
     }
-    curves = {
-        str(ns.seed): {n: curve_rows(Path(ns.work) / n / "eval.csv") for n in runs}
-        for ns in per_seed
-    }
+    curves = {str(ns.seed): {n: curve(Path(ns.work) / n) for n in runs} for ns in per_seed}
     agreement = {str(ns.seed): last_agreement(Path(ns.work) / "learned") for ns in per_seed}
     pooled = {n: {k: pool([final[s][n][k] for s in final]) for k in sets} for n in runs}
     gaps = [final[s]["rule"]["train"]["success"] - final[s]["learned"]["train"]["success"]
@@ -396,11 +393,6 @@ def train_pair(args: argparse.Namespace, reuse_rule: str) -> dict[str, float]:
         seconds[name] = round(time.perf_counter() - t0, 1)
         log.close()
     return seconds
-
-
-def curve_rows(path: Path) -> list[dict[str, float]]:
-    with open(path) as f:
-        return [{k: float(v) for k, v in r.items() if v} for r in csv.DictReader(f)]
 
 
 def last_agreement(run: Path, last: int = 5) -> dict[str, float]:

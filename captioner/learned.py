@@ -1879,9 +1879,11 @@ class LearnedLabeller:
         there too (else the labels as they are)."""
         if not self.confirm:
             return [list(ids) for ids in labels]
-        return [
-            [i for i in ids if i in set(hit)] for ids, hit in zip(labels, achieved, strict=True)
-        ]
+        kept = []
+        for ids, hit in zip(labels, achieved, strict=True):
+            rewarded = set(hit)
+            kept.append([i for i in ids if i in rewarded])
+        return kept
 
     def achieved(
         self,

@@ -641,26 +641,20 @@ class TrainConfig:
                 "relabel.reward=captioner takes the rewards from the learned captioner's "
                 "captions: it needs relabel.captioner=learned"
             )
-        if self.relabel.agree and (self.relabel.captioner, self.relabel.reward) != (
-            "learned",
-            "learned",
+        both_learned = (self.relabel.captioner, self.relabel.reward) == ("learned", "learned")
+        for name, what in (
+            ("agree", "asks the learned captioner and reward model to agree"),
+            ("confirm", "keeps the learned captions the reward model confirms"),
         ):
-            raise LcrlError(
-                "relabel.agree asks the learned captioner and reward model to agree: it needs "
-                "relabel.captioner=learned and relabel.reward=learned"
-            )
+            if getattr(self.relabel, name) and not both_learned:
+                raise LcrlError(
+                    f"relabel.{name} {what}: it needs relabel.captioner=learned and "
+                    "relabel.reward=learned"
+                )
         if self.relabel.captioner == "reward" and self.relabel.reward != "learned":
             raise LcrlError(
                 "relabel.captioner=reward relabels with what the learned reward model judges "
                 "achieved: it needs relabel.reward=learned"
-            )
-        if self.relabel.confirm and (self.relabel.captioner, self.relabel.reward) != (
-            "learned",
-            "learned",
-        ):
-            raise LcrlError(
-                "relabel.confirm keeps the learned captions the reward model confirms: it "
-                "needs relabel.captioner=learned and relabel.reward=learned"
             )
         family_thresholds(self.relabel.family_thresholds)  # raises on a bad entry
         if self.relabel.end not in EPISODE_ENDS:
