@@ -264,6 +264,7 @@ def main(argv: list[str] | None = None) -> int:
                 }
                 for s, runs_of_seed in final.items()
             },
+            "curve_gaps": curve_gaps(curves),
             "curves": curves,
         },
     )
@@ -316,6 +317,13 @@ def main(argv: list[str] | None = None) -> int:
         "| run | " + " | ".join(str(int(r["step"])) for r in first["rule"]) + " |",
         "|---|" + "---:|" * len(first["rule"]),
         *(f"| {n} | " + " | ".join(f"{v:.2f}" for v in mean_curve(curves, n)) + " |" for n in runs),
+        "| gap | " + " | ".join(f"{g['gap']:+.2f}" for g in curve_gaps(curves)) + " |",
+        *(
+            f"| {n} push | "
+            + " | ".join(f"{v:.2f}" for v in mean_curve(curves, n, "train/push"))
+            + " |"
+            for n in runs
+        ),
         "",
         "Agreement of the learned run's labels and rewards with the rule captioner (mean of "
         "the last progress rows, mean over seeds): "
@@ -455,11 +463,31 @@ def mean_interval(values: list[float]) -> tuple[float, float]:
     return float(v.mean() - half), float(v.mean() + half)
 
 
-def mean_curve(curves: dict, name: str) -> list[float]:
-    """Seen success at each evaluation point, mean over seeds (the points all seeds have)."""
+def mean_curve(curves: dict, name: str, key: str = "train/success") -> list[float]:
+    """Seen success (or another ``key`` of the curve rows) at each evaluation point, mean
+    over seeds (the points all seeds have)."""
     rows = [by_run[name] for by_run in curves.values()]
     n = min(len(r) for r in rows)
-    return [sum(r[i]["train/success"] for r in rows) / len(rows) for i in range(n)]
+    return [sum(r[i].get(key, float("nan")) for r in rows) / len(rows) for i in range(n)]
+
+
+def curve_gaps(curves: dict) -> list[dict[str, float]]:
+    """At each evaluation point all runs have: the step, the mean over seeds of the rule
+    and learned runs' seen success and of push's, and the gap (rule - learned)."""
+    rule, learned = mean_curve(curves, "rule"), mean_curve(curves, "learned")
+    push = {n: mean_curve(curves, n, "train/push") for n in ("rule", "learned")}
+    steps = [r["step"] for r in next(iter(curves.values()))["rule"]]
+    return [
+        {
+            "step": int(steps[i]),
+            "rule": round(rule[i], 3),
+            "learned": round(learned[i], 3),
+            "gap": round(rule[i] - learned[i], 3),
+            "rule_push": round(push["rule"][i], 3),
+            "learned_push": round(push["learned"][i], 3),
+        }
+        for i in range(min(len(rule), len(learned)))
+    ]
 
 
 def mean_dicts(dicts: list[dict[str, float]]) -> dict[str, float]:

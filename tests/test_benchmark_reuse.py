@@ -131,6 +131,31 @@ def test_learned_her_pools_seeds():
     assert seed_args(args, 2, multi=False).work == "runs/x" and args.seed == 0
 
 
+def test_learned_her_gaps_along_the_curves_use_the_points_every_run_has():
+    from benchmarks.learned_her import curve_gaps
+
+    def rows(values, push):
+        return [
+            {"step": 5000 * (i + 1), "train/success": v, "train/push": p}
+            for i, (v, p) in enumerate(zip(values, push, strict=True))
+        ]
+
+    curves = {
+        "0": {
+            "rule": rows([0.4, 0.8, 0.9], [0.0, 0.6, 0.8]),
+            "learned": rows([0.2, 0.6], [0, 0.2]),
+        },
+        "1": {"rule": rows([0.6, 1.0], [0.2, 1.0]), "learned": rows([0.4, 0.8], [0.2, 0.6])},
+    }
+    got = curve_gaps(curves)
+    assert [g["step"] for g in got] == [5000, 10000]
+    assert got[1]["rule"] == pytest.approx(0.9) and got[1]["learned"] == pytest.approx(0.7)
+    assert got[1]["gap"] == pytest.approx(0.2) and got[0]["gap"] == pytest.approx(0.2)
+    assert got[1]["rule_push"] == pytest.approx(0.8) and got[1]["learned_push"] == pytest.approx(
+        0.4
+    )
+
+
 def test_reward_onset_counts_steps_around_the_first_success():
     from benchmarks.reward_onset import first_steps, onset_rates
 
