@@ -123,6 +123,13 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--eval-every", type=int, default=5_000)
     parser.add_argument("--eval-episodes", type=int, default=50)
     parser.add_argument("--final-episodes", type=int, default=100)
+    parser.add_argument(
+        "--push-episodes",
+        type=int,
+        default=60,
+        help="lang2d: push episodes per run whose failures are sorted by how far the object "
+        "got (benchmarks/push_misses.py; 0: none)",
+    )
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument(
         "--threshold",
@@ -225,6 +232,7 @@ def main(argv: list[str] | None = None) -> int:
     }
     curves = {str(ns.seed): {n: curve(Path(ns.work) / n) for n in runs} for ns in per_seed}
     agreement = {str(ns.seed): last_agreement(Path(ns.work) / "learned") for ns in per_seed}
+    misses = push_failures(per_seed, runs, args.push_episodes) if args.env == "lang2d" else {}
     pooled = {n: {k: pool([final[s][n][k] for s in final]) for k in sets} for n in runs}
     gaps = [final[s]["rule"]["train"]["success"] - final[s]["learned"]["train"]["success"]
             for s in final]  # fmt: skip
@@ -265,6 +273,7 @@ def main(argv: list[str] | None = None) -> int:
                 for s, runs_of_seed in final.items()
             },
             "curve_gaps": curve_gaps(curves),
+            "push_failures": misses,
             "curves": curves,
         },
     )
@@ -325,6 +334,7 @@ def main(argv: list[str] | None = None) -> int:
             for n in runs
         ),
         "",
+        *push_failure_lines(misses),
         "Agreement of the learned run's labels and rewards with the rule captioner (mean of "
         "the last progress rows, mean over seeds): "
         + ", ".join(f"{k} {v:.2f}" for k, v in mean_dicts(list(agreement.values())).items()),
@@ -461,6 +471,42 @@ def mean_interval(values: list[float]) -> tuple[float, float]:
     t = {2: 12.706, 3: 4.303, 4: 3.182, 5: 2.776, 6: 2.571, 7: 2.447, 8: 2.365, 9: 2.306}
     half = t.get(len(v), 1.96) * v.std(ddof=1) / np.sqrt(len(v))
     return float(v.mean() - half), float(v.mean() + half)
+
+
+def push_failures(per_seed: list, runs: tuple[str, ...], episodes: int) -> dict:
+    """How each run's failed push episodes fail (:mod:`benchmarks.push_misses`), per run
+    over all seeds (``episodes`` per seed and run)."""
+    if episodes <= 0:
+        return {}
+    from benchmarks.push_misses import run_pushes, summarise
+
+    out = {}
+    for n in runs:
+        eps = [e for ns in per_seed for e in run_pushes(Path(ns.work) / n, episodes)]
+        out[n] = {k: round(v, 3) if isinstance(v, float) else v for k, v in summarise(eps).items()}
+    return out
+
+
+def push_failure_lines(misses: dict) -> list[str]:
+    """The Markdown table of :func:`push_failures` (nothing without it)."""
+    if not misses:
+        return []
+    lines = [
+        "How the failed push episodes fail (seen push instructions, deterministic policy, "
+        "`benchmarks/push_misses.py`; fractions of the failures): the object never moved "
+        "(untouched), moved less than the push distance (short), or far enough but off its "
+        "direction (drift); the pusher came within reach distance of it (reached):",
+        "",
+        "| run | push episodes | success | untouched | short | drift | reached |",
+        "|---|---:|---:|---:|---:|---:|---:|",
+    ]
+    for n, m in misses.items():
+        cells = [m["episodes"], *(f"{m[k]:.2f}" for k in BINS_SHOWN)]
+        lines.append(f"| {n} | " + " | ".join(str(c) for c in cells) + " |")
+    return [*lines, ""]
+
+
+BINS_SHOWN = ("success", "untouched", "short", "drift", "reached")
 
 
 def mean_curve(curves: dict, name: str, key: str = "train/success") -> list[float]:

@@ -167,3 +167,51 @@ def test_reward_onset_counts_steps_around_the_first_success():
     rates = onset_rates([(probs, {0: 2, 1: 3})], ["push", "reach"], [-1, 0, 1], 0.9)
     assert rates["push"] == {-1: (0.0, 1), 0: (1.0, 1), 1: (1.0, 1)}
     assert rates["reach"][0] == (0.0, 1) and rates["reach"][1] == (1.0, 1)
+
+
+def test_push_misses_sort_failures_by_how_far_the_object_got():
+    from benchmarks.learned_her import push_failure_lines
+    from benchmarks.push_misses import miss_bin, summarise
+
+    assert [miss_bin(a) for a in (0.0, 0.09, 0.5, 0.99, 1.0, 1.7)] == [
+        "untouched",
+        "untouched",
+        "short",
+        "short",
+        "drift",
+        "drift",
+    ]
+    eps = [
+        {"success": True, "along": 1.2, "reached": True, "other_moved": False},
+        {"success": False, "along": 0.0, "reached": True, "other_moved": False},
+        {"success": False, "along": 0.0, "reached": False, "other_moved": True},
+        {"success": False, "along": 0.6, "reached": True, "other_moved": False},
+    ]
+    got = summarise(eps)
+    assert got["success"] == pytest.approx(0.25) and got["failures"] == 3
+    assert got["untouched"] == pytest.approx(2 / 3) and got["short"] == pytest.approx(1 / 3)
+    assert got["drift"] == 0 and got["reached"] == pytest.approx(2 / 3)
+    assert got["other_moved"] == pytest.approx(1 / 3) and got["median_along"] == 0.0
+    lines = push_failure_lines({"rule": got})
+    assert any(line.startswith("| rule | 4 | 0.25 | 0.67 | 0.33 | 0.00 | 0.67 |") for line in lines)
+    assert push_failure_lines({}) == []
+
+
+def test_push_misses_follow_a_checkpoint_on_its_push_instructions(tmp_path, one_thread):
+    from helpers import tiny
+
+    from benchmarks.push_misses import run_pushes
+    from lcrl.errors import LcrlError
+    from train.loop import Trainer
+
+    out = tmp_path / "run"
+    Trainer(tiny("lang2d", out, total_steps=120, learning_starts=100)).run()
+    eps = run_pushes(out, 3)
+    assert len(eps) == 3 and all(e["instruction"].startswith("push ") for e in eps)
+    for e in eps:
+        assert {"success", "along", "reached", "other_moved"} <= set(e)
+        assert not e["success"] or e["along"] >= 1.0  # a success moved it far enough
+    reach = tmp_path / "reach"
+    Trainer(tiny("lang2d-quick", reach, total_steps=120, learning_starts=100)).run()
+    with pytest.raises(LcrlError, match="no push instruction"):
+        run_pushes(reach, 1)

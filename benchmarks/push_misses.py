@@ -1,0 +1,128 @@
+"""How a policy's failed push episodes fail: how far the named object got.
+
+    python benchmarks/push_misses.py runs/bench/lher60/seed0/rule runs/bench/lher60/seed0/learned
+
+Each run's policy (deterministic) follows its seen push instructions, one after another
+from the evaluation's reset seeds (the first feasible layout of each), on the
+privileged-state tabletop (``lang2d``). For every episode that fails, the furthest the
+named object got along the instruction's direction, as a fraction of the rule captioner's
+push distance, puts it in one bin: ``untouched`` (under 0.1: the pusher went to the object,
+or not, but did not move it), ``short`` (0.1 to 1), ``drift`` (far enough along, but too
+far sideways or pushed back). Also counted: the failures whose pusher came within the
+distance of the rule captioner's ``reach`` (``reached``) and those that moved another
+object by 2 cm or more (``other_moved``). A policy that goes to its object and stops there
+fails ``untouched`` and ``reached``; one whose rewards come a step early fails ``short``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from collections.abc import Sequence
+from pathlib import Path
+
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
+
+BINS = ("untouched", "short", "drift")
+UNTOUCHED = 0.1  # fraction of the push distance under which the object did not move
+OTHER_MOVED = 0.02  # metres: another object was disturbed
+
+
+def miss_bin(along: float) -> str:
+    """The bin of a failed episode whose object got ``along`` (fraction of the push
+    distance, its furthest along the direction) at best."""
+    if along < UNTOUCHED:
+        return "untouched"
+    return "short" if along < 1.0 else "drift"
+
+
+def summarise(episodes: Sequence[dict]) -> dict:
+    """Success and the failures' bins (fractions of the failures) of ``episodes``, each
+    ``{"success", "along", "reached", "other_moved"}``."""
+    fails = [e for e in episodes if not e["success"]]
+    n = len(fails)
+    out = {
+        "episodes": len(episodes),
+        "success": (len(episodes) - n) / len(episodes) if episodes else float("nan"),
+        "failures": n,
+    }
+    for b in BINS:
+        out[b] = sum(miss_bin(e["along"]) == b for e in fails) / n if n else 0.0
+    out["reached"] = sum(e["reached"] for e in fails) / n if n else 0.0
+    out["other_moved"] = sum(e["other_moved"] for e in fails) / n if n else 0.0
+    out["median_along"] = float(np.median([e["along"] for e in fails])) if n else float("nan")
+    return out
+
+
+def run_pushes(run: str | Path, episodes: int, seed: int = 0) -> list[dict]:
+    """``episodes`` push episodes of ``run``'s policy on its seen push instructions."""
+    from captioner.rule import DIRECTION_VECTORS
+    from lcrl.errors import LcrlError
+    from train.eval_suite import episode_seed
+    from train.evaluate import load_policy
+    from train.tasks import find_language_wrapper, reset_feasible
+
+    policy = load_policy(run)
+    agent, task, env = policy.agent, policy.task, policy.env
+    wrapper = find_language_wrapper(env)
+    rule = wrapper.captioner
+    texts = [t for t in task.table[: task.num_train] if t.split()[:1] == ["push"]]
+    if not texts:
+        raise LcrlError(f"{run} was trained on no push instruction")
+    out = []
+    for i in range(episodes):
+        text = texts[i % len(texts)]
+        obs, info = reset_feasible(env, episode_seed(seed, i), text)
+        s0 = wrapper.env.unwrapped.scene()
+        ins = rule.parse(text)
+        k = s0.index(*ins.obj)
+        vec = np.asarray(DIRECTION_VECTORS[ins.direction])
+        near = float(s0.half_extents[k, :2].max()) + rule.thresholds.reach_margin
+        goal = np.asarray([task.goal(obs, env)])
+        first, best, reached, other = obs, -np.inf, False, 0.0
+        while True:
+            o = {key: v[None] for key, v in task.storage_obs(obs, first).items()}
+            action = agent.act(o, goal, deterministic=True)[0]
+            obs, _, terminated, truncated, info = env.step(task.scale_action(action))
+            s = wrapper.env.unwrapped.scene()
+            d = s.positions[k, :2] - s0.positions[k, :2]
+            best = max(best, float(d @ vec))
+            reached |= bool(np.linalg.norm(s.gripper[:2] - s.positions[k, :2]) <= near)
+            moved = np.linalg.norm(s.positions[:, :2] - s0.positions[:, :2], axis=-1)
+            other = max(other, float(np.delete(moved, k).max(initial=0.0)))
+            if terminated or truncated:
+                break
+        out.append(
+            {
+                "instruction": text,
+                "success": bool(info.get("is_success", False)),
+                "along": best / rule.thresholds.push_distance,
+                "reached": reached,
+                "other_moved": other >= OTHER_MOVED,
+            }
+        )
+    return out
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("runs", nargs="+", help="lang2d run or checkpoint folders")
+    parser.add_argument("--episodes", type=int, default=60)
+    parser.add_argument("--seed", type=int, default=0, help="evaluation seed")
+    args = parser.parse_args(argv)
+    from lcrl.errors import LcrlError
+
+    for run in args.runs:
+        try:
+            episodes = run_pushes(run, args.episodes, args.seed)
+        except (LcrlError, OSError) as e:
+            raise SystemExit(f"error: {e}") from None
+        print(run, json.dumps(summarise(episodes)))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
