@@ -31,7 +31,7 @@ demo: $(STAMP)
 test: $(STAMP)
 	$(BIN)/ruff check .
 	$(BIN)/ruff format --check .
-	$(BIN)/pytest -q -m "not slow and not benchmark"
+	$(BIN)/pytest -q -n 2 --dist loadfile -m "not slow and not benchmark"
 
 test-slow: $(STAMP)
 	$(BIN)/pytest -q -m "slow" || [ $$? -eq 5 ]  # 5: no test carries the marker
