@@ -12,6 +12,14 @@ far sideways or pushed back). Also counted: the failures whose pusher came withi
 distance of the rule captioner's ``reach`` (``reached``) and those that moved another
 object by 2 cm or more (``other_moved``). A policy that goes to its object and stops there
 fails ``untouched`` and ``reached``; one whose rewards come a step early fails ``short``.
+
+With ``--captioner DIR`` (learned models over frames), the reward model also scores each
+step of every episode against its instruction, at ``--threshold``, and the steps are
+sorted by the rule's verdict: ``false_rewards`` are the steps it rewards where the rule does
+not, binned like the failures by how far the object had got at that step (``untouched``
+then also splits by whether the pusher was at the object); ``missed_rewards`` the steps the
+rule rewards and it does not. ``--stochastic`` samples the policy's actions, as training
+episodes do.
 """
 
 from __future__ import annotations
@@ -57,16 +65,59 @@ def summarise(episodes: Sequence[dict]) -> dict:
     return out
 
 
-def run_pushes(run: str | Path, episodes: int, seed: int = 0) -> list[dict]:
-    """``episodes`` push episodes of ``run``'s policy on its seen push instructions."""
+def summarise_rewards(steps: Sequence[dict]) -> dict:
+    """How the reward model's verdicts on ``steps`` (each ``{"rule", "learned", "along",
+    "at_object"}``) agree with the rule's: counts, precision and recall, and the false
+    rewards' bins (fractions of the false rewards)."""
+    tp = sum(s["rule"] and s["learned"] for s in steps)
+    fp = [s for s in steps if s["learned"] and not s["rule"]]
+    fn = sum(s["rule"] and not s["learned"] for s in steps)
+    out = {
+        "steps": len(steps),
+        "rule_rewards": tp + fn,
+        "learned_rewards": tp + len(fp),
+        "precision": tp / (tp + len(fp)) if tp + len(fp) else float("nan"),
+        "recall": tp / (tp + fn) if tp + fn else float("nan"),
+        "false_rewards": len(fp),
+        "missed_rewards": fn,
+    }
+    n = len(fp)
+    for b in BINS:
+        out[f"false_{b}"] = sum(miss_bin(s["along"]) == b for s in fp) / n if n else 0.0
+    out["false_untouched_at_object"] = (
+        sum(miss_bin(s["along"]) == "untouched" and s["at_object"] for s in fp) / n if n else 0.0
+    )
+    return out
+
+
+def run_pushes(
+    run: str | Path,
+    episodes: int,
+    seed: int = 0,
+    captioner: str | Path | None = None,
+    threshold: float = 0.9,
+    stochastic: bool = False,
+) -> list[dict]:
+    """``episodes`` push episodes of ``run``'s policy on its seen push instructions (with
+    ``captioner``, each episode's ``steps``: the rule's and the reward model's verdict)."""
     from captioner.rule import DIRECTION_VECTORS
     from lcrl.errors import LcrlError
     from train.eval_suite import episode_seed
     from train.evaluate import load_policy
     from train.tasks import find_language_wrapper, reset_feasible
 
-    policy = load_policy(run)
+    models = None
+    overrides = None
+    if captioner is not None:
+        from captioner.learned import LearnedCaptioner
+        from train.tasks import slot_layout_start
+
+        models = LearnedCaptioner.load(captioner)
+        overrides = {"extra": {"image": True, "image_size": int(models.frame_shape[0])}}
+    policy = load_policy(run, env_overrides=overrides)
     agent, task, env = policy.agent, policy.task, policy.env
+    if models is not None:
+        start = int(slot_layout_start(find_language_wrapper(env)))
     wrapper = find_language_wrapper(env)
     rule = wrapper.captioner
     texts = [t for t in task.table[: task.num_train] if t.split()[:1] == ["push"]]
@@ -83,18 +134,41 @@ def run_pushes(run: str | Path, episodes: int, seed: int = 0) -> list[dict]:
         near = float(s0.half_extents[k, :2].max()) + rule.thresholds.reach_margin
         goal = np.asarray([task.goal(obs, env)])
         first, best, reached, other = obs, -np.inf, False, 0.0
+        frames, proprio, steps = [], [], []
         while True:
             o = {key: v[None] for key, v in task.storage_obs(obs, first).items()}
-            action = agent.act(o, goal, deterministic=True)[0]
+            action = agent.act(o, goal, deterministic=not stochastic)[0]
             obs, _, terminated, truncated, info = env.step(task.scale_action(action))
             s = wrapper.env.unwrapped.scene()
             d = s.positions[k, :2] - s0.positions[k, :2]
             best = max(best, float(d @ vec))
-            reached |= bool(np.linalg.norm(s.gripper[:2] - s.positions[k, :2]) <= near)
+            at_object = bool(np.linalg.norm(s.gripper[:2] - s.positions[k, :2]) <= near)
+            reached |= at_object
+            if models is not None:
+                frames.append(np.asarray(obs["image"]))
+                proprio.append(np.asarray(obs["observation"][:start], np.float32))
+                steps.append(
+                    {
+                        "rule": bool(rule.satisfied(ins, s0, s)),
+                        "along": float(d @ vec) / rule.thresholds.push_distance,
+                        "at_object": at_object,
+                    }
+                )
             moved = np.linalg.norm(s.positions[:, :2] - s0.positions[:, :2], axis=-1)
             other = max(other, float(np.delete(moved, k).max(initial=0.0)))
             if terminated or truncated:
                 break
+        if models is not None:
+            f0 = np.asarray(first["image"])
+            p0 = np.asarray(first["observation"][:start], np.float32)
+            n = len(frames)
+            probs = models.score_matrix(
+                [text], np.repeat(f0[None], n, 0), np.stack(frames),
+                np.repeat(p0[None], n, 0), np.stack(proprio),
+            )[:, 0]  # fmt: skip
+            for st, p in zip(steps, probs, strict=True):
+                st["prob"] = float(p)
+                st["learned"] = bool(p >= threshold)
         out.append(
             {
                 "instruction": text,
@@ -102,6 +176,7 @@ def run_pushes(run: str | Path, episodes: int, seed: int = 0) -> list[dict]:
                 "along": best / rule.thresholds.push_distance,
                 "reached": reached,
                 "other_moved": other >= OTHER_MOVED,
+                **({"steps": steps} if models is not None else {}),
             }
         )
     return out
@@ -112,15 +187,27 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("runs", nargs="+", help="lang2d run or checkpoint folders")
     parser.add_argument("--episodes", type=int, default=60)
     parser.add_argument("--seed", type=int, default=0, help="evaluation seed")
+    parser.add_argument(
+        "--captioner", default=None, help="learned models whose reward model scores each step"
+    )
+    parser.add_argument("--threshold", type=float, default=0.9, help="the reward model's")
+    parser.add_argument(
+        "--stochastic", action="store_true", help="sample actions, as training episodes do"
+    )
     args = parser.parse_args(argv)
     from lcrl.errors import LcrlError
 
     for run in args.runs:
         try:
-            episodes = run_pushes(run, args.episodes, args.seed)
+            episodes = run_pushes(
+                run, args.episodes, args.seed, args.captioner, args.threshold, args.stochastic
+            )
         except (LcrlError, OSError) as e:
             raise SystemExit(f"error: {e}") from None
         print(run, json.dumps(summarise(episodes)))
+        if args.captioner is not None:
+            steps = [st for e in episodes for st in e["steps"]]
+            print(run, "rewards", json.dumps(summarise_rewards(steps)))
     return 0
 
 

@@ -197,6 +197,26 @@ def test_push_misses_sort_failures_by_how_far_the_object_got():
     assert push_failure_lines({}) == []
 
 
+def test_push_misses_sort_the_reward_models_verdicts_against_the_rule():
+    from benchmarks.push_misses import summarise_rewards
+
+    steps = [
+        {"rule": False, "learned": False, "along": 0.0, "at_object": True},
+        {"rule": False, "learned": True, "along": 0.85, "at_object": True},  # a step early
+        {"rule": False, "learned": True, "along": 0.05, "at_object": True},  # never moved
+        {"rule": True, "learned": True, "along": 1.1, "at_object": True},
+        {"rule": True, "learned": False, "along": 1.3, "at_object": False},
+    ]
+    got = summarise_rewards(steps)
+    assert (got["steps"], got["rule_rewards"], got["learned_rewards"]) == (5, 2, 3)
+    assert got["precision"] == pytest.approx(1 / 3) and got["recall"] == pytest.approx(0.5)
+    assert got["false_rewards"] == 2 and got["missed_rewards"] == 1
+    assert got["false_short"] == pytest.approx(0.5) and got["false_untouched"] == pytest.approx(0.5)
+    assert got["false_untouched_at_object"] == pytest.approx(0.5) and got["false_drift"] == 0
+    empty = summarise_rewards([])
+    assert empty["false_rewards"] == 0 and np.isnan(empty["precision"])
+
+
 def test_push_misses_follow_a_checkpoint_on_its_push_instructions(tmp_path, one_thread):
     from helpers import tiny
 

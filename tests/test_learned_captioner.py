@@ -179,6 +179,22 @@ def _small_run(out, checkpoint, **relabel):
     return tiny("lang2d", out, scripted_fraction=0.5, eval_episodes=2, relabel=relabel_cfg)
 
 
+def test_push_misses_score_each_step_with_the_reward_model(trained, tmp_path, one_thread):
+    from benchmarks.push_misses import run_pushes, summarise_rewards
+    from train.loop import Trainer
+
+    out = tmp_path / "run"
+    Trainer(tiny("lang2d", out, total_steps=120, learning_starts=100)).run()
+    eps = run_pushes(out, 2, captioner=trained, threshold=0.5, stochastic=True)
+    for e in eps:
+        keys = {"rule", "learned", "prob", "along", "at_object"}
+        assert e["steps"] and keys <= set(e["steps"][0])
+        assert all((st["prob"] >= 0.5) == st["learned"] for st in e["steps"])
+        assert e["steps"][-1]["rule"] == e["success"]  # the last step is the env's verdict
+    steps = [st for e in eps for st in e["steps"]]
+    assert summarise_rewards(steps)["steps"] == len(steps)
+
+
 def test_training_with_learned_captioner_and_reward(trained, tmp_path, one_thread):
     from train.loop import Trainer
 
