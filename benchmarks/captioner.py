@@ -244,13 +244,25 @@ def _train_one(cfg: CaptionTrainConfig) -> str:
     return str(train_models(cfg))
 
 
+def side_by_side_parts(cfg: CaptionTrainConfig) -> dict[str, CaptionTrainConfig]:
+    """One config per model, each trained apart at one thread; the first model's process
+    shows its progress bar (one bar keeps the log readable while both train)."""
+    return {
+        m: dataclasses.replace(
+            cfg,
+            models=(m,),
+            out=f"{cfg.out}-{m}",
+            progress=cfg.progress and m == cfg.models[0],
+            threads=1,
+        )
+        for m in cfg.models
+    }
+
+
 def train_side_by_side(cfg: CaptionTrainConfig) -> Path:
     """Train each model in its own process (one thread each), then save them together."""
     ctx = multiprocessing.get_context("spawn")
-    parts = {
-        m: dataclasses.replace(cfg, models=(m,), out=f"{cfg.out}-{m}", progress=False, threads=1)
-        for m in cfg.models
-    }
+    parts = side_by_side_parts(cfg)
     with ProcessPoolExecutor(len(parts), mp_context=ctx, initializer=die_with_parent) as pool:
         done = dict(zip(parts, pool.map(_train_one, parts.values()), strict=True))
     return merge_checkpoints(done, cfg)

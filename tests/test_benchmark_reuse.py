@@ -235,3 +235,18 @@ def test_push_misses_follow_a_checkpoint_on_its_push_instructions(tmp_path, one_
     Trainer(tiny("lang2d-quick", reach, total_steps=120, learning_starts=100)).run()
     with pytest.raises(LcrlError, match="no push instruction"):
         run_pushes(reach, 1)
+
+
+def test_captioner_benchmark_trains_its_models_apart_with_one_progress_bar():
+    from benchmarks.captioner import side_by_side_parts
+    from captioner.learned import CaptionTrainConfig
+
+    cfg = CaptionTrainConfig(data="d.h5", out="ckpt", models=("captioner", "reward"), threads=2)
+    parts = side_by_side_parts(cfg)
+    assert list(parts) == ["captioner", "reward"]
+    assert [p.models for p in parts.values()] == [("captioner",), ("reward",)]
+    assert [p.out for p in parts.values()] == ["ckpt-captioner", "ckpt-reward"]
+    assert [p.progress for p in parts.values()] == [True, False]
+    assert all(p.threads == 1 for p in parts.values())
+    quiet = side_by_side_parts(dataclasses.replace(cfg, progress=False))
+    assert not any(p.progress for p in quiet.values())
