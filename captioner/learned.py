@@ -764,6 +764,12 @@ class CaptionTrainConfig:
     in a training loop asks most."""
     near_window: int = 10
     """Steps around an achievement that count as near (``near_negative_fraction``)."""
+    onset_delay: tuple[str, ...] = ()
+    """``FAMILY=STEPS`` entries (e.g. ``push=1``): an instruction of the family counts as
+    achieved, for both models, only from STEPS steps after the rule captioner first accepts
+    it (its first accepted steps become near misses). A model whose boundary is blurred by
+    perception error then judges the achievement a little after the rule does, not before:
+    a push it rewards has moved its object far enough."""
     val_fraction: float = 0.2
     """Episodes held out of training for evaluation."""
     model: CaptionModelConfig = field(default_factory=CaptionModelConfig)
@@ -797,6 +803,7 @@ class CaptionTrainConfig:
             raise LcrlError("augment_pad must be >= 0")
         if self.near_window < 1:
             raise LcrlError("near_window must be at least 1")
+        onset_delays(self.onset_delay)  # raises on a bad entry
         for name in ("none_fraction", "hard_negative_fraction", "near_negative_fraction"):
             if not 0.0 <= getattr(self, name) <= 1.0:
                 raise LcrlError(f"{name} must be in [0, 1]")
@@ -806,6 +813,47 @@ class CaptionTrainConfig:
             raise LcrlError(f"device must be cpu or cuda, got {self.device!r}")
         if self.device.startswith("cuda") and not torch.cuda.is_available():
             raise LcrlError("device cuda was asked for but torch sees no CUDA device")
+
+
+def onset_delays(entries: Sequence[str]) -> dict[str, int]:
+    """``("push=1", ...)`` as ``{"push": 1}``.
+
+    Raises:
+        LcrlError: an entry that is not ``FAMILY=STEPS`` with a known family and STEPS >= 0.
+    """
+    out: dict[str, int] = {}
+    for entry in entries:
+        family, sep, value = str(entry).partition("=")
+        steps = int(value) if sep and value.strip().isdigit() else -1
+        if family not in FAMILIES or steps < 0:
+            raise LcrlError(
+                f"onset_delay entry {entry!r}: give FAMILY=STEPS with a family of {FAMILIES} "
+                "and STEPS a whole number >= 0 (e.g. push=1)"
+            )
+        out[family] = steps
+    return out
+
+
+def delayed_labels(
+    data: Any, observations: np.ndarray, delays: dict[str, int], families: Sequence[str]
+) -> dict[int, np.ndarray]:
+    """Each of ``observations``' labels (instruction ids) whose family has a delay ``d`` in
+    ``delays``, kept only where the same instruction was also accepted at each of the ``d``
+    steps before, in the same episode; labels of other families as they are."""
+    out: dict[int, np.ndarray] = {}
+    for j in observations:
+        j = int(j)
+        lab = data.labels(j).astype(np.int64)
+        if lab.size and delays:
+            start = int(data.first_of(j))
+            keep = []
+            for i in lab:
+                d = delays.get(families[int(i)], 0)
+                ok = j - d > start and all(int(i) in data.labels(j - m) for m in range(1, d + 1))
+                keep.append(d == 0 or ok)
+            lab = lab[np.asarray(keep, bool)]
+        out[j] = lab
+    return out
 
 
 def _text_encoder(name: str) -> Any:
@@ -824,17 +872,22 @@ class _Sampler:
         table: list[Instruction],
         rng: np.random.Generator,
         near_window: int = 10,
+        onset_delay: dict[str, int] | None = None,
     ):
         self.pairs, self.rng, self.table = pairs, rng, table
         self.near_window = int(near_window)
         data = pairs.data
         obs = pairs.observations(pairs.train_episodes)
         seen = pairs.seen
+        #: Each training observation's labels, after the families' onset delays.
+        self._labels = delayed_labels(
+            data, obs, dict(onset_delay or {}), [ins.family for ins in table]
+        )
         self.labelled: list[int] = []
         self.targets: list[np.ndarray] = []
         self.empty: list[int] = []
         for j in obs:
-            lab = data.labels(int(j)).astype(np.int64)
+            lab = self.labels(int(j))
             if lab.size == 0:
                 self.empty.append(int(j))
             elif seen[lab].any():
@@ -867,6 +920,10 @@ class _Sampler:
             ]
             self.related.append(np.asarray(rel, np.int64))
 
+    def labels(self, j: int) -> np.ndarray:
+        """Instruction ids that training observation ``j`` counts as achieved."""
+        return self._labels[int(j)]
+
     def caption_batch(
         self, n: int, none_fraction: float, near: float = 0.0
     ) -> tuple[np.ndarray, list[int | None]]:
@@ -895,7 +952,7 @@ class _Sampler:
         hi = min(int(data.episode_start[e + 1]), j + self.near_window + 1)
         for _ in range(8):
             c = int(self.rng.integers(lo, hi)) if hi > lo else -1
-            if c >= 0 and instruction not in data.labels(c):
+            if c >= 0 and instruction not in self.labels(c):
                 return c
         return -1
 
@@ -925,7 +982,7 @@ class _Sampler:
                 idx[r] = self.empty_arr[self.rng.integers(len(self.empty))]
                 ids[r] = self.seen_ids[self.rng.integers(len(self.seen_ids))]
                 continue
-            all_labels = self.pairs.data.labels(int(idx[r]))
+            all_labels = self.labels(int(idx[r]))
             pool = self.related[int(sat[self.rng.integers(len(sat))])]
             if self.rng.random() >= hard or pool.size == 0:
                 pool = self.seen_ids
@@ -1250,7 +1307,7 @@ def train_models(cfg: CaptionTrainConfig) -> Path:
         lc.meta["val_episodes"] = pairs.val_episodes.tolist()
         lc.p_mean, lc.p_std = pairs.p_mean, pairs.p_std
         table = [_parse(t) for t in data.instructions]
-        sampler = _Sampler(pairs, table, rng, cfg.near_window)
+        sampler = _Sampler(pairs, table, rng, cfg.near_window, onset_delays(cfg.onset_delay))
         pad = 0 if perception is not None else cfg.augment_pad  # slots are not shifted
         history: dict[str, list[float]] = {}
         if "captioner" in cfg.models:

@@ -688,3 +688,58 @@ def test_relabel_agreement_counts_pairs_as_the_training_loop_does(trained, datas
     with pytest.raises(SystemExit):
         main(["caption", "eval", str(trained), "--thresholds", "1.5"])
     assert "--thresholds are probabilities in (0, 1), got 1.5" in capsys.readouterr().err
+
+
+class _Labels:
+    """A caption dataset's labels alone: two episodes, observations 0-4 and 5-8."""
+
+    def __init__(self, labels):
+        self._labels = [np.asarray(x, np.int64) for x in labels]
+
+    def labels(self, j):
+        return self._labels[j]
+
+    def first_of(self, j):
+        return 0 if j < 5 else 5
+
+
+def test_onset_delay_moves_an_achievements_first_steps_to_the_negatives():
+    from captioner.learned import delayed_labels, onset_delays
+
+    # instruction 0 is a push, 1 a reach; push accepted from step 2 of episode one and
+    # from the first step of episode two (never at two steps in a row before step 7)
+    data = _Labels([[], [1], [0, 1], [0], [0], [], [0], [0], [0]])
+    families = ["push", "reach"]
+    got = delayed_labels(data, np.arange(9), {"push": 1}, families)
+    assert [got[j].tolist() for j in range(9)] == [[], [1], [1], [0], [0], [], [], [0], [0]]
+    got = delayed_labels(data, np.arange(9), {"push": 2}, families)
+    assert [got[j].tolist() for j in range(9)] == [[], [1], [1], [], [0], [], [], [], [0]]
+    same = delayed_labels(data, np.arange(9), {}, families)
+    assert all(same[j].tolist() == data.labels(j).tolist() for j in range(9))
+    assert onset_delays(["push=1", "reach=0"]) == {"push": 1, "reach": 0}
+    for bad in ("push", "push=-1", "push=0.5", "grab=1"):
+        with pytest.raises(LcrlError, match="FAMILY=STEPS"):
+            onset_delays([bad])
+
+
+def test_reward_positives_follow_the_onset_delay(dataset):
+    from captioner.learned import _Pairs, _parse, _Sampler
+
+    with CaptionDataset(dataset) as data:
+        pairs = _Pairs(data, 0.2, 0)
+        table = [_parse(t) for t in data.instructions]
+        push = [i for i, ins in enumerate(table) if ins.family == "push"]
+        sampler = _Sampler(pairs, table, np.random.default_rng(0), 10, {"push": 1})
+        plain = _Sampler(pairs, table, np.random.default_rng(0), 10)
+        obs = pairs.observations(pairs.train_episodes)
+        dropped = 0
+        for j in obs:
+            full, kept = set(plain.labels(j).tolist()), set(sampler.labels(j).tolist())
+            assert kept <= full and {i for i in full - kept} <= set(push)
+            for i in kept & set(push):  # a kept push was accepted a step before too
+                assert j - 1 > data.first_of(j) and i in data.labels(j - 1)
+            dropped += len(full - kept)
+        assert dropped > 0  # the first accepted step of every push
+        idx, ids, y = sampler.reward_batch(512, 0.5, 0.5)
+        for j, i, t in zip(idx, ids, y, strict=True):
+            assert (int(i) in sampler.labels(int(j))) == bool(t)
