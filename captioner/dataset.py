@@ -51,7 +51,7 @@ from typing import Any, Protocol
 
 import numpy as np
 
-from captioner.grammar import Instruction
+from captioner.grammar import DIRECTION_VECTORS, Instruction
 from captioner.rule import RuleCaptioner
 from captioner.splits import Split, make_split
 from envs.scene import SceneState
@@ -414,6 +414,12 @@ class CollectConfig:
     them). Without them a moved object is nearly always seen with the robot beside it
     (a push ends in contact), and a reward model can read "reached" into any moved
     object."""
+    stop_short: float = 0.0
+    """Fraction of scripted push episodes that stop short: the push ends at a random 0.3
+    to 0.95 of the rule captioner's push distance, and held random actions follow (for
+    ``after_success`` steps, at least 10). A policy learning to push leaves many objects
+    part of the way; without such episodes a reward model sees few of them and can read a
+    push into them."""
     heldout_fraction: float = 0.25
     """Fraction of scripted episodes that follow a held-out combination (so that held-out
     evaluation has examples; training code decides whether to use them)."""
@@ -447,8 +453,9 @@ class CollectConfig:
                 raise LcrlError(f"{name} must be positive, got {getattr(self, name)}")
         if self.after_success < 0:
             raise LcrlError(f"after_success must be >= 0, got {self.after_success}")
-        if not 0.0 <= self.heldout_fraction <= 1.0:
-            raise LcrlError("heldout_fraction must be in [0, 1]")
+        for name in ("heldout_fraction", "stop_short"):
+            if not 0.0 <= getattr(self, name) <= 1.0:
+                raise LcrlError(f"{name} must be in [0, 1], got {getattr(self, name)}")
         if self.scripted_noise < 0:
             raise LcrlError("scripted_noise must be >= 0")
         if self.min_objects > self.max_objects:
@@ -660,6 +667,7 @@ def _episode(
         reset = getattr(src.controller, "reset", None)
         if reset is not None:
             reset()
+    short = _short_push(src, kind, cfg, rng, table, target, s0)
     frames = [obs["image"]]
     proprio = [_proprio(obs, src.proprio_dim)]
     states = [np.asarray(obs["observation"], np.float32)]
@@ -681,8 +689,10 @@ def _episode(
         states.append(np.asarray(obs["observation"], np.float32))
         scenes.append(src.scene())
         if done_at >= 0:
-            if t + 1 - done_at >= cfg.after_success:
+            if t + 1 - done_at >= max(cfg.after_success, 10 if short else 0):
                 break
+        elif short is not None and _along(short, s0, scenes[-1]) >= short[2]:
+            done_at = t + 1  # stopped short: held random actions from here
         elif kind == "scripted" and src.captioner.satisfied(table[target], s0, scenes[-1]):
             if cfg.after_success <= 0:
                 break
@@ -699,6 +709,33 @@ def _episode(
         "instruction": target,
     }
     return episode, scenes
+
+
+def _short_push(
+    src: _Source,
+    kind: str,
+    cfg: CollectConfig,
+    rng: np.random.Generator,
+    table: Sequence[Instruction],
+    target: int,
+    s0: SceneState,
+) -> tuple[int, np.ndarray, float] | None:
+    """For a scripted push episode drawn to stop short (``stop_short``): the pushed
+    object's index, its direction and the distance to stop at (None: a whole episode)."""
+    if kind != "scripted" or cfg.stop_short <= 0 or table[target].family != "push":
+        return None
+    if rng.random() >= cfg.stop_short:
+        return None
+    ins = table[target]
+    vec = np.asarray(DIRECTION_VECTORS[ins.direction], np.float64)
+    stop = float(rng.uniform(0.3, 0.95)) * src.captioner.thresholds.push_distance
+    return s0.index(*ins.obj), vec, stop
+
+
+def _along(short: tuple[int, np.ndarray, float], s0: SceneState, s: SceneState) -> float:
+    """How far the short push's object has moved along its direction."""
+    k, vec, _ = short
+    return float((s.positions[k, :2] - s0.positions[k, :2]) @ vec)
 
 
 def iter_pairs(

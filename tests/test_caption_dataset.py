@@ -98,6 +98,35 @@ def test_scripted_episodes_go_on_after_success(tmp_path):
         CollectConfig(after_success=-1).validate()
 
 
+def test_scripted_pushes_can_stop_short(tmp_path):
+    """With stop_short, scripted pushes end part of the way (held random actions follow),
+    so fewer reach the push distance than whole pushes from the same layouts do."""
+
+    def own_successes(stop_short: float) -> tuple[float, list[int]]:
+        cfg = CollectConfig(
+            out=str(tmp_path / f"{stop_short}.h5"),
+            sources=("scripted",),
+            families=("push",),
+            episodes=16,
+            image_size=32,
+            stop_short=stop_short,
+            progress=False,
+        )
+        collect(cfg)
+        with CaptionDataset(cfg.out) as data:
+            eps = [data.episode(e) for e in range(data.num_episodes)]
+        hit = [any(ep["instruction"] in lab for lab in ep["labels"]) for ep in eps]
+        return float(np.mean(hit)), [len(ep["frames"]) for ep in eps]
+
+    whole, _ = own_successes(0.0)
+    short, lengths = own_successes(1.0)
+    assert whole >= 0.9 and short <= whole - 0.25, (whole, short)
+    assert min(lengths) > 10  # at least the ten held random steps after stopping
+    for bad in (-0.1, 1.5):
+        with pytest.raises(LcrlError, match="stop_short must be in"):
+            CollectConfig(stop_short=bad).validate()
+
+
 def test_labels_name_what_the_rule_captioner_says(tmp_path):
     """An episode's label ids, written and read back, name the captioner's instructions."""
     cfg = CollectConfig(out=str(tmp_path / "x.h5"), sources=("scripted",), progress=False)
