@@ -152,6 +152,15 @@ def run_pushes(
                         "rule": bool(rule.satisfied(ins, s0, s)),
                         "along": float(d @ vec) / rule.thresholds.push_distance,
                         "at_object": at_object,
+                        # the most another object has moved along the same direction
+                        "other_along": float(
+                            np.delete((s.positions[:, :2] - s0.positions[:, :2]) @ vec, k).max(
+                                initial=-np.inf
+                            )
+                        )
+                        / rule.thresholds.push_distance,
+                        "lateral": float(abs(d[0] * vec[1] - d[1] * vec[0]))
+                        / rule.thresholds.push_distance,
                     }
                 )
             moved = np.linalg.norm(s.positions[:, :2] - s0.positions[:, :2], axis=-1)

@@ -394,6 +394,20 @@ def test_learned_rewards_can_end_training_episodes_where_they_judge_success(
     for name in ("never", "limit"):  # to the time limit, never terminal
         episodes, terminal = ends[name]
         assert episodes <= 300 // limit + 1 and terminal == 0, (name, ends)
+    # only push episodes end where the reward model says so: reach ones run to the limit
+    cfg = _small_run(
+        tmp_path / "push", trained, captioner="learned", reward="learned", threshold=0.0,
+        end="learned", end_families=("push",),
+    )  # fmt: skip
+    trainer = Trainer(cfg)
+    trainer.run()
+    b = trainer.buffer
+    n = b.high
+    families = trainer.task.labeller.families
+    starts = np.flatnonzero(b.terminated[:n])
+    assert len(starts) > 0  # push episodes ended at their first step
+    assert all(families[int(g)] == "push" for g in b.goal_space.desired(starts))
+    assert ends["never"][0] < trainer.episodes < ends["always"][0]
 
 
 def test_learned_relabelling_settings_are_checked(trained, tmp_path):
@@ -404,6 +418,14 @@ def test_learned_relabelling_settings_are_checked(trained, tmp_path):
 
     with pytest.raises(LcrlError, match=r"relabel\.checkpoint"):
         Trainer(_small_run(tmp_path / "a", "", captioner="learned"))
+    with pytest.raises(LcrlError, match=r"end_families needs relabel\.end=learned"):
+        Trainer(_small_run(tmp_path / "e", trained, reward="learned", end_families=("push",)))
+    with pytest.raises(LcrlError, match=r"end_families must be among"):
+        Trainer(
+            _small_run(
+                tmp_path / "f", trained, reward="learned", end="learned", end_families=("grab",)
+            )
+        )
     with pytest.raises(LcrlError, match=r"relabel\.reward"):
         Trainer(_small_run(tmp_path / "b", trained, reward="clip"))
     with pytest.raises(LcrlError, match=r"relabel\.agree"):

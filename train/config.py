@@ -109,6 +109,11 @@ class RelabelConfig:
     ``limit`` (the time limit) or ``learned`` (also at the first step where the reward
     model judges the episode's own instruction achieved, scored online on the frames, as
     a robot without privileged state would stop). Never at the env's privileged success."""
+    end_families: tuple[str, ...] = ()
+    """With ``end=learned``: only episodes whose instruction is of these families end where
+    the reward model judges it achieved; the others run to the time limit (empty: every
+    family). A family whose false rewards come in states that last (an object left part of
+    the way) then earns one false reward per episode instead of one per remaining step."""
 
     @property
     def learned(self) -> bool:
@@ -659,6 +664,13 @@ class TrainConfig:
         family_thresholds(self.relabel.family_thresholds)  # raises on a bad entry
         if self.relabel.end not in EPISODE_ENDS:
             raise LcrlError(f"relabel.end must be one of {EPISODE_ENDS}, got {self.relabel.end!r}")
+        from captioner.grammar import FAMILIES
+
+        bad = [f for f in self.relabel.end_families if f not in FAMILIES]
+        if bad:
+            raise LcrlError(f"relabel.end_families must be among {FAMILIES}, got {bad}")
+        if self.relabel.end_families and self.relabel.end != "learned":
+            raise LcrlError("relabel.end_families needs relabel.end=learned")
         if self.relabel.end == "learned" and self.relabel.reward != "learned":
             raise LcrlError(
                 "relabel.end=learned ends training episodes where the learned reward model "

@@ -820,6 +820,10 @@ class Trainer(BaseTrainer):
         if self.cfg.relabel.end != "learned":
             return
         live = [ep for ep in episodes if not ep.terms[-1]]
+        only = self.cfg.relabel.end_families
+        if only:
+            families = self.task.labeller.families
+            live = [ep for ep in live if families[int(ep.goal)] in only]
         if not live:
             return
         first = [ep.records[0] for ep in live]
