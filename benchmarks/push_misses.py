@@ -18,8 +18,10 @@ step of every episode against its instruction, at ``--threshold``, and the steps
 sorted by the rule's verdict: ``false_rewards`` are the steps it rewards where the rule does
 not, binned like the failures by how far the object had got at that step (``untouched``
 then also splits by whether the pusher was at the object); ``missed_rewards`` the steps the
-rule rewards and it does not. ``--stochastic`` samples the policy's actions, as training
-episodes do.
+rule rewards and it does not. A false reward in a state that lasts (an object left part of
+the way) counts at every step it lasts, so the episodes are counted too: those with a
+reward before the rule's first success, and those rewarded at that success.
+``--stochastic`` samples the policy's actions, as training episodes do.
 """
 
 from __future__ import annotations
@@ -88,6 +90,28 @@ def summarise_rewards(steps: Sequence[dict]) -> dict:
         sum(miss_bin(s["along"]) == "untouched" and s["at_object"] for s in fp) / n if n else 0.0
     )
     return out
+
+
+def episode_rewards(episodes: Sequence[dict]) -> dict:
+    """The reward model's verdicts episode by episode (each episode's ``steps`` carry
+    ``rule`` and ``learned``): in how many it rewarded a step before the rule's first
+    success (``false_before_success``), and of the episodes that succeed, in how many it
+    rewarded the first successful step itself (``hit_at_success``)."""
+    false_before = successes = hits = 0
+    for e in episodes:
+        rule = [s["rule"] for s in e["steps"]]
+        learned = [s["learned"] for s in e["steps"]]
+        first = rule.index(True) if any(rule) else len(rule)
+        false_before += any(learned[:first])
+        if first < len(rule):
+            successes += 1
+            hits += learned[first]
+    return {
+        "episodes": len(episodes),
+        "false_before_success": false_before,
+        "successes": successes,
+        "hit_at_success": hits,
+    }
 
 
 def run_pushes(
@@ -217,6 +241,7 @@ def main(argv: list[str] | None = None) -> int:
         if args.captioner is not None:
             steps = [st for e in episodes for st in e["steps"]]
             print(run, "rewards", json.dumps(summarise_rewards(steps)))
+            print(run, "episodes", json.dumps(episode_rewards(episodes)))
     return 0
 
 

@@ -213,6 +213,20 @@ def test_push_misses_sort_the_reward_models_verdicts_against_the_rule():
     assert got["false_rewards"] == 2 and got["missed_rewards"] == 1
     assert got["false_short"] == pytest.approx(0.5) and got["false_untouched"] == pytest.approx(0.5)
     assert got["false_untouched_at_object"] == pytest.approx(0.5) and got["false_drift"] == 0
+    from benchmarks.push_misses import episode_rewards
+
+    def ep(rule, learned):
+        return {"steps": [{"rule": r, "learned": x} for r, x in zip(rule, learned, strict=True)]}
+
+    got = episode_rewards(
+        [
+            ep([0, 0, 1], [1, 0, 1]),  # rewarded early, and at its success
+            ep([0, 1, 1], [0, 0, 1]),  # a step late
+            ep([0, 0, 0], [0, 1, 1]),  # rewarded, never succeeded
+            ep([0, 0, 0], [0, 0, 0]),
+        ]
+    )
+    assert got == {"episodes": 4, "false_before_success": 2, "successes": 2, "hit_at_success": 1}
     empty = summarise_rewards([])
     assert empty["false_rewards"] == 0 and np.isnan(empty["precision"])
 
