@@ -140,9 +140,9 @@ def run_pushes(
         overrides = {"extra": {"image": True, "image_size": int(models.frame_shape[0])}}
     policy = load_policy(run, env_overrides=overrides)
     agent, task, env = policy.agent, policy.task, policy.env
-    if models is not None:
-        start = int(slot_layout_start(find_language_wrapper(env)))
     wrapper = find_language_wrapper(env)
+    if models is not None:
+        start = int(slot_layout_start(wrapper))
     rule = wrapper.captioner
     texts = [t for t in task.table[: task.num_train] if t.split()[:1] == ["push"]]
     if not texts:
@@ -165,7 +165,8 @@ def run_pushes(
             obs, _, terminated, truncated, info = env.step(task.scale_action(action))
             s = wrapper.env.unwrapped.scene()
             d = s.positions[k, :2] - s0.positions[k, :2]
-            best = max(best, float(d @ vec))
+            along = float(d @ vec)
+            best = max(best, along)
             at_object = bool(np.linalg.norm(s.gripper[:2] - s.positions[k, :2]) <= near)
             reached |= at_object
             if models is not None:
@@ -174,7 +175,7 @@ def run_pushes(
                 steps.append(
                     {
                         "rule": bool(rule.satisfied(ins, s0, s)),
-                        "along": float(d @ vec) / rule.thresholds.push_distance,
+                        "along": along / rule.thresholds.push_distance,
                         "at_object": at_object,
                         # the most another object has moved along the same direction
                         "other_along": float(
