@@ -560,6 +560,40 @@ def test_captioner_rewards_store_the_captions_as_rewards(trained, tmp_path, one_
     assert trainer.buffer.size >= 120
 
 
+def test_learned_candidates_with_rule_rewards(trained, tmp_path, one_thread):
+    """captioner=learned, reward=rule: the learned captions are the relabelling candidates
+    and the rule captioner's labels are the rewards."""
+    from train.loop import Trainer
+
+    cfg = _small_run(
+        tmp_path / "run", trained, captioner="learned", reward="rule", min_logprob=-1e9
+    )
+    trainer = Trainer(cfg)
+    task = trainer.task
+    assert task.labeller.use_captioner and not task.labeller.use_reward
+    env = trainer.env
+    obs, _ = env.reset(seed=0)
+    goal = task.goal(obs, env)
+    records = [task.step_record(obs, env)]
+    for _ in range(6):
+        obs, *_ = env.step(env.action_space.sample())
+        records.append(task.step_record(obs, env))
+    fields = task.episode_fields(records, goal, env)
+    frames = np.stack([r[1] for r in records])
+    proprio = np.stack([r[2] for r in records])
+    assert fields["labels"] == task.labeller.labels(frames, proprio)
+    s0 = records[0][0]
+    rule = [[]] + [
+        [
+            task.label_ids[c.text]
+            for c in task.captioner.caption(s0, r[0])
+            if c.text in task.label_ids
+        ]
+        for r in records[1:]
+    ]
+    assert fields["achieved"] == rule  # rewarded by the rule captioner, not the captions
+
+
 # --- the models over perception -----------------------------------------------------------
 @pytest.fixture(scope="module")
 def slots_dataset(tmp_path_factory):

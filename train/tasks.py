@@ -788,7 +788,7 @@ class LanguageTask(Task):
                 out["labels"] = lab.confirmed(out["labels"], out["achieved"])
         if lab.use_captioner or lab.reward_labels:
             lab.compare("labels", out["labels"], labels)
-        elif lab.use_captioner and not lab.captioner_rewards:
+        if lab.use_captioner and not lab.use_reward and not lab.captioner_rewards:
             out["achieved"] = labels  # learned candidates, rule rewards
         # captioner_rewards: no "achieved", so the learned captions are the rewards too
         return out
