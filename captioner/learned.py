@@ -31,6 +31,7 @@ recall and ROC AUC.
 
 from __future__ import annotations
 
+import functools
 import json
 import math
 from collections import Counter
@@ -697,9 +698,9 @@ class _Pairs:
     ) -> None:
         self.data = data
         self.proprio = data.proprio.astype(np.float32)
-        # uint8 frames (N, H, W, 3), or perception's estimates of them, computed once
-        frames = data.frames[:]
-        self.frames = frames if perceive is None else perceive(frames, self.proprio)
+        # uint8 frames (N, H, W, 3), or perception's estimates of them, computed once (read
+        # from the file a batch at a time)
+        self.frames = data.frames[:] if perceive is None else perceive(data.frames, self.proprio)
         n_ep = data.num_episodes
         perm = np.random.default_rng(seed).permutation(n_ep)
         n_val = max(1, round(val_fraction * n_ep)) if n_ep > 1 else 0
@@ -1066,16 +1067,25 @@ class LearnedCaptioner:
             torch.as_tensor(p, device=dev),
         )
 
-    def perceive(self, frames: np.ndarray, proprio: np.ndarray, batch: int = 256) -> np.ndarray:
-        """Perception's estimated observations ``(N, dim)`` of frames and their robot
-        state (``encoder=perception``)."""
+    def perceive(
+        self, frames: Any, proprio: np.ndarray, batch: int = 256, progress: bool = False
+    ) -> np.ndarray:
+        """Perception's estimated observations ``(N, dim)`` of frames (an array, or any
+        sequence that slices into arrays, such as a file's dataset) and their robot state
+        (``encoder=perception``); ``progress`` shows a bar."""
         if self.perception is None:
             raise LcrlError("these models read camera frames, not a perception model's slots")
+        from tqdm import tqdm
+
         start = self.perception.layout.start
-        out = [
-            self.perception.observation(frames[i : i + batch], proprio[i : i + batch, :start])
-            for i in range(0, len(frames), batch)
-        ]
+        n = len(frames)
+        bar = tqdm(total=n, desc="perception", unit="frame", disable=not progress or n == 0)
+        out = []
+        for i in range(0, n, batch):
+            x = np.asarray(frames[i : i + batch])
+            out.append(self.perception.observation(x, proprio[i : i + batch, :start]))
+            bar.update(len(x))
+        bar.close()
         return np.concatenate(out).astype(np.float32) if out else np.zeros((0, 0), np.float32)
 
     def encode_texts(self, texts: Sequence[str]) -> torch.Tensor:
@@ -1303,7 +1313,8 @@ def train_models(cfg: CaptionTrainConfig) -> Path:
         )
         lc.perception = perception
         vocab = lc.vocab
-        pairs = _Pairs(data, cfg.val_fraction, cfg.seed, lc.perceive if perception else None)
+        perceive = functools.partial(lc.perceive, progress=cfg.progress) if perception else None
+        pairs = _Pairs(data, cfg.val_fraction, cfg.seed, perceive)
         lc.meta["val_episodes"] = pairs.val_episodes.tolist()
         lc.p_mean, lc.p_std = pairs.p_mean, pairs.p_std
         table = [_parse(t) for t in data.instructions]

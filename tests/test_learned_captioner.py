@@ -623,7 +623,7 @@ def _oracle(dataset):
     return Oracle(shape, layout)
 
 
-def test_models_over_perception_learn_from_the_slots(slots_dataset, tmp_path, monkeypatch):
+def test_models_over_perception_learn_from_the_slots(slots_dataset, tmp_path, monkeypatch, capsys):
     """``--model.encoder perception``: the models read perception's estimates of the first
     and current frame; given exact estimates (the simulator's state) they caption held-out
     episodes and rank their rewards far above chance."""
@@ -642,6 +642,11 @@ def test_models_over_perception_learn_from_the_slots(slots_dataset, tmp_path, mo
     lc = LearnedCaptioner.load(path)
     saved = json.loads((path / "meta.json").read_text())["perception"]
     assert lc.perception is oracle and saved["format"] == "lcrl-perception"
+    with CaptionDataset(slots_dataset) as data:  # read from the file a batch at a time
+        capsys.readouterr()
+        est = lc.perceive(data.frames, data.proprio[:], batch=64, progress=True)
+        assert "perception" in capsys.readouterr().err  # a progress bar on long work
+        np.testing.assert_allclose(est, lc.perceive(data.frames[:], data.proprio[:]), atol=1e-6)
     with CaptionDataset(slots_dataset) as data:
         seen = evaluate_models(lc, data)["seen"]
     # chance is about 1 in 30 instructions for the captioner, 0.5 for the reward AUC
