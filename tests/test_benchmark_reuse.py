@@ -189,9 +189,11 @@ def test_push_misses_sort_failures_by_how_far_the_object_got():
     ]
     got = summarise(eps)
     assert got["success"] == pytest.approx(0.25) and got["failures"] == 3
-    assert got["untouched"] == pytest.approx(2 / 3) and got["short"] == pytest.approx(1 / 3)
-    assert got["drift"] == 0 and got["reached"] == pytest.approx(2 / 3)
-    assert got["other_moved"] == pytest.approx(1 / 3) and got["median_along"] == 0.0
+    assert got["untouched"] == pytest.approx(2 / 3, abs=1e-3) and got["short"] == pytest.approx(
+        1 / 3, abs=1e-3
+    )
+    assert got["drift"] == 0 and got["reached"] == pytest.approx(2 / 3, abs=1e-3)
+    assert got["other_moved"] == pytest.approx(1 / 3, abs=1e-3) and got["median_along"] == 0.0
     lines = push_failure_lines({"rule": got})
     assert any(line.startswith("| rule | 4 | 0.25 | 0.67 | 0.33 | 0.00 | 0.67 |") for line in lines)
     assert push_failure_lines({}) == []
@@ -209,7 +211,9 @@ def test_push_misses_sort_the_reward_models_verdicts_against_the_rule():
     ]
     got = summarise_rewards(steps)
     assert (got["steps"], got["rule_rewards"], got["learned_rewards"]) == (5, 2, 3)
-    assert got["precision"] == pytest.approx(1 / 3) and got["recall"] == pytest.approx(0.5)
+    assert got["precision"] == pytest.approx(1 / 3, abs=1e-3) and got["recall"] == pytest.approx(
+        0.5
+    )
     assert got["false_rewards"] == 2 and got["missed_rewards"] == 1
     assert got["false_short"] == pytest.approx(0.5) and got["false_untouched"] == pytest.approx(0.5)
     assert got["false_untouched_at_object"] == pytest.approx(0.5) and got["false_drift"] == 0
@@ -229,6 +233,33 @@ def test_push_misses_sort_the_reward_models_verdicts_against_the_rule():
     assert got == {"episodes": 4, "false_before_success": 2, "successes": 2, "hit_at_success": 1}
     empty = summarise_rewards([])
     assert empty["false_rewards"] == 0 and np.isnan(empty["precision"])
+
+
+def test_reach_rewards_count_the_reward_models_reach_verdicts_against_the_rule():
+    from benchmarks.reach_rewards import summarise
+
+    steps = [
+        {"rule": True, "prob": 0.95, "moving": True, "gap": 0.015},  # in contact, pushing
+        {"rule": True, "prob": 0.6, "moving": True, "gap": 0.016},  # missed at 0.7 and 0.9
+        {"rule": True, "prob": 0.75, "moving": False, "gap": 0.019},
+        {"rule": False, "prob": 0.8, "moving": False, "gap": 0.025},  # false at 0.5, 0.7
+        {"rule": False, "prob": 0.1, "moving": False, "gap": 0.2},
+    ]
+    got = summarise(steps)
+    assert (got["steps"], got["rule_reached"], got["moving"]) == (5, 3, 2)
+    at5, at7, at9 = (got["thresholds"][t] for t in ("0.5", "0.7", "0.9"))
+    assert at5["recall"] == 1.0 and at5["precision"] == pytest.approx(3 / 4, abs=1e-3)
+    assert at7["recall"] == pytest.approx(2 / 3, abs=1e-3) and at7["recall_moving"] == 0.5
+    assert at7["recall_still"] == 1.0 and at7["precision"] == pytest.approx(2 / 3, abs=1e-3)
+    assert at9["recall"] == pytest.approx(1 / 3, abs=1e-3) and at9["precision"] == 1.0
+    first, second, *_, last = got["bands"]
+    assert (
+        first["steps"] == 3
+        and first["rule"] == 1.0
+        and first["at_0.9"] == pytest.approx(1 / 3, abs=1e-3)
+    )
+    assert second["steps"] == 1 and second["rule"] == 0.0 and second["mean_prob"] == 0.8
+    assert last["steps"] == 1 and sum(b["steps"] for b in got["bands"]) == 5
 
 
 def test_push_misses_follow_a_checkpoint_on_its_push_instructions(tmp_path, one_thread):

@@ -195,6 +195,20 @@ def test_push_misses_score_each_step_with_the_reward_model(trained, tmp_path, on
     assert summarise_rewards(steps)["steps"] == len(steps)
 
 
+def test_reach_rewards_score_reach_on_a_policys_own_episodes(trained, tmp_path, one_thread):
+    from benchmarks.reach_rewards import run_episodes, summarise
+    from train.loop import Trainer
+
+    out = tmp_path / "run"
+    Trainer(tiny("lang2d", out, total_steps=120, learning_starts=100)).run()
+    steps = run_episodes(out, trained, "push", 2)
+    assert steps and {"rule", "prob", "moving", "gap"} <= set(steps[0])
+    assert all(0.0 <= st["prob"] <= 1.0 for st in steps)
+    # the rule's reach holds exactly within reach_margin (2 cm) of the object's edge
+    assert all(st["rule"] == (st["gap"] <= 0.02 + 1e-6) for st in steps)
+    assert summarise(steps)["steps"] == len(steps)
+
+
 def test_training_with_learned_captioner_and_reward(trained, tmp_path, one_thread):
     from train.loop import Trainer
 
