@@ -12,10 +12,10 @@ rule's, the recall split by whether the object moved that step (the pusher pushi
 stood still, and per band of the pusher's distance to the object's edge (centre distance
 minus the object's half size): how often the rule and the reward model say reached there,
 and the model's mean probability. The rule's reach ends ``reach_margin`` (2 cm) beyond the
-object's edge and the pusher touches it at its radius (1.5 cm), so a model that reads
-estimated positions (about 1 cm of error near the pusher) is unsure whether a pusher in
-contact reaches; a high threshold then turns most contact steps of a push into missed
-reach rewards.
+object's edge (and holds wherever the pusher touches the object) and the pusher touches it
+at its radius (1.5 cm), so a model that reads estimated positions (about 1 cm of error near
+the pusher) is unsure whether a pusher in contact reaches; a high threshold then turns most
+contact steps of a push into missed reach rewards.
 """
 
 from __future__ import annotations

@@ -204,8 +204,9 @@ def test_reach_rewards_score_reach_on_a_policys_own_episodes(trained, tmp_path, 
     steps = run_episodes(out, trained, "push", 2)
     assert steps and {"rule", "prob", "moving", "gap"} <= set(steps[0])
     assert all(0.0 <= st["prob"] <= 1.0 for st in steps)
-    # the rule's reach holds exactly within reach_margin (2 cm) of the object's edge
-    assert all(st["rule"] == (st["gap"] <= 0.02 + 1e-6) for st in steps)
+    # the rule's reach holds within reach_margin (2 cm) of the object's edge (and where the
+    # pusher touches it, which a box's corner allows further out)
+    assert all(st["rule"] for st in steps if st["gap"] <= 0.02 - 1e-6)
     assert summarise(steps)["steps"] == len(steps)
 
 
