@@ -545,6 +545,24 @@ def test_bad_model_config_is_refused():
         train_models(CaptionTrainConfig(model=CaptionModelConfig(strides=(1, 2))))
 
 
+def _random_episode(trainer, steps=6):
+    """A few random steps of the trainer's env, recorded as the loop records them, and the
+    episode's stored fields (labels, rewards)."""
+    task, env = trainer.task, trainer.env
+    obs, _ = env.reset(seed=0)
+    goal = task.goal(obs, env)
+    records = [task.step_record(obs, env)]
+    for _ in range(steps):
+        obs, *_ = env.step(env.action_space.sample())
+        records.append(task.step_record(obs, env))
+    return records, task.episode_fields(records, goal, env)
+
+
+def _frames(records):
+    """The camera frames and proprioception of recorded steps, stacked."""
+    return np.stack([r[1] for r in records]), np.stack([r[2] for r in records])
+
+
 def test_captioner_rewards_store_the_captions_as_rewards(trained, tmp_path, one_thread):
     """reward=captioner: the learned captions are both the relabelling candidates and the
     rewards (no reward model, no rule rewards)."""
@@ -559,18 +577,9 @@ def test_captioner_rewards_store_the_captions_as_rewards(trained, tmp_path, one_
     trainer = Trainer(cfg)
     task = trainer.task
     assert task.labeller.captioner_rewards and not task.labeller.use_reward
-    env = trainer.env
-    obs, _ = env.reset(seed=0)
-    goal = task.goal(obs, env)
-    records = [task.step_record(obs, env)]
-    for _ in range(6):
-        obs, *_ = env.step(env.action_space.sample())
-        records.append(task.step_record(obs, env))
-    fields = task.episode_fields(records, goal, env)
+    records, fields = _random_episode(trainer)
     assert "achieved" not in fields  # the buffer rewards the labels themselves
-    frames = np.stack([r[1] for r in records])
-    proprio = np.stack([r[2] for r in records])
-    assert fields["labels"] == task.labeller.labels(frames, proprio)
+    assert fields["labels"] == task.labeller.labels(*_frames(records))
     trainer.run()
     assert trainer.buffer.size >= 120
 
@@ -586,17 +595,8 @@ def test_learned_candidates_with_rule_rewards(trained, tmp_path, one_thread):
     trainer = Trainer(cfg)
     task = trainer.task
     assert task.labeller.use_captioner and not task.labeller.use_reward
-    env = trainer.env
-    obs, _ = env.reset(seed=0)
-    goal = task.goal(obs, env)
-    records = [task.step_record(obs, env)]
-    for _ in range(6):
-        obs, *_ = env.step(env.action_space.sample())
-        records.append(task.step_record(obs, env))
-    fields = task.episode_fields(records, goal, env)
-    frames = np.stack([r[1] for r in records])
-    proprio = np.stack([r[2] for r in records])
-    assert fields["labels"] == task.labeller.labels(frames, proprio)
+    records, fields = _random_episode(trainer)
+    assert fields["labels"] == task.labeller.labels(*_frames(records))
     s0 = records[0][0]
     rule = [[]] + [
         [
