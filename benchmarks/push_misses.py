@@ -114,6 +114,21 @@ def episode_rewards(episodes: Sequence[dict]) -> dict:
     }
 
 
+def episode_probs(
+    models, text: str, first: dict, frames: list, proprio: list, start: int
+) -> np.ndarray:
+    """The reward model's probability that ``text`` is achieved at each recorded step,
+    judged from the episode's first observation ``first`` (its image and the robot state,
+    the observation's first ``start`` values) to each step's frame and robot state."""
+    f0 = np.asarray(first["image"])
+    p0 = np.asarray(first["observation"][:start], np.float32)
+    n = len(frames)
+    return models.score_matrix(
+        [text], np.repeat(f0[None], n, 0), np.stack(frames),
+        np.repeat(p0[None], n, 0), np.stack(proprio),
+    )[:, 0]  # fmt: skip
+
+
 def run_pushes(
     run: str | Path,
     episodes: int,
@@ -193,13 +208,7 @@ def run_pushes(
             if terminated or truncated:
                 break
         if models is not None:
-            f0 = np.asarray(first["image"])
-            p0 = np.asarray(first["observation"][:start], np.float32)
-            n = len(frames)
-            probs = models.score_matrix(
-                [text], np.repeat(f0[None], n, 0), np.stack(frames),
-                np.repeat(p0[None], n, 0), np.stack(proprio),
-            )[:, 0]  # fmt: skip
+            probs = episode_probs(models, text, first, frames, proprio, start)
             for st, p in zip(steps, probs, strict=True):
                 st["prob"] = float(p)
                 st["learned"] = bool(p >= threshold)

@@ -84,6 +84,7 @@ def run_episodes(
 ) -> list[dict]:
     """Every step of ``episodes`` sampled-action episodes of ``run``'s policy on its seen
     ``family`` instructions: the rule's and the reward model's reach verdicts."""
+    from benchmarks.push_misses import episode_probs
     from captioner.learned import LearnedCaptioner
     from lcrl.errors import LcrlError
     from train.eval_suite import episode_seed
@@ -131,13 +132,7 @@ def run_episodes(
             prev = s.positions[k, :2].copy()
             if terminated or truncated:
                 break
-        f0 = np.asarray(first["image"])
-        p0 = np.asarray(first["observation"][:start], np.float32)
-        n = len(frames)
-        probs = models.score_matrix(
-            [reach], np.repeat(f0[None], n, 0), np.stack(frames),
-            np.repeat(p0[None], n, 0), np.stack(proprio),
-        )[:, 0]  # fmt: skip
+        probs = episode_probs(models, reach, first, frames, proprio, start)
         for st, p in zip(ep, probs, strict=True):
             st["prob"] = float(p)
         steps += ep
