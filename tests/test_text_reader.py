@@ -290,8 +290,10 @@ def test_a_run_with_the_canonical_reader_saves_it_and_eval_can_add_one(tmp_path,
     from train.environments import check_env_config
     from train.text_reading import CanonicalEncoder
 
-    # two members instead of five: saving, loading and fitting for eval are what is checked
+    # two members of 40 steps instead of five of 600: saving, loading and fitting for eval
+    # are what is checked (how well a canonical reader reads: the test above)
     monkeypatch.setattr("train.text_reading.CANONICAL_MEMBERS", 2)
+    monkeypatch.setattr("train.text_reading.READER_STEPS", 40)
     out = tmp_path / "run"
     cfg = tiny("lang2d-grounded", out, total_steps=200)
     cfg.env.canonical_reader = True

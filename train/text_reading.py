@@ -47,6 +47,8 @@ PHRASINGS = 16
 #: are misread whenever that reader tied a colour to a shape (one reader in three on the
 #: reach-only splits); the mean of five read them all right on 3 splits x 3 seeds.
 CANONICAL_MEMBERS = 5
+#: Full-batch gradient steps of each reader a run fits (:func:`lcrl.text_reader.fit_reader`).
+READER_STEPS = 600
 #: Token-state dropout while fitting a canonical reader's members: with it the reader
 #: reads more of the grammar's phrasings of lang2d's training meanings right, and more
 #: of its phrasings of held-out meanings (``benchmarks/reader.py``: 0.964 and 0.943
@@ -97,12 +99,12 @@ def train_reading_encoder(
     slots = {slot: len(values) for slot, values in SLOT_VALUES.items()}
     if members:
         reader: Any = fit_ensemble(
-            states, mask, labels, slots, members, seed=seed,
+            states, mask, labels, slots, members, READER_STEPS, seed=seed,
             dropout=CANONICAL_DROPOUT if dropout is None else dropout,
             **(CANONICAL_DESIGN if design is None else design),
         )  # fmt: skip
     else:
-        reader = fit_reader(states, mask, labels, slots, seed=seed)
+        reader = fit_reader(states, mask, labels, slots, READER_STEPS, seed=seed)
     reading = ReadingEncoder(encoder, reader)
     reading.seen = {slot: sorted(set(ids)) for slot, ids in labels.items()}  # type: ignore[attr-defined]
     return reading
