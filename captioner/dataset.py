@@ -71,6 +71,7 @@ __all__ = [
     "CollectConfig",
     "collect",
     "instruction_table",
+    "merge",
 ]
 
 
@@ -750,3 +751,112 @@ def iter_pairs(
             lab = data.labels(j)
             if lab.size:
                 yield a, j, lab
+
+
+#: Meta entries that must agree for caption datasets to be merged.
+_MERGE_KEYS = ("env", "families", "split_seed", "split_fingerprint", "image_size", "slot_layout")
+
+
+def merge(
+    paths: Sequence[str | os.PathLike],
+    out: str | os.PathLike,
+    overwrite: bool = False,
+    progress: bool = True,
+) -> Path:
+    """Concatenate caption datasets of one simulator and instruction split into one file
+    (``lcrl caption merge``): episodes collected apart (say, more policy episodes from a
+    later policy) then train the models together. Returns the new file's path.
+
+    The files must share the instruction table, frame shape, proprioception and privileged
+    widths and the simulator settings of :data:`_MERGE_KEYS`; the first file's meta is
+    kept, with ``merged`` listing each input and its collect settings. Ctrl-C discards the
+    unfinished file (the inputs are never changed).
+    """
+    from tqdm import tqdm
+
+    if len(paths) < 2:
+        raise LcrlError(f"merge needs at least two caption datasets, got {len(paths)}")
+    resolved = [Path(p).resolve() for p in paths]
+    if len(set(resolved)) < len(resolved):
+        raise LcrlError("a caption dataset is named twice: its episodes would be duplicated")
+    if Path(out).resolve() in resolved:
+        raise LcrlError(f"--out {out} is one of the inputs: write the merge to a new file")
+    datasets = [CaptionDataset(p) for p in paths]
+    try:
+        first = datasets[0]
+        for d in datasets[1:]:
+            _check_mergeable(first, d)
+        meta = dict(first.meta)
+        meta["merged"] = [
+            {"path": str(d.path), "episodes": d.num_episodes, "collect": d.meta.get("collect")}
+            for d in datasets
+        ]
+        state_dim = 0 if first.state is None else int(first.state.shape[1])
+        writer = CaptionDatasetWriter(
+            out,
+            first.instructions,
+            first.instruction_set,
+            first.frame_shape,
+            int(first.proprio.shape[1]),
+            meta,
+            overwrite=overwrite,
+            state_dim=state_dim,
+        )
+        total = sum(d.num_episodes for d in datasets)
+        bar = tqdm(total=total, disable=not progress, desc="merge", unit="ep")
+        try:
+            for d in datasets:
+                for e in range(d.num_episodes):
+                    ep = d.episode(e)
+                    a, b = int(d.episode_start[e]), int(d.episode_start[e + 1])
+                    writer.add_episode(
+                        ep["frames"],
+                        ep["proprio"],
+                        ep["labels"],
+                        ep["source"],
+                        ep["instruction"],
+                        None if d.state is None else d.state[a:b],
+                    )
+                    bar.update(1)
+        except BaseException:
+            bar.close()
+            writer.discard()
+            raise
+        bar.close()
+        return writer.close()
+    finally:
+        for d in datasets:
+            d.close()
+
+
+def _check_mergeable(a: CaptionDataset, b: CaptionDataset) -> None:
+    """Refuse to merge datasets of different simulators, splits, cameras or widths."""
+    if a.instructions != b.instructions or a.instruction_set != b.instruction_set:
+        raise LcrlError(
+            f"{a.path} and {b.path} have different instruction tables "
+            f"({len(a.instructions)} and {len(b.instructions)} instructions): collect both "
+            "with the same env, --families and --split-seed"
+        )
+    for key in _MERGE_KEYS:
+        if a.meta.get(key) != b.meta.get(key):
+            raise LcrlError(
+                f"{a.path} has {key} {a.meta.get(key)!r}, {b.path} has {b.meta.get(key)!r}: "
+                "only datasets of one simulator and split merge"
+            )
+    if tuple(a.frame_shape) != tuple(b.frame_shape):
+        raise LcrlError(
+            f"{a.path} has {'x'.join(map(str, a.frame_shape))} frames, {b.path} has "
+            f"{'x'.join(map(str, b.frame_shape))}"
+        )
+    widths = [
+        (
+            int(d.proprio.shape[1]),
+            None if d.state is None else int(d.state.shape[1]),
+        )
+        for d in (a, b)
+    ]
+    if widths[0] != widths[1]:
+        raise LcrlError(
+            f"{a.path} stores (proprioception, privileged) widths {widths[0]}, {b.path} "
+            f"stores {widths[1]}"
+        )

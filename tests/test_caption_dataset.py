@@ -264,3 +264,66 @@ def test_old_dataset_files_still_load(small):
         assert data.meta["env"] == "lang2d"
     assert canonical_kind("lang2d") == "tabletop2d"
     assert canonical_kind("robosuite") == "robosuite"
+
+
+def test_merge_concatenates_episodes_and_refuses_mismatches(tmp_path, small, capsys):
+    other = tmp_path / "other.h5"
+    collect(CollectConfig(out=str(other), episodes=5, seed=7, progress=False))
+    out = tmp_path / "merged.h5"
+    main(["caption", "merge", str(small), str(other), "--out", str(out), "--no-progress"])
+    assert "21 episodes" in capsys.readouterr().out
+    with CaptionDataset(small) as a, CaptionDataset(other) as b, CaptionDataset(out) as m:
+        assert m.num_episodes == a.num_episodes + b.num_episodes
+        assert m.num_observations == a.num_observations + b.num_observations
+        assert m.instructions == a.instructions
+        assert [x["collect"]["seed"] for x in m.meta["merged"]] == [0, 7]
+        for src, e, me in ((a, 3, 3), (b, 4, a.num_episodes + 4)):
+            x, y = src.episode(e), m.episode(me)
+            np.testing.assert_array_equal(x["frames"], y["frames"])
+            np.testing.assert_array_equal(x["proprio"], y["proprio"])
+            assert x["labels"] == y["labels"]
+            assert (x["source"], x["instruction"]) == (y["source"], y["instruction"])
+            sa, sb = int(src.episode_start[e]), int(src.episode_start[e + 1])
+            ma = int(m.episode_start[me])
+            np.testing.assert_array_equal(src.state[sa:sb], m.state[ma : ma + sb - sa])
+    with pytest.raises(LcrlError, match="at least two"):
+        ds.merge([small], tmp_path / "x.h5")
+    with pytest.raises(LcrlError, match="named twice"):
+        ds.merge([small, small], tmp_path / "x.h5")
+    with pytest.raises(LcrlError, match="one of the inputs"):
+        ds.merge([small, other], other, overwrite=True)
+    with pytest.raises(LcrlError, match="--overwrite"):
+        ds.merge([small, other], out)
+    reach = tmp_path / "reach.h5"
+    collect(CollectConfig(out=str(reach), episodes=2, families=("reach",), progress=False))
+    with pytest.raises(LcrlError, match="different instruction tables"):
+        ds.merge([small, reach], tmp_path / "x.h5")
+    big = tmp_path / "big.h5"
+    collect(CollectConfig(out=str(big), episodes=2, image_size=32, progress=False))
+    with pytest.raises(LcrlError, match=r"has image_size 64, .*big.h5 has 32"):
+        ds.merge([small, big], tmp_path / "x.h5")
+    assert not (tmp_path / "x.h5").exists()
+
+
+def test_interrupted_merge_leaves_no_file(tmp_path, small, monkeypatch):
+    calls = {"n": 0}
+    real = CaptionDatasetWriter.add_episode
+
+    def add(self, *a, **k):
+        calls["n"] += 1
+        if calls["n"] == 3:
+            raise KeyboardInterrupt
+        return real(self, *a, **k)
+
+    monkeypatch.setattr(CaptionDatasetWriter, "add_episode", add)
+    out = tmp_path / "m.h5"
+    with pytest.raises(KeyboardInterrupt):
+        ds.merge([small, _copy(small, tmp_path / "c.h5")], out, progress=False)
+    assert not out.exists() and not out.with_name("m.h5.part").exists()
+
+
+def _copy(src, dst):
+    import shutil
+
+    shutil.copy(src, dst)
+    return dst

@@ -259,6 +259,7 @@ def shrink(argv: list[str]) -> list[str]:
         "act": ["--episodes", "1"],
         "demo": ["--episodes", "2", "--max-steps", "10", "--image-size", "48"],
         "caption collect": ["--episodes", "4", "--max-episode-steps", "10", "--no-progress"],
+        "caption merge": ["--no-progress"],
         "caption train": TINY_CAPTION_TRAIN,
         "caption eval": ["--max-pairs", "20"],
         "demos record": ["--episodes", "4", "--no-progress"],

@@ -617,6 +617,27 @@ class CaptionEvalCommand:
             print(f"saved {save_results(results, self.json)}")
 
 
+@dataclass
+class CaptionMergeCommand:
+    """Concatenate caption datasets of one simulator and instruction split into one file
+    (say, episodes of a later policy beside the first collection), to train on together."""
+
+    data: tyro.conf.Positional[tuple[str, ...]]
+    """The caption datasets (``lcrl caption collect --out``), two or more."""
+    out: str = "data/captions-merged.h5"
+    """The file to write."""
+    overwrite: bool = False
+    """Replace an existing file."""
+    progress: bool = True
+    """Show a progress bar."""
+
+    def run(self) -> None:
+        from captioner.dataset import CaptionDataset, merge
+
+        with CaptionDataset(merge(self.data, self.out, self.overwrite, self.progress)) as d:
+            print(d.summary())
+
+
 def check_json_path(path: str | None) -> None:
     """Refuse a ``--json`` path that cannot be written (a folder, a path below a file, a
     read-only folder), before any work is done."""
@@ -639,10 +660,15 @@ def _caption(argv: Sequence[str]) -> None:
     from captioner.learned import CaptionTrainConfig, train_models
 
     cfg = tyro.extras.subcommand_cli_from_dict(
-        {"collect": CollectConfig, "train": CaptionTrainConfig, "eval": CaptionEvalCommand},
+        {
+            "collect": CollectConfig,
+            "merge": CaptionMergeCommand,
+            "train": CaptionTrainConfig,
+            "eval": CaptionEvalCommand,
+        },
         prog="lcrl caption",
         description="Learned captioner and reward model: collect labelled camera episodes, "
-        "train, evaluate.",
+        "merge datasets, train, evaluate.",
         args=list(argv),
     )
     if isinstance(cfg, CollectConfig):
