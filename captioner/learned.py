@@ -161,6 +161,13 @@ class CaptionModelConfig:
     own inputs, not only the frame pair's features pooled the same way for every
     instruction (which follow whatever object moved, so that "reach the red cube" could
     be read into a pushed blue one). Checkpoints saved before the option read without."""
+    first_presence: bool = True
+    """Over ``perception``: the current frame's presence flags are those perception reads
+    in the episode's first frame (the tabletops place their objects at reset, and the arm
+    over the table can hide one later), as the policy acting through perception reads
+    them. Without it an object the arm hides is estimated absent, at position 0, and the
+    models read a change that did not happen. Checkpoints saved before the option read
+    without."""
 
     def validate(self) -> None:
         if self.encoder not in ENCODERS:
@@ -1056,7 +1063,8 @@ class LearnedCaptioner:
             p0 = p = np.zeros((b, self.proprio_dim), np.float32)
         if self.perception is not None:  # what the models read: the estimated slots
             first = self.perceive(first, np.asarray(p0, np.float32))
-            current = self.perceive(current, np.asarray(p, np.float32))
+            present = self.perception.presence(first) if self.cfg.first_presence else None
+            current = self.perceive(current, np.asarray(p, np.float32), present=present)
         p0 = (np.asarray(p0, np.float32) - self.p_mean) / self.p_std
         p = (np.asarray(p, np.float32) - self.p_mean) / self.p_std
         dev = self.device
@@ -1068,11 +1076,17 @@ class LearnedCaptioner:
         )
 
     def perceive(
-        self, frames: Any, proprio: np.ndarray, batch: int = 256, progress: bool = False
+        self,
+        frames: Any,
+        proprio: np.ndarray,
+        batch: int = 256,
+        progress: bool = False,
+        present: np.ndarray | None = None,
     ) -> np.ndarray:
         """Perception's estimated observations ``(N, dim)`` of frames (an array, or any
         sequence that slices into arrays, such as a file's dataset) and their robot state
-        (``encoder=perception``); ``progress`` shows a bar."""
+        (``encoder=perception``), with presence flags ``(N, count)`` to use instead of the
+        estimated ones if given; ``progress`` shows a bar."""
         if self.perception is None:
             raise LcrlError("these models read camera frames, not a perception model's slots")
         from tqdm import tqdm
@@ -1083,7 +1097,8 @@ class LearnedCaptioner:
         out = []
         for i in range(0, n, batch):
             x = np.asarray(frames[i : i + batch])
-            out.append(self.perception.observation(x, proprio[i : i + batch, :start]))
+            flags = None if present is None else present[i : i + batch]
+            out.append(self.perception.observation(x, proprio[i : i + batch, :start], flags))
             bar.update(len(x))
         bar.close()
         return np.concatenate(out).astype(np.float32) if out else np.zeros((0, 0), np.float32)
@@ -1227,7 +1242,12 @@ class LearnedCaptioner:
         vocab.index = {w: i for i, w in enumerate(words)}
         table = ckpt.json("instructions")
         # checkpoints from before an option read as they were trained
-        saved = {"encoder": "flatten", "slot_query": False, **meta["model"]}
+        saved = {
+            "encoder": "flatten",
+            "slot_query": False,
+            "first_presence": False,
+            **meta["model"],
+        }
         mcfg = CaptionModelConfig(
             **{
                 **saved,
@@ -1313,7 +1333,11 @@ def train_models(cfg: CaptionTrainConfig) -> Path:
         )
         lc.perception = perception
         vocab = lc.vocab
-        perceive = functools.partial(lc.perceive, progress=cfg.progress) if perception else None
+        perceive = (
+            functools.partial(_perceive_dataset, lc, data, progress=cfg.progress)
+            if perception
+            else None
+        )
         pairs = _Pairs(data, cfg.val_fraction, cfg.seed, perceive)
         lc.meta["val_episodes"] = pairs.val_episodes.tolist()
         lc.p_mean, lc.p_std = pairs.p_mean, pairs.p_std
@@ -1390,6 +1414,20 @@ def train_models(cfg: CaptionTrainConfig) -> Path:
         return lc.save(out)
     finally:
         data.close()
+
+
+def _perceive_dataset(
+    lc: LearnedCaptioner, data: CaptionDataset, frames: Any, proprio: np.ndarray, progress: bool
+) -> np.ndarray:
+    """Perception's estimates of every frame of a dataset, as the models read them (with
+    ``first_presence``, each frame with its episode's first-frame presence flags)."""
+    if not lc.cfg.first_presence:
+        return lc.perceive(frames, proprio, progress=progress)
+    starts = np.asarray(data.episode_start[:-1], np.int64)
+    assert lc.perception is not None
+    present = lc.perception.presence(lc.perceive(data.read_frames(starts), proprio[starts]))
+    episode = data.episode_of(np.arange(data.num_observations))
+    return lc.perceive(frames, proprio, progress=progress, present=present[episode])
 
 
 def _perception(cfg: CaptionTrainConfig) -> Perception | None:

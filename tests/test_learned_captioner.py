@@ -632,8 +632,15 @@ def _oracle(dataset):
         shape = data.frame_shape
 
     class Oracle(Perception):
-        def observation(self, frames, proprio):
-            return np.stack([lookup[f.tobytes()] for f in np.asarray(frames, np.uint8)])
+        def observation(self, frames, proprio, present=None):
+            out = np.stack([lookup[f.tobytes()] for f in np.asarray(frames, np.uint8)])
+            if present is not None:  # given flags replace the read ones, as the model's do
+                lay = self.layout
+                slots = out[:, lay.start : lay.dim].reshape(len(out), lay.count, lay.width)
+                flags = np.asarray(present, np.float32)
+                slots = np.concatenate([slots[..., :-1] * flags[..., None], flags[..., None]], -1)
+                out = np.concatenate([out[:, : lay.start], slots.reshape(len(out), -1)], 1)
+            return out
 
     return Oracle(shape, layout)
 
@@ -688,6 +695,50 @@ def test_models_over_perception_learn_from_the_slots(slots_dataset, tmp_path, mo
             hits += int((attn.argmax(1) == slot).sum())
             total += int(rows.sum())
     assert hits >= 0.75 * total, (hits, total)  # chance: 1 in 2 or 3 objects on the table
+
+
+def test_first_presence_keeps_the_objects_the_arm_hides(slots_dataset):
+    """With ``first_presence`` (the default) the models read every frame with the presence
+    flags of its episode's first frame: an object perception loses under the arm keeps
+    its place instead of reading as gone (position 0), in training data and when
+    scoring alike."""
+    from captioner.learned import Vocabulary, _perceive_dataset
+
+    oracle = _oracle(slots_dataset)
+    read = oracle.observation
+    with CaptionDataset(slots_dataset) as data:
+        firsts = {data.frames[int(a)].tobytes() for a in data.episode_start[:-1]}
+        lay = oracle.layout
+
+        def hiding(frames, proprio, present=None):
+            """Loses every object in frames after an episode's first, unless told."""
+            out = read(frames, proprio, present).copy()
+            if present is None:
+                later = [f.tobytes() not in firsts for f in np.asarray(frames, np.uint8)]
+                out[np.asarray(later), lay.start :] = 0.0
+            return out
+
+        oracle.observation = hiding
+        dim = data.proprio.shape[1]
+        results = {}
+        for pin in (True, False):
+            lc = LearnedCaptioner(
+                Vocabulary.from_grammar(), data.instructions, data.instruction_set,
+                data.frame_shape, dim, dataclasses.replace(TINY, encoder="perception",
+                first_presence=pin), np.zeros(dim, np.float32), np.ones(dim, np.float32), "", {},
+            )  # fmt: skip
+            lc.perception = oracle
+            j = np.flatnonzero(np.diff(data.label_start) > 0)[:40]  # later frames
+            first, current = data.read_frames(data.first_of(j)), data.read_frames(j)
+            p0, p = data.proprio[data.first_of(j)], data.proprio[j]
+            est = lc._inputs(first, current, p0, p)[1].numpy()
+            every = _perceive_dataset(lc, data, data.frames, data.proprio[:], progress=False)
+            results[pin] = (est, every)
+        truth = read(data.frames[:], data.proprio[:])  # what perception reads unhidden
+        np.testing.assert_allclose(results[True][0], truth[j], atol=1e-6)
+        np.testing.assert_allclose(results[True][1], truth, atol=1e-6)
+        assert not results[False][0][:, lay.start :].any()  # every object read as gone
+        assert not results[False][1][j, lay.start :].any()
 
 
 def test_checkpoints_saved_before_slot_query_read_without_it(trained, tmp_path):
