@@ -324,7 +324,9 @@ class CaptionDataset:
         return block[np.searchsorted(order, idx)]
 
     def episode(self, e: int) -> dict[str, Any]:
-        """Episode ``e``: frames, proprio, labels (lists of ids), source, instruction."""
+        """Episode ``e``: frames, proprio, labels (lists of ids), source, instruction and
+        state (None in files without it): the arguments of
+        :meth:`CaptionDatasetWriter.add_episode`."""
         if not 0 <= e < self.num_episodes:
             raise LcrlError(f"episode {e} is outside [0, {self.num_episodes})")
         a, b = int(self.episode_start[e]), int(self.episode_start[e + 1])
@@ -334,6 +336,7 @@ class CaptionDataset:
             "labels": [self.labels(j).tolist() for j in range(a, b)],
             "source": SOURCES[int(self.episode_source[e])],
             "instruction": int(self.episode_instruction[e]),
+            "state": None if self.state is None else self.state[a:b],
         }
 
     def counts(self) -> dict[str, Any]:
@@ -803,26 +806,15 @@ def merge(
             state_dim=state_dim,
         )
         total = sum(d.num_episodes for d in datasets)
-        bar = tqdm(total=total, disable=not progress, desc="merge", unit="ep")
-        try:
-            for d in datasets:
-                for e in range(d.num_episodes):
-                    ep = d.episode(e)
-                    a, b = int(d.episode_start[e]), int(d.episode_start[e + 1])
-                    writer.add_episode(
-                        ep["frames"],
-                        ep["proprio"],
-                        ep["labels"],
-                        ep["source"],
-                        ep["instruction"],
-                        None if d.state is None else d.state[a:b],
-                    )
-                    bar.update(1)
-        except BaseException:
-            bar.close()
-            writer.discard()
-            raise
-        bar.close()
+        with tqdm(total=total, disable=not progress, desc="merge", unit="ep") as bar:
+            try:
+                for d in datasets:
+                    for e in range(d.num_episodes):
+                        writer.add_episode(**d.episode(e))
+                        bar.update(1)
+            except BaseException:
+                writer.discard()
+                raise
         return writer.close()
     finally:
         for d in datasets:
