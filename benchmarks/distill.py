@@ -39,14 +39,34 @@ TARGET_GAP = 0.05
 SETS = ("train", "heldout", "paraphrase")
 
 
-def distill(args: argparse.Namespace, teacher: Path, student: Path) -> float:
-    """``lcrl distill`` of ``teacher`` into ``student``; the seconds it took."""
+def distill(
+    args: argparse.Namespace,
+    teacher: Path,
+    student: Path,
+    *,
+    rounds: int | None = None,
+    updates: int | None = None,
+    how: tuple[str, ...] = (),
+    resume: bool = False,
+) -> float:
+    """``lcrl distill`` of ``teacher`` into ``student`` (through ``--perception`` unless
+    ``how`` says otherwise); the seconds it took. With ``resume`` a student already in
+    ``student`` is continued to ``rounds`` (``lcrl distill --resume``) and the seconds are
+    its own count over every session (collection and updates, evaluations excluded)."""
     t0 = time.perf_counter()
-    cmd = [*LCRL, "distill", str(teacher), "--perception", args.perception, "--out", str(student)]
-    cmd += ["--rounds", str(args.rounds), "--episodes-per-round", str(args.episodes_per_round)]
-    cmd += ["--updates-per-round", str(args.updates_per_round), "--seed", str(args.seed)]
-    cmd += ["--beta-decay", str(args.beta_decay), "--eval-every", "2", "--overwrite"]
+    rounds = args.rounds if rounds is None else rounds
+    updates = args.updates_per_round if updates is None else updates
+    how = how or ("--perception", args.perception)
+    cmd = [*LCRL, "distill", str(teacher), *how, "--out", str(student)]
+    cmd += ["--rounds", str(rounds), "--episodes-per-round", str(args.episodes_per_round)]
+    cmd += ["--updates-per-round", str(updates), "--seed", str(args.seed)]
+    cmd += ["--beta-decay", str(args.beta_decay), "--eval-every", str(args.eval_every)]
+    resumed = resume and (student / "latest.json").is_file()
+    cmd.append("--resume" if resumed else "--overwrite")
     subprocess.run([*cmd, "--no-progress"], check=True, env=child_env(), preexec_fn=die_with_parent)
+    evals = rows(student / "eval.csv") if (student / "eval.csv").is_file() else []
+    if resumed and evals and "train_s" in evals[-1]:
+        return round(evals[-1]["train_s"], 1)
     return round(time.perf_counter() - t0, 1)
 
 
@@ -56,20 +76,50 @@ def rows(path: Path) -> list[dict[str, float]]:
 
 
 def push_stage(args: argparse.Namespace) -> dict:
-    """The push teacher distilled too: both evaluated on seen push instructions."""
-    teacher, student = Path(args.push_teacher), Path(args.work) / "push-student"
-    seconds = distill(args, teacher, student)
+    """The push teacher distilled too: both evaluated on seen push instructions. With
+    ``--push-state-check`` a second student that reads the teacher's own privileged
+    state is distilled the same way: what DAgger gives without perception's errors."""
+    teacher = Path(args.push_teacher)
+    student = Path(args.push_student or Path(args.work) / "push-student")
+    rounds = args.push_rounds or args.rounds
+    updates = args.push_updates_per_round or args.updates_per_round
+    seconds = distill(
+        args, teacher, student, rounds=rounds, updates=updates, resume=args.resume_push
+    )
     t = evaluate(teacher, args.final_episodes, ("train",))["train"]
     s = evaluate(student, args.final_episodes, ("train",))["train"]
-    return {
+    out = {
         "teacher": str(teacher),
+        "student": str(student),
+        "settings": {"rounds": rounds, "updates_per_round": updates},
         "student_distill_s": seconds,
         "final": {
             "teacher": {"success": t["success"], "ci": t["ci"]},
             "student": {"success": s["success"], "ci": s["ci"]},
         },
         "rounds": rows(student / "progress.csv"),
+        "student_evals": rows(student / "eval.csv"),
     }
+    if args.push_state_check:
+        check = Path(args.push_state_student or Path(args.work) / "push-state-student")
+        check_s = distill(
+            args,
+            teacher,
+            check,
+            rounds=rounds,
+            updates=updates,
+            how=("--state",),
+            resume=args.resume_push,
+        )
+        c = evaluate(check, args.final_episodes, ("train",))["train"]
+        out["state_student"] = {
+            "run": str(check),
+            "distill_s": check_s,
+            "final": {"success": c["success"], "ci": c["ci"]},
+            "rounds": rows(check / "progress.csv"),
+            "evals": rows(check / "eval.csv"),
+        }
+    return out
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -87,6 +137,24 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument(
         "--push-teacher", default="", help="a privileged-state push run, distilled the same way"
     )
+    parser.add_argument("--eval-every", type=int, default=2, help="rounds between evaluations")
+    parser.add_argument("--push-rounds", type=int, default=0, help="push's rounds (--rounds)")
+    parser.add_argument(
+        "--push-updates-per-round", type=int, default=0, help="push's (--updates-per-round)"
+    )
+    parser.add_argument("--push-student", default="", help="default: WORK/push-student")
+    parser.add_argument(
+        "--resume-push",
+        action="store_true",
+        help="continue the push student(s) already there to --push-rounds (lcrl distill "
+        "--resume: a distillation carried over several sessions)",
+    )
+    parser.add_argument(
+        "--push-state-check",
+        action="store_true",
+        help="also distil push into a student reading the teacher's privileged state",
+    )
+    parser.add_argument("--push-state-student", default="", help="default: WORK/push-state-student")
     parser.add_argument(
         "--push-only",
         action="store_true",
@@ -105,7 +173,9 @@ def main(argv: list[str] | None = None) -> int:
             parser.error(f"--push-only keeps reach's figures from {path}, which is missing")
         payload = json.loads(path.read_text())
         payload["push"] = {**push_stage(args), "command": command(), "machine": info}
-        payload["command"] = f"{payload['command']} && {command()}"
+        # reach's command, then this one (an earlier push command is replaced)
+        reach = payload.setdefault("reach_command", payload["command"].split(" && ")[0])
+        payload["command"] = f"{reach} && {command()}"
         add_push(payload)
         save_json(NAME, payload)
         render(payload, info)
@@ -197,6 +267,9 @@ def render(payload: dict, info: dict) -> None:
     if push is not None:
         pt, ps = push["final"]["teacher"], push["final"]["student"]
         lines.append(f"| push, train | {cell(pt)} | {cell(ps)} |")
+        if push.get("state_student"):
+            cs = push["state_student"]["final"]
+            lines.append(f"| push, train: a student reading the true state | | {cell(cs)} |")
 
     def round_table(rounds: list[dict]) -> list[str]:
         return [
@@ -233,6 +306,25 @@ def render(payload: dict, info: dict) -> None:
             f"{'reached' if reached['push_within_5_points'] else 'NOT reached'} (gap "
             f"{headline['push_gap']:+.2f}). Distillation took {push['student_distill_s']:.0f} s.",
         ]
+        if push.get("student_evals"):
+            curve = ", ".join(
+                f"{r['train/success']:.2f}" for r in push["student_evals"] if "train/success" in r
+            )
+            at = ", ".join(str(int(r["step"])) for r in push["student_evals"])
+            lines += ["", f"Push student's seen success after rounds {at}: {curve}."]
+        check = push.get("state_student")
+        if check:
+            curve = ", ".join(f"{r['train/success']:.2f}" for r in check["evals"])
+            at = ", ".join(str(int(r["step"])) for r in check["evals"])
+            lines += [
+                "",
+                "The same DAgger with a student that reads the teacher's own privileged state "
+                f"(`{check['run']}`, no perception): {cell(check['final'])}; its seen success "
+                f"after rounds {at}: {curve} ({check['distill_s']:.0f} s).",
+            ]
+        previous = payload.get("push_previous")
+        if previous:
+            lines += ["", f"Earlier build: {previous['summary']}"]
         if push.get("command"):
             lines += [
                 "",
@@ -269,7 +361,12 @@ def render(payload: dict, info: dict) -> None:
     if push is not None:
         names += ["teacher\npush", "student\npush"]
         vals += [push["final"]["teacher"], push["final"]["student"]]
-    colors = ["tab:grey", "tab:blue"] * (len(names) // 2)
+        if push.get("state_student"):
+            names += ["(true state)\npush"]
+            vals += [push["state_student"]["final"]]
+    colors = (["tab:grey", "tab:blue"] * len(names))[: len(names)]
+    if push is not None and push.get("state_student"):
+        colors[-1] = "tab:green"
     success_bars(ax2, names, vals, episodes, color=colors)
     fig.tight_layout(rect=(0, 0.06, 1, 1))
     save_figure(NAME, fig, info, payload["command"])

@@ -36,6 +36,14 @@ def test_distill_push_only_keeps_reach_and_adds_push(results, tmp_path, monkeypa
             "student": {"success": 0.9, "ci": [0.83, 0.94]},
         },
         "rounds": rounds,
+        "student_evals": [{"step": 5.0, "train/success": 0.5}],
+        "state_student": {
+            "run": "runs/state-student",
+            "distill_s": 300.0,
+            "final": {"success": 0.94, "ci": [0.88, 0.97]},
+            "rounds": rounds,
+            "evals": [{"step": 5.0, "train/success": 0.6}],
+        },
     }
     monkeypatch.setattr(distill, "push_stage", lambda args: dict(fake))
     argv = ["--perception", "p", "--push-teacher", "runs/push-teacher", "--push-only"]
@@ -47,10 +55,16 @@ def test_distill_push_only_keeps_reach_and_adds_push(results, tmp_path, monkeypa
     assert (h["push_teacher_seen"], h["push_student_seen"], h["push_gap"]) == (0.98, 0.9, 0.08)
     assert after["reached"]["push_within_5_points"] is False
     push_cmd = "python benchmarks/distill.py " + " ".join(argv)
-    assert after["command"] == f"{before['command']} && {push_cmd}"
+    reach_cmd = before["command"].split(" && ")[0]
+    assert after["command"] == f"{reach_cmd} && {push_cmd}"
+    assert distill.main(argv) == 0  # a second push replaces the first push's command
+    again = json.loads((results / "distill-robosuite.json").read_text())
+    assert again["command"] == f"{reach_cmd} && {push_cmd}"
     md = (results / "distill-robosuite.md").read_text()
     assert "| push, train | 0.98 [0.93, 0.99] | 0.90 [0.83, 0.94] |" in md
     assert "NOT reached (gap +0.08)" in md and (results / "distill-robosuite.png").is_file()
+    assert "| push, train: a student reading the true state | | 0.94 [0.88, 0.97] |" in md
+    assert "Push student's seen success after rounds 5: 0.50." in md
 
     with pytest.raises(SystemExit):  # push-only needs the push teacher
         distill.main(["--perception", "p", "--push-only"])
@@ -76,3 +90,37 @@ def test_image_policy_renders_push_from_demonstrations(results):
     assert "| push: record 600 demonstrations through perception | 544 |" in md
     assert "| **to a push policy** | **5000** |" in md
     assert "Push without demonstrations: 0.05." in md
+
+
+def test_distill_resumes_a_push_student_and_counts_its_own_seconds(tmp_path, monkeypatch):
+    """--resume-push continues a student already there (lcrl distill --resume) and takes
+    its seconds from its eval.csv, which counts every session; a new student overwrites."""
+    import argparse
+
+    import benchmarks.distill as distill
+
+    calls = []
+    monkeypatch.setattr(distill.subprocess, "run", lambda cmd, **kw: calls.append(cmd))
+    args = argparse.Namespace(
+        rounds=10,
+        updates_per_round=500,
+        episodes_per_round=20,
+        seed=0,
+        beta_decay=0.5,
+        eval_every=5,
+        perception="p",
+    )
+    student = tmp_path / "student"
+    student.mkdir()
+    (student / "eval.csv").write_text("step,train/success,train_s\n5,0.5,100.0\n30,0.9,2345.6\n")
+    distill.distill(args, Path("t"), student, rounds=30, updates=2000, resume=True)
+    assert "--overwrite" in calls[-1] and "--resume" not in calls[-1]  # nothing to resume
+    (student / "latest.json").write_text("{}")
+    seconds = distill.distill(args, Path("t"), student, rounds=30, updates=2000, resume=True)
+    cmd = calls[-1]
+    assert "--resume" in cmd and "--overwrite" not in cmd and seconds == 2345.6
+    assert cmd[cmd.index("--rounds") + 1] == "30" and cmd[cmd.index("--perception") + 1] == "p"
+    assert cmd[cmd.index("--updates-per-round") + 1] == "2000"
+    distill.distill(args, Path("t"), student, how=("--state",))
+    assert "--state" in calls[-1] and "--perception" not in calls[-1]
+    assert calls[-1][calls[-1].index("--rounds") + 1] == "10"
