@@ -61,6 +61,7 @@ def distill(
     cmd += ["--rounds", str(rounds), "--episodes-per-round", str(args.episodes_per_round)]
     cmd += ["--updates-per-round", str(updates), "--seed", str(args.seed)]
     cmd += ["--beta-decay", str(args.beta_decay), "--eval-every", str(args.eval_every)]
+    cmd += ["--eval-episodes", str(args.eval_episodes)]
     resumed = resume and (student / "latest.json").is_file()
     cmd.append("--resume" if resumed else "--overwrite")
     subprocess.run([*cmd, "--no-progress"], check=True, env=child_env(), preexec_fn=die_with_parent)
@@ -73,6 +74,54 @@ def distill(
 def rows(path: Path) -> list[dict[str, float]]:
     with open(path) as f:
         return [{k: float(v) for k, v in r.items() if v != ""} for r in csv.DictReader(f)]
+
+
+def teacher_on_estimates(teacher: Path, perception: str, episodes: int) -> dict:
+    """The teacher acting on perception's estimate of its state instead of the true state,
+    on the same ``episodes`` layouts and instructions (seen push instructions) each way:
+    how much of the teacher's skill survives perception's errors, whatever the student
+    learns. Also the mean absolute difference of its actions on the two, over the steps
+    of the true-state episodes."""
+    import numpy as np
+
+    from train.distill import student_config
+    from train.eval_suite import rate_stats
+    from train.evaluate import load_policy, resolve_checkpoint
+    from train.tasks import make_env
+
+    policy = load_policy(resolve_checkpoint(str(teacher)))
+    env = make_env(student_config(policy.cfg, perception=perception).env, "train")
+    task, out, gaps = policy.task, {}, []
+    try:
+        for source in ("privileged", "observation"):
+            wins = []
+            for i in range(episodes):
+                obs, _ = env.reset(seed=500_000 + i)
+                first, goal = obs, np.asarray([task.goal(obs, env)])
+                done, won = False, False
+                while not done:
+                    acts = {}
+                    for s in ("privileged", "observation"):
+                        view = task.storage_obs({"observation": obs[s]}, {"observation": first[s]})
+                        batch = {k: v[None] for k, v in view.items()}
+                        acts[s] = policy.agent.act(batch, goal, deterministic=True)[0]
+                    if source == "privileged":
+                        gaps.append(float(np.abs(acts["privileged"] - acts["observation"]).mean()))
+                    obs, _, term, trunc, info = env.step(task.scale_action(acts[source]))
+                    won = won or bool(info.get("is_success", False))
+                    done = term or trunc
+                wins.append(won)
+            stats = rate_stats(wins)
+            out["true_state" if source == "privileged" else "estimate"] = {
+                "success": stats["success"],
+                "ci": stats["ci"],
+            }
+    finally:
+        env.close()
+        policy.env.close()
+    out["episodes"] = episodes
+    out["action_gap"] = float(np.mean(gaps))
+    return out
 
 
 def push_stage(args: argparse.Namespace) -> dict:
@@ -88,8 +137,15 @@ def push_stage(args: argparse.Namespace) -> dict:
     )
     t = evaluate(teacher, args.final_episodes, ("train",))["train"]
     s = evaluate(student, args.final_episodes, ("train",))["train"]
+    config = teacher / "config.json"
+    teacher_cfg = json.loads(config.read_text()) if config.is_file() else {}
     out = {
         "teacher": str(teacher),
+        "teacher_config": {
+            k: teacher_cfg[k]
+            for k in ("env", "total_steps", "seed", "finetune", "sac")
+            if k in teacher_cfg
+        },
         "student": str(student),
         "settings": {"rounds": rounds, "updates_per_round": updates},
         "student_distill_s": seconds,
@@ -100,6 +156,10 @@ def push_stage(args: argparse.Namespace) -> dict:
         "rounds": rows(student / "progress.csv"),
         "student_evals": rows(student / "eval.csv"),
     }
+    if args.push_noise_check:
+        out["teacher_on_estimates"] = teacher_on_estimates(
+            teacher, args.perception, args.push_noise_check
+        )
     if args.push_state_check:
         check = Path(args.push_state_student or Path(args.work) / "push-state-student")
         check_s = distill(
@@ -138,6 +198,7 @@ def main(argv: list[str] | None = None) -> int:
         "--push-teacher", default="", help="a privileged-state push run, distilled the same way"
     )
     parser.add_argument("--eval-every", type=int, default=2, help="rounds between evaluations")
+    parser.add_argument("--eval-episodes", type=int, default=50, help="per set, in them")
     parser.add_argument("--push-rounds", type=int, default=0, help="push's rounds (--rounds)")
     parser.add_argument(
         "--push-updates-per-round", type=int, default=0, help="push's (--updates-per-round)"
@@ -155,6 +216,14 @@ def main(argv: list[str] | None = None) -> int:
         help="also distil push into a student reading the teacher's privileged state",
     )
     parser.add_argument("--push-state-student", default="", help="default: WORK/push-state-student")
+    parser.add_argument(
+        "--push-noise-check",
+        type=int,
+        default=0,
+        metavar="N",
+        help="also run the push teacher on N episodes acting on perception's estimate, and on "
+        "the same N acting on the true state",
+    )
     parser.add_argument(
         "--push-only",
         action="store_true",
@@ -321,6 +390,16 @@ def render(payload: dict, info: dict) -> None:
                 "The same DAgger with a student that reads the teacher's own privileged state "
                 f"(`{check['run']}`, no perception): {cell(check['final'])}; its seen success "
                 f"after rounds {at}: {curve} ({check['distill_s']:.0f} s).",
+            ]
+        noise = push.get("teacher_on_estimates")
+        if noise:
+            lines += [
+                "",
+                "The push teacher acting on perception's estimate of its state instead of the "
+                f"true state ({noise['episodes']} episodes each way, the same layouts and "
+                f"instructions): {cell(noise['estimate'])} against {cell(noise['true_state'])}; "
+                f"its actions on the two differ by {noise['action_gap']:.3f} on average (mean "
+                "absolute difference per action dimension, actions in [-1, 1]).",
             ]
         previous = payload.get("push_previous")
         if previous:

@@ -257,3 +257,16 @@ def test_family_teachers_that_cannot_teach_are_refused(two_families, teacher, tm
     assert "distill.chain must be in [0, 1]" in error_line(capsys.readouterr().err)
     assert cli(*base, "--roll-in", "-0.5") == 2
     assert "distill.roll_in must be in [0, 1]" in error_line(capsys.readouterr().err)
+
+
+def test_the_teacher_acting_on_perceptions_estimate(teacher, perception):
+    """benchmarks/distill.py's check of how much of a teacher's skill survives perception's
+    errors: the same episodes acted on the true state and on the estimate; an untrained
+    perception model reads the state wrongly, so the teacher's actions on the two differ."""
+    from benchmarks.distill import teacher_on_estimates
+
+    out = teacher_on_estimates(teacher, str(perception), 2)
+    assert out["episodes"] == 2 and out["action_gap"] > 0.01
+    for way in ("true_state", "estimate"):
+        low, high = out[way]["ci"]
+        assert out[way]["success"] in (0.0, 0.5, 1.0) and low <= out[way]["success"] <= high

@@ -108,6 +108,7 @@ def test_distill_resumes_a_push_student_and_counts_its_own_seconds(tmp_path, mon
         seed=0,
         beta_decay=0.5,
         eval_every=5,
+        eval_episodes=20,
         perception="p",
     )
     student = tmp_path / "student"
