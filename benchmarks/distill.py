@@ -373,7 +373,8 @@ def render(payload: dict, info: dict) -> None:
             "",
             f"Push: student within {TARGET_GAP:.2f} of the teacher: "
             f"{'reached' if reached['push_within_5_points'] else 'NOT reached'} (gap "
-            f"{headline['push_gap']:+.2f}). Distillation took {push['student_distill_s']:.0f} s.",
+            f"{headline['push_gap']:+.2f}). Distillation took {push['student_distill_s']:.0f} s"
+            " (collection and updates).",
         ]
         if push.get("student_evals"):
             curve = ", ".join(
@@ -391,6 +392,8 @@ def render(payload: dict, info: dict) -> None:
                 f"(`{check['run']}`, no perception): {cell(check['final'])}; its seen success "
                 f"after rounds {at}: {curve} ({check['distill_s']:.0f} s).",
             ]
+        if payload.get("push_teacher_command"):
+            lines += ["", f"The push teacher was trained by `{payload['push_teacher_command']}`."]
         noise = push.get("teacher_on_estimates")
         if noise:
             lines += [
@@ -418,7 +421,7 @@ def render(payload: dict, info: dict) -> None:
 
     import matplotlib.pyplot as plt
 
-    fig, (ax1, ax2) = plt.subplots(1, 2, figsize=(10, 4))
+    fig, (ax1, ax2) = plt.subplots(1, 2, figsize=(12, 4.5))
     steps = [r["step"] for r in rounds]
     ax1.plot(steps, [r["loss"] for r in rounds], "o-", label="reach: student loss")
     if push is not None:
@@ -426,6 +429,7 @@ def render(payload: dict, info: dict) -> None:
             [r["step"] for r in push["rounds"]],
             [r["loss"] for r in push["rounds"]],
             "^-",
+            c="tab:red",
             label="push: student loss",
         )
     ax1.set(xlabel="DAgger round", ylabel="squared action error (teacher labels)", yscale="log")
@@ -441,12 +445,13 @@ def render(payload: dict, info: dict) -> None:
         names += ["teacher\npush", "student\npush"]
         vals += [push["final"]["teacher"], push["final"]["student"]]
         if push.get("state_student"):
-            names += ["(true state)\npush"]
+            names += ["state\nstudent\npush"]
             vals += [push["state_student"]["final"]]
     colors = (["tab:grey", "tab:blue"] * len(names))[: len(names)]
     if push is not None and push.get("state_student"):
         colors[-1] = "tab:green"
     success_bars(ax2, names, vals, episodes, color=colors)
+    ax2.tick_params(axis="x", labelsize=7)
     fig.tight_layout(rect=(0, 0.06, 1, 1))
     save_figure(NAME, fig, info, payload["command"])
 
