@@ -147,6 +147,7 @@ def push_stage(args: argparse.Namespace) -> dict:
             if k in teacher_cfg
         },
         "student": str(student),
+        "perception": args.perception,
         "settings": {"rounds": rounds, "updates_per_round": updates},
         "student_distill_s": seconds,
         "final": {
@@ -363,11 +364,16 @@ def render(payload: dict, info: dict) -> None:
         f"Distillation took {headline['student_distill_s']:.0f} s.",
     ]
     if push is not None:
+        model = push.get("perception", payload["settings"]["perception"])
+        through = (
+            "the same perception model as for reach"
+            if model == payload["settings"]["perception"]
+            else f"the perception model `{model}`"
+        )
         lines += [
             "",
             f"Push (teacher `{push['teacher']}`, privileged state, started from scripted "
-            "demonstrations; the student acts through the same perception model as for "
-            "reach):",
+            f"demonstrations; the student acts through {through}):",
             "",
             *round_table(push["rounds"]),
             "",
@@ -392,6 +398,8 @@ def render(payload: dict, info: dict) -> None:
                 f"(`{check['run']}`, no perception): {cell(check['final'])}; its seen success "
                 f"after rounds {at}: {curve} ({check['distill_s']:.0f} s).",
             ]
+        if payload.get("push_perception_command") and model != payload["settings"]["perception"]:
+            lines += ["", f"Its perception model: `{payload['push_perception_command']}`."]
         if payload.get("push_teacher_command"):
             lines += ["", f"The push teacher was trained by `{payload['push_teacher_command']}`."]
         noise = push.get("teacher_on_estimates")

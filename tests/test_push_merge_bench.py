@@ -65,6 +65,13 @@ def test_distill_push_only_keeps_reach_and_adds_push(results, tmp_path, monkeypa
     assert "NOT reached (gap +0.08)" in md and (results / "distill-robosuite.png").is_file()
     assert "| push, train: a student reading the true state | | 0.94 [0.88, 0.97] |" in md
     assert "Push student's seen success after rounds 5: 0.50." in md
+    assert "the student acts through the same perception model as for reach" in md
+    fake["perception"] = "data/push-perception"
+    after["push_perception_command"] = "lcrl perception train --out data/push-perception"
+    distill.render({**after, "push": fake}, after["machine"])
+    md = (results / "distill-robosuite.md").read_text()
+    assert "the student acts through the perception model `data/push-perception`" in md
+    assert "Its perception model: `lcrl perception train --out data/push-perception`." in md
 
     with pytest.raises(SystemExit):  # push-only needs the push teacher
         distill.main(["--perception", "p", "--push-only"])
