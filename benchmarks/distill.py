@@ -412,9 +412,9 @@ def render(payload: dict, info: dict) -> None:
                 f"its actions on the two differ by {noise['action_gap']:.3f} on average (mean "
                 "absolute difference per action dimension, actions in [-1, 1]).",
             ]
-        previous = payload.get("push_previous")
-        if previous:
-            lines += ["", f"Earlier build: {previous['summary']}"]
+        for key, build in payload.items():  # earlier push builds kept beside this one
+            if key.startswith("push_") and isinstance(build, dict) and "summary" in build:
+                lines += ["", f"Earlier build (`{key}`): {build['summary']}"]
         if push.get("command"):
             lines += [
                 "",

@@ -68,10 +68,12 @@ def test_distill_push_only_keeps_reach_and_adds_push(results, tmp_path, monkeypa
     assert "the student acts through the same perception model as for reach" in md
     fake["perception"] = "data/push-perception"
     after["push_perception_command"] = "lcrl perception train --out data/push-perception"
+    after["push_older"] = {"summary": "0.31 after 10 rounds.", "build": {}}
     distill.render({**after, "push": fake}, after["machine"])
     md = (results / "distill-robosuite.md").read_text()
     assert "the student acts through the perception model `data/push-perception`" in md
     assert "Its perception model: `lcrl perception train --out data/push-perception`." in md
+    assert "Earlier build (`push_older`): 0.31 after 10 rounds." in md
 
     with pytest.raises(SystemExit):  # push-only needs the push teacher
         distill.main(["--perception", "p", "--push-only"])
