@@ -412,9 +412,9 @@ def render(payload: dict, info: dict) -> None:
                 f"its actions on the two differ by {noise['action_gap']:.3f} on average (mean "
                 "absolute difference per action dimension, actions in [-1, 1]).",
             ]
-        for key, build in payload.items():  # earlier push builds kept beside this one
+        for key, build in payload.items():  # other push builds kept beside this one
             if key.startswith("push_") and isinstance(build, dict) and "summary" in build:
-                lines += ["", f"Earlier build (`{key}`): {build['summary']}"]
+                lines += ["", f"Another build (`{key}`): {build['summary']}"]
         if push.get("command"):
             lines += [
                 "",

@@ -73,7 +73,7 @@ def test_distill_push_only_keeps_reach_and_adds_push(results, tmp_path, monkeypa
     md = (results / "distill-robosuite.md").read_text()
     assert "the student acts through the perception model `data/push-perception`" in md
     assert "Its perception model: `lcrl perception train --out data/push-perception`." in md
-    assert "Earlier build (`push_older`): 0.31 after 10 rounds." in md
+    assert "Another build (`push_older`): 0.31 after 10 rounds." in md
 
     with pytest.raises(SystemExit):  # push-only needs the push teacher
         distill.main(["--perception", "p", "--push-only"])
