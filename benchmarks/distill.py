@@ -65,8 +65,8 @@ def distill(
     resumed = resume and (student / "latest.json").is_file()
     cmd.append("--resume" if resumed else "--overwrite")
     subprocess.run([*cmd, "--no-progress"], check=True, env=child_env(), preexec_fn=die_with_parent)
-    evals = rows(student / "eval.csv") if (student / "eval.csv").is_file() else []
-    if resumed and evals and "train_s" in evals[-1]:
+    evals = rows(student / "eval.csv") if resumed and (student / "eval.csv").is_file() else []
+    if evals and "train_s" in evals[-1]:
         return round(evals[-1]["train_s"], 1)
     return round(time.perf_counter() - t0, 1)
 
@@ -341,6 +341,12 @@ def render(payload: dict, info: dict) -> None:
             cs = push["state_student"]["final"]
             lines.append(f"| push, train: a student reading the true state | | {cell(cs)} |")
 
+    def along(evals: list[dict]) -> str:
+        """``after rounds 10, 20: 0.25, 0.55`` from a student's eval.csv rows."""
+        evals = [r for r in evals if "train/success" in r]
+        at = ", ".join(str(int(r["step"])) for r in evals)
+        return f"after rounds {at}: " + ", ".join(f"{r['train/success']:.2f}" for r in evals)
+
     def round_table(rounds: list[dict]) -> list[str]:
         return [
             "| round | teacher's share | student loss | mixed-policy success | labelled states |",
@@ -383,20 +389,14 @@ def render(payload: dict, info: dict) -> None:
             " (collection and updates).",
         ]
         if push.get("student_evals"):
-            curve = ", ".join(
-                f"{r['train/success']:.2f}" for r in push["student_evals"] if "train/success" in r
-            )
-            at = ", ".join(str(int(r["step"])) for r in push["student_evals"])
-            lines += ["", f"Push student's seen success after rounds {at}: {curve}."]
+            lines += ["", f"Push student's seen success {along(push['student_evals'])}."]
         check = push.get("state_student")
         if check:
-            curve = ", ".join(f"{r['train/success']:.2f}" for r in check["evals"])
-            at = ", ".join(str(int(r["step"])) for r in check["evals"])
             lines += [
                 "",
                 "The same DAgger with a student that reads the teacher's own privileged state "
                 f"(`{check['run']}`, no perception): {cell(check['final'])}; its seen success "
-                f"after rounds {at}: {curve} ({check['distill_s']:.0f} s).",
+                f"{along(check['evals'])} ({check['distill_s']:.0f} s).",
             ]
         if payload.get("push_perception_command") and model != payload["settings"]["perception"]:
             lines += ["", f"Its perception model: `{payload['push_perception_command']}`."]
