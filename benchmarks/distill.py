@@ -81,9 +81,11 @@ def teacher_on_estimates(teacher: Path, perception: str, episodes: int) -> dict:
     on the same ``episodes`` layouts and instructions (seen push instructions) each way:
     how much of the teacher's skill survives perception's errors, whatever the student
     learns. Also the mean absolute difference of its actions on the two, over the steps
-    of the true-state episodes."""
+    of the true-state episodes, and perception's position error over those steps by the
+    object's distance from the gripper (:data:`ERROR_BANDS`)."""
     import numpy as np
 
+    from envs.features import slot_layout
     from train.distill import student_config
     from train.eval_suite import rate_stats
     from train.evaluate import load_policy, resolve_checkpoint
@@ -92,6 +94,12 @@ def teacher_on_estimates(teacher: Path, perception: str, episodes: int) -> dict:
     policy = load_policy(resolve_checkpoint(str(teacher)))
     env = make_env(student_config(policy.cfg, perception=perception).env, "train")
     task, out, gaps = policy.task, {}, []
+    start, count, width, dims = slot_layout(env)
+    errors: list[tuple[float, float]] = []  # (distance from the gripper, error), metres
+
+    def slots(x: np.ndarray) -> np.ndarray:
+        return x[start : start + count * width].reshape(count, width)
+
     try:
         for source in ("privileged", "observation"):
             wins = []
@@ -107,6 +115,12 @@ def teacher_on_estimates(teacher: Path, perception: str, episodes: int) -> dict:
                         acts[s] = policy.agent.act(batch, goal, deterministic=True)[0]
                     if source == "privileged":
                         gaps.append(float(np.abs(acts["privileged"] - acts["observation"]).mean()))
+                        true, seen = slots(obs["privileged"]), slots(obs["observation"])
+                        here = true[:, dims] > 0.5  # present kinds (flag after the position)
+                        pos = true[here, :dims]
+                        near = np.linalg.norm(pos - obs["privileged"][None, :dims], axis=1)
+                        wrong = np.linalg.norm(pos - seen[here, :dims], axis=1)
+                        errors += zip(near.tolist(), wrong.tolist(), strict=True)
                     obs, _, term, trunc, info = env.step(task.scale_action(acts[source]))
                     won = won or bool(info.get("is_success", False))
                     done = term or trunc
@@ -121,6 +135,33 @@ def teacher_on_estimates(teacher: Path, perception: str, episodes: int) -> dict:
         policy.env.close()
     out["episodes"] = episodes
     out["action_gap"] = float(np.mean(gaps))
+    out["error_by_gripper_distance"] = error_bands(np.asarray(errors).reshape(-1, 2))
+    return out
+
+
+#: Bands of an object's distance from the gripper (cm) for perception's error in
+#: :func:`teacher_on_estimates`: in contact, near, approaching, far.
+ERROR_BANDS = ((0, 6), (6, 10), (10, 20), (20, 1000))
+
+
+def error_bands(errors) -> list[dict]:
+    """``(distance, error)`` rows (metres) -> per :data:`ERROR_BANDS` band the steps, the
+    mean and the 90th percentile of the error (cm)."""
+    import numpy as np
+
+    out = []
+    for lo, hi in ERROR_BANDS:
+        inside = (errors[:, 0] * 100 >= lo) & (errors[:, 0] * 100 < hi)
+        e = errors[inside, 1] * 100
+        out.append(
+            {
+                "from_cm": lo,
+                "to_cm": hi,
+                "object_steps": int(inside.sum()),
+                "mean_cm": round(float(e.mean()), 2) if len(e) else None,
+                "p90_cm": round(float(np.quantile(e, 0.9)), 2) if len(e) else None,
+            }
+        )
     return out
 
 
@@ -412,6 +453,26 @@ def render(payload: dict, info: dict) -> None:
                 f"its actions on the two differ by {noise['action_gap']:.3f} on average (mean "
                 "absolute difference per action dimension, actions in [-1, 1]).",
             ]
+            bands = [b for b in noise.get("error_by_gripper_distance", []) if b["object_steps"]]
+            if bands:
+                lines += [
+                    "",
+                    "Perception's position error over the steps of those true-state "
+                    "episodes, by the object's distance from the gripper:",
+                    "",
+                    "| distance from the gripper | object-steps | mean error | 90th percentile |",
+                    "|---|---:|---:|---:|",
+                ]
+                for b in bands:
+                    band = (
+                        f"{b['from_cm']}-{b['to_cm']} cm"
+                        if b["to_cm"] < 1000
+                        else (f"{b['from_cm']}+ cm")
+                    )
+                    lines.append(
+                        f"| {band} | {b['object_steps']} | {b['mean_cm']:.2f} cm "
+                        f"| {b['p90_cm']:.2f} cm |"
+                    )
         for key, build in payload.items():  # other push builds kept beside this one
             if key.startswith("push_") and isinstance(build, dict) and "summary" in build:
                 lines += ["", f"Another build (`{key}`): {build['summary']}"]

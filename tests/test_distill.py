@@ -125,6 +125,27 @@ def test_students_and_teachers_that_cannot_work_are_refused(teacher, perception,
     assert "the perception model reads [4, 8, 4, 3]" in line and "[2, 8, 3, 2]" in line
 
 
+def test_eval_sets_limit_the_periodic_evaluations_not_the_final_one(
+    teacher, perception, tmp_path, capsys
+):
+    out = tmp_path / "student"
+    args = ["distill", str(teacher), "--perception", str(perception)]
+    args += ["--rounds", "2", "--episodes-per-round", "2", "--updates-per-round", "5"]
+    args += ["--batch-size", "16", "--eval-every", "1", "--eval-episodes", "2"]
+    args += ["--no-progress", "--no-tensorboard"]
+    assert cli(*args, "--out", str(out), "--eval-sets", "train") == 0
+    with open(out / "eval.csv") as f:
+        rows = list(csv.DictReader(f))
+    assert [r["step"] for r in rows] == ["1", "2"]
+    assert rows[0]["train/success"] != "" and rows[0]["heldout/success"] == ""
+    assert rows[1]["heldout/success"] != "" and rows[1]["paraphrase/success"] != ""
+    # a set the task does not have is refused before the first round
+    assert cli(*args, "--out", str(tmp_path / "bad"), "--eval-sets", "train", "unseen") == 2
+    line = error_line(capsys.readouterr().err)
+    assert "eval_sets ['unseen']" in line and "'heldout'" in line
+    assert not (tmp_path / "bad" / "progress.csv").exists()
+
+
 def test_the_student_does_not_inherit_how_the_teacher_explored(tmp_path):
     """A teacher trained with chains, hand-overs and demonstrations (robosuite-push from
     demos) gives a student config without them: DAgger collects its own episodes, and
@@ -270,3 +291,10 @@ def test_the_teacher_acting_on_perceptions_estimate(teacher, perception):
     for way in ("true_state", "estimate"):
         low, high = out[way]["ci"]
         assert out[way]["success"] in (0.0, 0.5, 1.0) and low <= out[way]["success"] <= high
+    # perception's error by the object's distance from the agent, every object-step once
+    bands = out["error_by_gripper_distance"]
+    assert [(b["from_cm"], b["to_cm"]) for b in bands] == [(0, 6), (6, 10), (10, 20), (20, 1000)]
+    counted = [b for b in bands if b["object_steps"]]
+    assert sum(b["object_steps"] for b in bands) >= 2 * 2  # two episodes, 2+ objects each
+    assert all(b["p90_cm"] >= b["mean_cm"] * 0.5 > 0 for b in counted)
+    assert all(b["mean_cm"] is None for b in bands if not b["object_steps"])

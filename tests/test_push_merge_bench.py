@@ -74,6 +74,25 @@ def test_distill_push_only_keeps_reach_and_adds_push(results, tmp_path, monkeypa
     assert "the student acts through the perception model `data/push-perception`" in md
     assert "Its perception model: `lcrl perception train --out data/push-perception`." in md
     assert "Another build (`push_older`): 0.31 after 10 rounds." in md
+    bands = [
+        {"from_cm": 0, "to_cm": 6, "object_steps": 40, "mean_cm": 3.5, "p90_cm": 9.0},
+        {"from_cm": 6, "to_cm": 10, "object_steps": 0, "mean_cm": None, "p90_cm": None},
+        {"from_cm": 20, "to_cm": 1000, "object_steps": 9, "mean_cm": 2.5, "p90_cm": 6.3},
+    ]
+    fake["teacher_on_estimates"] = {
+        "episodes": 4,
+        "true_state": {"success": 1.0, "ci": [0.51, 1.0]},
+        "estimate": {"success": 0.5, "ci": [0.15, 0.85]},
+        "action_gap": 0.2,
+        "error_by_gripper_distance": bands,
+    }
+    distill.render({**after, "push": fake}, after["machine"])
+    md = (results / "distill-robosuite.md").read_text()
+    assert "0.50 [0.15, 0.85] against 1.00 [0.51, 1.00]" in md
+    assert (
+        "| 0-6 cm | 40 | 3.50 cm | 9.00 cm |" in md and "| 20+ cm | 9 | 2.50 cm | 6.30 cm |" in md
+    )
+    assert "| 6-10 cm |" not in md  # a band without a step has no row
 
     with pytest.raises(SystemExit):  # push-only needs the push teacher
         distill.main(["--perception", "p", "--push-only"])

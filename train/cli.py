@@ -771,6 +771,9 @@ class DistillCommand:
     """Evaluate the student every this many rounds (0: only at the end)."""
     eval_episodes: int = 50
     """Episodes per instruction set in evaluations."""
+    eval_sets: tuple[str, ...] = ()
+    """Instruction sets of the evaluations every ``--eval-every`` rounds (``train``: seen
+    instructions only); default: every set. The final evaluation covers every set."""
     seed: int = 0
     """Seed of the episodes, the mixing and the batches."""
     resume: bool = False
@@ -814,6 +817,7 @@ class DistillCommand:
             total_steps=self.rounds,
             eval_every=self.eval_every,
             eval_episodes=self.eval_episodes,
+            eval_sets=tuple(self.eval_sets),
             checkpoint_every=1,
             log_every=1,
             batch_size=self.batch_size,

@@ -567,6 +567,10 @@ class TrainConfig:
     """Evaluate every this many steps (0: only at the end)."""
     eval_episodes: int = 50
     """Episodes per evaluation set (seen instructions, held-out combinations ...)."""
+    eval_sets: tuple[str, ...] = ()
+    """Sets of the evaluations every ``eval_every`` (e.g. ``("train",)``: seen
+    instructions only); empty: every set of the task. The final evaluation covers every
+    set whatever this says."""
     checkpoint_every: int = 25_000
     """Checkpoint every this many steps (0: only at the end and on Ctrl-C)."""
     keep_checkpoints: int = 2

@@ -523,6 +523,11 @@ class BaseTrainer(ABC):
         """Train to ``total_steps``; returns the final evaluation. Ctrl-C checkpoints the
         run (continue it with ``--resume``) and raises ``KeyboardInterrupt`` again."""
         cfg = self.cfg
+        known = tuple(getattr(self.task, "sets", ()))
+        unknown = [name for name in cfg.eval_sets if name not in known]
+        if unknown:
+            self.close()
+            raise LcrlError(f"eval_sets {unknown}: this task's sets are {known}")
         self.open_outputs()
         self.begin()
         bar = progress_bar(cfg.total_steps, self.step, cfg.progress, self.unit)
@@ -565,7 +570,7 @@ class BaseTrainer(ABC):
         """:meth:`evaluate`, remembered as pending while it runs: a run stopped during it
         saves that, and its resumption runs the evaluation again at the same step."""
         self._periodic_eval = True
-        self.evaluate()
+        self.evaluate(tuple(self.cfg.eval_sets) or None)
         self._periodic_eval = False
 
     def resume_schedule(self, ckpt: Any) -> None:
@@ -626,12 +631,14 @@ class BaseTrainer(ABC):
             return self.train_s_before
         return self.train_s_before + self.elapsed() - self._eval_s
 
-    def evaluate(self) -> dict[str, Any]:
-        """Evaluate on every set of the task (the engine of ``lcrl eval``, the run's
-        seed); write the eval.csv row and return the results."""
+    def evaluate(self, sets: tuple[str, ...] | None = None) -> dict[str, Any]:
+        """Evaluate on ``sets`` (default: every set of the task) with the engine of ``lcrl
+        eval`` and the run's seed; write the eval.csv row and return the results."""
         cfg = self.cfg
         t0 = time.perf_counter()
-        results = evaluate(self.agent, self.task, cfg, episodes=cfg.eval_episodes, seed=cfg.seed)
+        results = evaluate(
+            self.agent, self.task, cfg, episodes=cfg.eval_episodes, seed=cfg.seed, sets=sets
+        )
         self._eval_s += time.perf_counter() - t0
         self.last_eval = results
         row = eval_row(results, self.task, self.step, self.episodes)
