@@ -6,6 +6,7 @@ teachers or students that cannot work are refused in one line."""
 from __future__ import annotations
 
 import csv
+import json
 from pathlib import Path
 
 import numpy as np
@@ -108,6 +109,26 @@ def test_a_resumed_distillation_continues_exactly(teacher, perception, tmp_path)
     assert a.keys() == b.keys()
     for key in a:
         torch.testing.assert_close(a[key], b[key], rtol=0, atol=0)
+
+
+def test_a_resumed_student_evaluates_after_its_first_checkpoint_is_pruned(
+    teacher, perception, tmp_path
+):
+    """A resumed perception student acts through the perception model its checkpoint
+    carries; evaluations after that checkpoint is pruned (two are kept) still find it."""
+    out = tmp_path / "student"
+    args = ["distill", str(teacher), "--perception", str(perception), "--out", str(out)]
+    args += ["--episodes-per-round", "1", "--updates-per-round", "2", "--batch-size", "8"]
+    args += ["--eval-every", "3", "--eval-episodes", "1", "--no-progress", "--no-tensorboard"]
+    assert cli(*args, "--rounds", "1") == 0
+    assert cli(*args, "--rounds", "4", "--resume") == 0
+    steps = [line.split(",")[0] for line in (out / "eval.csv").read_text().splitlines()[1:]]
+    assert steps == ["1", "3", "4"]
+    assert not (out / "checkpoints" / "step_000000001").exists()
+    kept = json.loads((out / "config.json").read_text())["env"]["perception"]
+    assert Path(kept) == out / "perception" and (out / "perception" / "meta.json").is_file()
+    assert cli(*args, "--rounds", "1", "--overwrite") == 0  # a new run drops the copy
+    assert not (out / "perception").exists()
 
 
 def test_students_and_teachers_that_cannot_work_are_refused(teacher, perception, tmp_path, capsys):

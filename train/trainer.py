@@ -236,7 +236,7 @@ def open_run(cfg: TrainConfig, explore: Mapping[str, Any] | None = None) -> tupl
             )
         saved = meta.config
         if "perception" in ckpt.meta:  # the copy of the model the policy acts through
-            saved.env.perception = str(latest)
+            saved.env.perception = str(keep_perception(latest, out))
         saved.total_steps = cfg.total_steps
         saved.resume = True
         saved.out = cfg.out
@@ -254,7 +254,7 @@ def open_run(cfg: TrainConfig, explore: Mapping[str, Any] | None = None) -> tupl
                 f"{out} already holds a run; pass --resume to continue it, "
                 "--overwrite to replace it, or choose another --out"
             )
-        for name in ("checkpoints", "tb"):
+        for name in ("checkpoints", "tb", RESUMED_PERCEPTION):
             shutil.rmtree(out / name, ignore_errors=True)
         for name in ("latest.json", "progress.csv", "eval.csv", "report.md", "curves.png"):
             (out / name).unlink(missing_ok=True)
@@ -348,6 +348,28 @@ def eval_row(results: Mapping[str, Any], task: Any, step: int, episodes: int) ->
         for t in res.get("tasks", ()):  # a fixed task set: success per task id
             row[f"tasks/{t['id']}"] = t["success"]
     return row
+
+
+#: Where a resumed run keeps the perception model its checkpoints carry
+#: (:func:`keep_perception`).
+RESUMED_PERCEPTION = "perception"
+
+
+def keep_perception(checkpoint: Path, out: Path) -> Path:
+    """Copy the perception model that a policy checkpoint carries (with the policy's
+    weights; not its arrays or buffer) to ``out/perception``, a folder that
+    ``--env.perception`` reads, and return it: a resumed run's environments act through
+    it after :func:`prune_checkpoints` has removed the checkpoint it resumed from."""
+    dest = out / RESUMED_PERCEPTION
+    part = out / f"{RESUMED_PERCEPTION}.part"
+    shutil.rmtree(part, ignore_errors=True)
+    part.mkdir()
+    for f in checkpoint.iterdir():
+        if f.is_file() and f.suffix in (".json", ".safetensors"):
+            shutil.copy2(f, part / f.name)
+    shutil.rmtree(dest, ignore_errors=True)
+    part.rename(dest)
+    return dest
 
 
 def prune_checkpoints(out: Path, keep: int) -> None:
