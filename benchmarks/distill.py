@@ -173,8 +173,15 @@ def push_stage(args: argparse.Namespace) -> dict:
     student = Path(args.push_student or Path(args.work) / "push-student")
     rounds = args.push_rounds or args.rounds
     updates = args.push_updates_per_round or args.updates_per_round
+    hidden = ("--hidden", *map(str, args.push_hidden)) if args.push_hidden else ()
     seconds = distill(
-        args, teacher, student, rounds=rounds, updates=updates, resume=args.resume_push
+        args,
+        teacher,
+        student,
+        rounds=rounds,
+        updates=updates,
+        how=("--perception", args.perception, *hidden),
+        resume=args.resume_push,
     )
     t = evaluate(teacher, args.final_episodes, ("train",))["train"]
     s = evaluate(student, args.final_episodes, ("train",))["train"]
@@ -189,7 +196,7 @@ def push_stage(args: argparse.Namespace) -> dict:
         },
         "student": str(student),
         "perception": args.perception,
-        "settings": {"rounds": rounds, "updates_per_round": updates},
+        "settings": {"rounds": rounds, "updates_per_round": updates, "hidden": args.push_hidden},
         "student_distill_s": seconds,
         "final": {
             "teacher": {"success": t["success"], "ci": t["ci"]},
@@ -224,7 +231,8 @@ def push_stage(args: argparse.Namespace) -> dict:
     return out
 
 
-def main(argv: list[str] | None = None) -> int:
+def build_parser() -> argparse.ArgumentParser:
+    """The benchmark's options."""
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--teacher", default="", help="a privileged-state reach run")
     parser.add_argument("--teacher-steps", type=int, default=30_000)
@@ -246,6 +254,14 @@ def main(argv: list[str] | None = None) -> int:
         "--push-updates-per-round", type=int, default=0, help="push's (--updates-per-round)"
     )
     parser.add_argument("--push-student", default="", help="default: WORK/push-student")
+    parser.add_argument(
+        "--push-hidden",
+        type=int,
+        nargs="+",
+        default=[],
+        metavar="N",
+        help="hidden layer sizes of the push student through perception (default: the teacher's)",
+    )
     parser.add_argument(
         "--resume-push",
         action="store_true",
@@ -271,6 +287,11 @@ def main(argv: list[str] | None = None) -> int:
         action="store_true",
         help="distil the push teacher alone; reach's figures stay those of the result file",
     )
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = build_parser()
     args = parser.parse_args(argv)
     if args.push_only and not args.push_teacher:
         parser.error("--push-only distils --push-teacher RUN")
@@ -417,10 +438,12 @@ def render(payload: dict, info: dict) -> None:
             if model == payload["settings"]["perception"]
             else f"the perception model `{model}`"
         )
+        hidden = push.get("settings", {}).get("hidden")
+        layers = f", with hidden layers {'x'.join(map(str, hidden))}" if hidden else ""
         lines += [
             "",
             f"Push (teacher `{push['teacher']}`, privileged state, started from scripted "
-            f"demonstrations; the student acts through {through}):",
+            f"demonstrations; the student acts through {through}{layers}):",
             "",
             *round_table(push["rounds"]),
             "",

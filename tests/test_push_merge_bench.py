@@ -67,11 +67,15 @@ def test_distill_push_only_keeps_reach_and_adds_push(results, tmp_path, monkeypa
     assert "Push student's seen success after rounds 5: 0.50." in md
     assert "the student acts through the same perception model as for reach" in md
     fake["perception"] = "data/push-perception"
+    fake["settings"] = {"rounds": 1, "updates_per_round": 5, "hidden": [512, 512, 512]}
     after["push_perception_command"] = "lcrl perception train --out data/push-perception"
     after["push_older"] = {"summary": "0.31 after 10 rounds.", "build": {}}
     distill.render({**after, "push": fake}, after["machine"])
     md = (results / "distill-robosuite.md").read_text()
-    assert "the student acts through the perception model `data/push-perception`" in md
+    assert (
+        "the student acts through the perception model `data/push-perception`, with hidden "
+        "layers 512x512x512)" in md
+    )
     assert "Its perception model: `lcrl perception train --out data/push-perception`." in md
     assert "Another build (`push_older`): 0.31 after 10 rounds." in md
     bands = [
@@ -153,3 +157,25 @@ def test_distill_resumes_a_push_student_and_counts_its_own_seconds(tmp_path, mon
     distill.distill(args, Path("t"), student, how=("--state",))
     assert "--state" in calls[-1] and "--perception" not in calls[-1]
     assert calls[-1][calls[-1].index("--rounds") + 1] == "10"
+
+
+def test_distill_push_stage_passes_the_student_s_hidden_layers(tmp_path, monkeypatch):
+    """--push-hidden sizes the push student through perception (lcrl distill --hidden),
+    and the push section records them."""
+    import benchmarks.distill as distill
+
+    seen = []
+    monkeypatch.setattr(distill, "distill", lambda *a, **kw: seen.append(kw["how"]) or 1.0)
+    final = {"train": {"success": 0.5, "ci": [0.4, 0.6]}}
+    monkeypatch.setattr(distill, "evaluate", lambda *a: final)
+    monkeypatch.setattr(distill, "rows", lambda path: [{"step": 1.0}])
+    parser_args = ["--perception", "p", "--push-teacher", str(tmp_path / "t"), "--push-only"]
+    args = distill.build_parser().parse_args([*parser_args, "--push-hidden", "512", "512"])
+    out = distill.push_stage(args)
+    assert seen == [("--perception", "p", "--hidden", "512", "512")]
+    assert out["settings"]["hidden"] == [512, 512]
+    assert (
+        distill.push_stage(distill.build_parser().parse_args(parser_args))["settings"]["hidden"]
+        == []
+    )
+    assert seen[-1] == ("--perception", "p")
