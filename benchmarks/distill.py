@@ -150,8 +150,9 @@ def error_bands(errors) -> list[dict]:
     import numpy as np
 
     out = []
+    distance = errors[:, 0] * 100
     for lo, hi in ERROR_BANDS:
-        inside = (errors[:, 0] * 100 >= lo) & (errors[:, 0] * 100 < hi)
+        inside = (distance >= lo) & (distance < hi)
         e = errors[inside, 1] * 100
         out.append(
             {
@@ -487,11 +488,8 @@ def render(payload: dict, info: dict) -> None:
                     "|---|---:|---:|---:|",
                 ]
                 for b in bands:
-                    band = (
-                        f"{b['from_cm']}-{b['to_cm']} cm"
-                        if b["to_cm"] < 1000
-                        else (f"{b['from_cm']}+ cm")
-                    )
+                    upper = f"-{b['to_cm']}" if b["to_cm"] < 1000 else "+"
+                    band = f"{b['from_cm']}{upper} cm"
                     lines.append(
                         f"| {band} | {b['object_steps']} | {b['mean_cm']:.2f} cm "
                         f"| {b['p90_cm']:.2f} cm |"
