@@ -175,6 +175,10 @@ def push_stage(args: argparse.Namespace) -> dict:
     rounds = args.push_rounds or args.rounds
     updates = args.push_updates_per_round or args.updates_per_round
     hidden = ("--hidden", *map(str, args.push_hidden)) if args.push_hidden else ()
+    if args.push_init_teacher:
+        hidden += ("--init-from-teacher",)
+    if args.push_lr:
+        hidden += ("--lr", str(args.push_lr))
     seconds = distill(
         args,
         teacher,
@@ -197,7 +201,13 @@ def push_stage(args: argparse.Namespace) -> dict:
         },
         "student": str(student),
         "perception": args.perception,
-        "settings": {"rounds": rounds, "updates_per_round": updates, "hidden": args.push_hidden},
+        "settings": {
+            "rounds": rounds,
+            "updates_per_round": updates,
+            "hidden": args.push_hidden,
+            "init_from_teacher": args.push_init_teacher,
+            "lr": args.push_lr or None,
+        },
         "student_distill_s": seconds,
         "final": {
             "teacher": {"success": t["success"], "ci": t["ci"]},
@@ -262,6 +272,18 @@ def build_parser() -> argparse.ArgumentParser:
         default=[],
         metavar="N",
         help="hidden layer sizes of the push student through perception (default: the teacher's)",
+    )
+    parser.add_argument(
+        "--push-init-teacher",
+        action="store_true",
+        help="the push student through perception starts as a copy of the teacher "
+        "(lcrl distill --init-from-teacher)",
+    )
+    parser.add_argument(
+        "--push-lr",
+        type=float,
+        default=0.0,
+        help="the push student's learning rate (default: lcrl distill's)",
     )
     parser.add_argument(
         "--resume-push",
@@ -439,8 +461,13 @@ def render(payload: dict, info: dict) -> None:
             if model == payload["settings"]["perception"]
             else f"the perception model `{model}`"
         )
-        hidden = push.get("settings", {}).get("hidden")
+        settings = push.get("settings", {})
+        hidden = settings.get("hidden")
         layers = f", with hidden layers {'x'.join(map(str, hidden))}" if hidden else ""
+        if settings.get("init_from_teacher"):
+            layers += ", started as a copy of the teacher's policy (`--init-from-teacher`)"
+        if settings.get("lr"):
+            layers += f", learning rate {settings['lr']:g}"
         lines += [
             "",
             f"Push (teacher `{push['teacher']}`, privileged state, started from scripted "

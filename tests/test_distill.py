@@ -167,6 +167,61 @@ def test_eval_sets_limit_the_periodic_evaluations_not_the_final_one(
     assert not (tmp_path / "bad" / "progress.csv").exists()
 
 
+def test_a_student_started_from_the_teacher_acts_as_the_teacher(teacher, perception, tmp_path):
+    """``--init-from-teacher``: before any update the student's action is the teacher's
+    deterministic one on the same state; a student from nothing acts otherwise."""
+    from lcrl.checkpoint import load_checkpoint
+    from train.config import DistillConfig
+    from train.distill import DistillTrainer, student_config
+    from train.evaluate import resolve_checkpoint
+    from train.run_meta import run_meta
+
+    teacher_cfg = run_meta(load_checkpoint(resolve_checkpoint(teacher))).config
+    actions = {}
+    for name, init in (("warm", True), ("cold", False)):
+        distill = DistillConfig(teacher=str(teacher), init_from_teacher=init)
+        cfg = student_config(
+            teacher_cfg, state=True, out=str(tmp_path / name), distill=distill, total_steps=1
+        )
+        trainer = DistillTrainer(cfg)
+        try:
+            obs, _ = trainer.env.reset(seed=3)
+            goal = np.asarray([trainer.task.goal(obs, trainer.env)])
+            mine = {k: v[None] for k, v in trainer.task.storage_obs(obs, obs).items()}
+            actions[name] = trainer.agent.act(mine, goal, deterministic=True)[0]
+            theirs = trainer.teacher.agent.act(mine, goal, deterministic=True)[0]
+        finally:
+            trainer.close()
+    np.testing.assert_allclose(actions["warm"], theirs, atol=1e-5)
+    assert np.abs(actions["cold"] - theirs).max() > 1e-2
+
+
+def test_init_from_teacher_over_perception_and_its_refusals(teacher, perception, tmp_path, capsys):
+    """A student through perception starts from the teacher and fine-tunes (the checkpoint
+    says so); from the teacher's own state its first loss is far below a fresh student's;
+    another network size is refused in one line."""
+    common = ["--rounds", "1", "--episodes-per-round", "3", "--updates-per-round", "5"]
+    common += ["--batch-size", "32", "--eval-every", "0", "--eval-episodes", "1"]
+    common += ["--no-progress", "--no-tensorboard"]
+    out = tmp_path / "perceived"
+    args = ["distill", str(teacher), "--perception", str(perception), "--init-from-teacher"]
+    assert cli(*args, "--out", str(out), *common) == 0
+    from lcrl.checkpoint import load_checkpoint
+    from train.evaluate import resolve_checkpoint
+
+    assert load_checkpoint(resolve_checkpoint(out)).meta["distill"]["init_from_teacher"] is True
+    first = {}
+    for name, extra in (("warm", ["--init-from-teacher"]), ("cold", [])):
+        run = tmp_path / name
+        assert cli("distill", str(teacher), "--state", *extra, "--out", str(run), *common) == 0
+        first[name] = _rows(run / "progress.csv")[0]["loss_first"]
+    assert first["warm"] < 0.1 * first["cold"]
+    bad = [*args, "--hidden", "32", "--out", str(tmp_path / "bad"), *common]
+    assert cli(*bad) == 2
+    line = error_line(capsys.readouterr().err)
+    assert "--init-from-teacher" in line and "the teacher's" in line and "(32," in line
+
+
 def test_the_student_does_not_inherit_how_the_teacher_explored(tmp_path):
     """A teacher trained with chains, hand-overs and demonstrations (robosuite-push from
     demos) gives a student config without them: DAgger collects its own episodes, and

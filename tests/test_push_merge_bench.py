@@ -179,3 +179,24 @@ def test_distill_push_stage_passes_the_student_s_hidden_layers(tmp_path, monkeyp
         == []
     )
     assert seen[-1] == ("--perception", "p")
+
+
+def test_distill_push_stage_can_start_the_student_from_the_teacher(tmp_path, monkeypatch):
+    """--push-init-teacher and --push-lr reach lcrl distill (--init-from-teacher, --lr)
+    and the push section records both."""
+    import benchmarks.distill as distill
+
+    seen = []
+    monkeypatch.setattr(distill, "distill", lambda *a, **kw: seen.append(kw["how"]) or 1.0)
+    final = {"train": {"success": 0.5, "ci": [0.4, 0.6]}}
+    monkeypatch.setattr(distill, "evaluate", lambda *a: final)
+    monkeypatch.setattr(distill, "rows", lambda path: [{"step": 1.0}])
+    parser_args = ["--perception", "p", "--push-teacher", str(tmp_path / "t"), "--push-only"]
+    args = distill.build_parser().parse_args(
+        [*parser_args, "--push-init-teacher", "--push-lr", "3e-4"]
+    )
+    out = distill.push_stage(args)
+    assert seen == [("--perception", "p", "--init-from-teacher", "--lr", "0.0003")]
+    assert out["settings"]["init_from_teacher"] is True and out["settings"]["lr"] == 3e-4
+    plain = distill.push_stage(distill.build_parser().parse_args(parser_args))["settings"]
+    assert plain["init_from_teacher"] is False and plain["lr"] is None

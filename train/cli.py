@@ -745,6 +745,9 @@ class DistillCommand:
     student taking over at the second (with ``--chain``)."""
     hidden: list[int] = field(default_factory=list)
     """The student's hidden layer sizes (default: the teacher's)."""
+    init_from_teacher: bool = False
+    """Start the student as a copy of the teacher's policy network and normalisers (then
+    DAgger fine-tunes it on what the student reads); needs the teacher's networks."""
     slot_mode: str = ""
     """How the student picks object slots: ``attention``, ``select`` or ``attributes``
     (through their colour and shape); default: as the teacher."""
@@ -806,6 +809,7 @@ class DistillCommand:
             chain_length=self.chain_length,
             chain_teacher=self.chain_teacher,
             roll_in=self.roll_in,
+            init_from_teacher=self.init_from_teacher,
         )
         cfg = student_config(
             teacher,

@@ -441,6 +441,13 @@ class DistillConfig:
     states labelled as every other), so that the student acts from where it left the
     scene: more of the states that chains start from (with ``chain``)."""
 
+    init_from_teacher: bool = False
+    """The student starts as the teacher: its policy network and observation and goal
+    normalisers are copies of the teacher's actor (the mean half of a stochastic actor's
+    output layer), so DAgger fine-tunes a policy that already acts, from the first round,
+    as the teacher does on the student's input. Needs the teacher's networks (no other
+    ``--hidden`` or slot mode)."""
+
     def validate(self) -> None:
         """Raise :class:`LcrlError` for settings that cannot train."""
         if self.episodes_per_round <= 0 or self.updates_per_round < 0:

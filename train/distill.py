@@ -26,6 +26,10 @@ DAgger (Ross et al., 2011), one round at a time:
 3. run ``distill.updates_per_round`` behavioural-cloning updates of the student on the
    whole dataset (:class:`lcrl.bc.BC`, squared error of the mean action).
 
+With ``distill.init_from_teacher`` (``--init-from-teacher``) the student starts as a copy
+of the teacher's actor, so the first rounds fine-tune a policy that already acts, instead of
+one that learns from nothing.
+
 ``total_steps``, ``eval_every``, ``checkpoint_every`` and ``log_every`` count rounds. The
 student's checkpoints are ``bc`` policies in the format of every run (with the perception
 model they act through), so ``lcrl eval``, ``lcrl act``, ``lcrl.load`` and ``lcrl report``
@@ -101,6 +105,54 @@ def student_config(
         overwrite=False,
         **overrides,
     )
+
+
+def start_from_teacher(student: Any, teacher: Any) -> None:
+    """Make ``student`` (a :class:`lcrl.algos.bc.BC` agent) act as ``teacher``'s actor:
+    copy its policy network and its observation and goal normalisers. A stochastic
+    actor's output layer gives its mean half (the first ``action_dim`` outputs) to a
+    deterministic student; any other difference of shape is refused.
+
+    Raises:
+        LcrlError: the teacher has no actor, or networks of other inputs or sizes.
+    """
+    actor = getattr(teacher, "actor", None)
+    if actor is None:
+        raise LcrlError(
+            f"--init-from-teacher: the teacher ({teacher.name}) has no actor network to start from"
+        )
+    sizes = [tuple(a.options.net.hidden) for a in (student, teacher)]
+    if sizes[0] != sizes[1]:
+        raise LcrlError(
+            f"--init-from-teacher: the student's hidden layers are {sizes[0]}, the teacher's "
+            f"{sizes[1]}: keep the teacher's networks (no --hidden)"
+        )
+    mine, theirs = student.actor.state_dict(), actor.state_dict()
+    if mine.keys() != theirs.keys():
+        missing = sorted(set(mine) ^ set(theirs))
+        raise LcrlError(
+            f"--init-from-teacher: the student's policy network has other layers than the "
+            f"teacher's ({missing[0]} is in one only): keep the teacher's networks"
+        )
+    weights = {}
+    for key, w in mine.items():
+        t = theirs[key]
+        if t.shape != w.shape and t.shape[1:] == w.shape[1:] and t.shape[0] == 2 * w.shape[0]:
+            t = t[: w.shape[0]]  # the mean half of a Gaussian actor's output
+        if t.shape != w.shape:
+            raise LcrlError(
+                f"--init-from-teacher: the student's {key} is {tuple(w.shape)}, the teacher's "
+                f"{tuple(theirs[key].shape)}: keep the teacher's networks (no --hidden)"
+            )
+        weights[key] = t
+    norms = teacher.norms.state_dict()
+    if student.norms.state_dict().keys() != norms.keys():
+        raise LcrlError(
+            f"--init-from-teacher: the student normalises {sorted(student.norms)}, the "
+            f"teacher {sorted(teacher.norms)}"
+        )
+    student.actor.load_state_dict(weights)
+    student.norms.load_state_dict(norms)
 
 
 class DistillTrainer(BaseTrainer):
@@ -241,6 +293,8 @@ class DistillTrainer(BaseTrainer):
             self.scripted = ScriptedActor(cfg.env, self.task, 0.0, teacher=True)
         if ckpt is not None:
             self.restore(ckpt)
+        elif cfg.distill.init_from_teacher:
+            start_from_teacher(self.agent, teacher.agent)
         else:
             self.agent.observe({}, self.task.embeddings[: self.task.num_train])
         attach_grounding(self.agent, self.task, cfg)
@@ -493,6 +547,7 @@ class DistillTrainer(BaseTrainer):
             "teacher": str(self.teacher.checkpoint.path),
             "teacher_step": self.teacher.checkpoint.meta.get("step"),
             "rows": self.rows,
+            "init_from_teacher": bool(cfg.distill.init_from_teacher),
         }
         if self.family_teachers or self.scripted_families:
             meta["distill"]["teachers"] = {
