@@ -404,6 +404,28 @@ def add_push(payload: dict) -> None:
     payload["reached"]["push_within_5_points"] = teacher - student <= TARGET_GAP
 
 
+def push_curves(payload: dict) -> dict[str, list[tuple[float, float]]]:
+    """``{build: [(round, seen success), ...]}`` of the push student's periodic evaluations:
+    the result's own push student, then every build kept beside it that has some."""
+    out = {}
+    push = payload.get("push")
+    builds = [("push (this result)", push)] if push else []
+    builds += [
+        (key, value.get("build"))
+        for key, value in payload.items()
+        if key.startswith("push_") and isinstance(value, dict) and "summary" in value
+    ]
+    for label, build in builds:
+        evals = [
+            (r["step"], r["train/success"])
+            for r in (build or {}).get("student_evals", [])
+            if "train/success" in r
+        ]
+        if evals:
+            out[label] = evals
+    return out
+
+
 def render(payload: dict, info: dict) -> None:
     """The Markdown table and the figure of a result payload."""
     final, rounds, headline = payload["final"], payload["rounds"], payload["headline"]
@@ -538,7 +560,11 @@ def render(payload: dict, info: dict) -> None:
 
     import matplotlib.pyplot as plt
 
-    fig, (ax1, ax2) = plt.subplots(1, 2, figsize=(12, 4.5))
+    builds = push_curves(payload)
+    if builds:
+        fig, (ax1, ax2, ax3) = plt.subplots(1, 3, figsize=(17, 4.5))
+    else:
+        fig, (ax1, ax2) = plt.subplots(1, 2, figsize=(12, 4.5))
     steps = [r["step"] for r in rounds]
     ax1.plot(steps, [r["loss"] for r in rounds], "o-", label="reach: student loss")
     if push is not None:
@@ -569,6 +595,15 @@ def render(payload: dict, info: dict) -> None:
         colors[-1] = "tab:green"
     success_bars(ax2, names, vals, episodes, color=colors)
     ax2.tick_params(axis="x", labelsize=7)
+    if builds:
+        for label, evals in builds.items():
+            ax3.plot(*zip(*evals, strict=True), "o-", label=label, ms=4)
+        teacher = push["final"]["teacher"]["success"]
+        ax3.axhline(teacher, c="k", lw=1, label="push teacher (100 episodes)")
+        ax3.axhline(teacher - TARGET_GAP, c="k", ls=":", lw=1, label="target: teacher - 0.05")
+        ax3.set(xlabel="DAgger round", ylabel="push student's seen success", ylim=(0, 1.02))
+        ax3.set_title("push students, 20-episode evaluations along the rounds", fontsize=9)
+        ax3.legend(fontsize=6, loc="lower right")
     fig.tight_layout(rect=(0, 0.06, 1, 1))
     save_figure(NAME, fig, info, payload["command"])
 

@@ -97,6 +97,17 @@ def test_distill_push_only_keeps_reach_and_adds_push(results, tmp_path, monkeypa
         "| 0-6 cm | 40 | 3.50 cm | 9.00 cm |" in md and "| 20+ cm | 9 | 2.50 cm | 6.30 cm |" in md
     )
     assert "| 6-10 cm |" not in md  # a band without a step has no row
+    fake["settings"]["init_from_teacher"], fake["settings"]["lr"] = True, 3e-4
+    kept = {"step": 10.0, "train/success": 0.7}
+    after["push_kept"] = {"summary": "kept.", "build": {"student_evals": [kept]}}
+    distill.render({**after, "push": fake}, after["machine"])
+    md = (results / "distill-robosuite.md").read_text()
+    assert "started as a copy of the teacher's policy (`--init-from-teacher`)" in md
+    assert "learning rate 0.0003" in md
+    # the periodic evaluations of the result's push student and of each kept build
+    curves = distill.push_curves({**after, "push": fake})
+    assert curves["push (this result)"] == [(5.0, 0.5)] and curves["push_kept"] == [(10.0, 0.7)]
+    assert "push_older" not in curves  # a build without evaluations draws nothing
 
     with pytest.raises(SystemExit):  # push-only needs the push teacher
         distill.main(["--perception", "p", "--push-only"])
