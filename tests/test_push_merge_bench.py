@@ -170,44 +170,41 @@ def test_distill_resumes_a_push_student_and_counts_its_own_seconds(tmp_path, mon
     assert calls[-1][calls[-1].index("--rounds") + 1] == "10"
 
 
-def test_distill_push_stage_passes_the_student_s_hidden_layers(tmp_path, monkeypatch):
+@pytest.fixture
+def push_stage(tmp_path, monkeypatch):
+    """``(extra args) -> (lcrl distill's student arguments, push section)`` of the distill
+    benchmark's push stage, with distillation and evaluation stubbed out."""
+    import benchmarks.distill as distill
+
+    seen = []
+    monkeypatch.setattr(distill, "distill", lambda *a, **kw: seen.append(kw["how"]) or 1.0)
+    final = {"train": {"success": 0.5, "ci": [0.4, 0.6]}}
+    monkeypatch.setattr(distill, "evaluate", lambda *a: final)
+    monkeypatch.setattr(distill, "rows", lambda path: [{"step": 1.0}])
+    base = ["--perception", "p", "--push-teacher", str(tmp_path / "t"), "--push-only"]
+
+    def run(*extra: str) -> tuple[tuple[str, ...], dict]:
+        out = distill.push_stage(distill.build_parser().parse_args([*base, *extra]))
+        return seen[-1], out
+
+    return run
+
+
+def test_distill_push_stage_passes_the_student_s_hidden_layers(push_stage):
     """--push-hidden sizes the push student through perception (lcrl distill --hidden),
     and the push section records them."""
-    import benchmarks.distill as distill
-
-    seen = []
-    monkeypatch.setattr(distill, "distill", lambda *a, **kw: seen.append(kw["how"]) or 1.0)
-    final = {"train": {"success": 0.5, "ci": [0.4, 0.6]}}
-    monkeypatch.setattr(distill, "evaluate", lambda *a: final)
-    monkeypatch.setattr(distill, "rows", lambda path: [{"step": 1.0}])
-    parser_args = ["--perception", "p", "--push-teacher", str(tmp_path / "t"), "--push-only"]
-    args = distill.build_parser().parse_args([*parser_args, "--push-hidden", "512", "512"])
-    out = distill.push_stage(args)
-    assert seen == [("--perception", "p", "--hidden", "512", "512")]
+    how, out = push_stage("--push-hidden", "512", "512")
+    assert how == ("--perception", "p", "--hidden", "512", "512")
     assert out["settings"]["hidden"] == [512, 512]
-    assert (
-        distill.push_stage(distill.build_parser().parse_args(parser_args))["settings"]["hidden"]
-        == []
-    )
-    assert seen[-1] == ("--perception", "p")
+    how, out = push_stage()
+    assert how == ("--perception", "p") and out["settings"]["hidden"] == []
 
 
-def test_distill_push_stage_can_start_the_student_from_the_teacher(tmp_path, monkeypatch):
+def test_distill_push_stage_can_start_the_student_from_the_teacher(push_stage):
     """--push-init-teacher and --push-lr reach lcrl distill (--init-from-teacher, --lr)
     and the push section records both."""
-    import benchmarks.distill as distill
-
-    seen = []
-    monkeypatch.setattr(distill, "distill", lambda *a, **kw: seen.append(kw["how"]) or 1.0)
-    final = {"train": {"success": 0.5, "ci": [0.4, 0.6]}}
-    monkeypatch.setattr(distill, "evaluate", lambda *a: final)
-    monkeypatch.setattr(distill, "rows", lambda path: [{"step": 1.0}])
-    parser_args = ["--perception", "p", "--push-teacher", str(tmp_path / "t"), "--push-only"]
-    args = distill.build_parser().parse_args(
-        [*parser_args, "--push-init-teacher", "--push-lr", "3e-4"]
-    )
-    out = distill.push_stage(args)
-    assert seen == [("--perception", "p", "--init-from-teacher", "--lr", "0.0003")]
+    how, out = push_stage("--push-init-teacher", "--push-lr", "3e-4")
+    assert how == ("--perception", "p", "--init-from-teacher", "--lr", "0.0003")
     assert out["settings"]["init_from_teacher"] is True and out["settings"]["lr"] == 3e-4
-    plain = distill.push_stage(distill.build_parser().parse_args(parser_args))["settings"]
-    assert plain["init_from_teacher"] is False and plain["lr"] is None
+    _, plain = push_stage()
+    assert plain["settings"]["init_from_teacher"] is False and plain["settings"]["lr"] is None
