@@ -174,18 +174,18 @@ def push_stage(args: argparse.Namespace) -> dict:
     student = Path(args.push_student or Path(args.work) / "push-student")
     rounds = args.push_rounds or args.rounds
     updates = args.push_updates_per_round or args.updates_per_round
-    hidden = ("--hidden", *map(str, args.push_hidden)) if args.push_hidden else ()
+    student_args = ("--hidden", *map(str, args.push_hidden)) if args.push_hidden else ()
     if args.push_init_teacher:
-        hidden += ("--init-from-teacher",)
+        student_args += ("--init-from-teacher",)
     if args.push_lr:
-        hidden += ("--lr", str(args.push_lr))
+        student_args += ("--lr", str(args.push_lr))
     seconds = distill(
         args,
         teacher,
         student,
         rounds=rounds,
         updates=updates,
-        how=("--perception", args.perception, *hidden),
+        how=("--perception", args.perception, *student_args),
         resume=args.resume_push,
     )
     t = evaluate(teacher, args.final_episodes, ("train",))["train"]

@@ -129,10 +129,10 @@ def start_from_teacher(student: Any, teacher: Any) -> None:
         )
     mine, theirs = student.actor.state_dict(), actor.state_dict()
     if mine.keys() != theirs.keys():
-        missing = sorted(set(mine) ^ set(theirs))
+        only_one = sorted(set(mine) ^ set(theirs))
         raise LcrlError(
             f"--init-from-teacher: the student's policy network has other layers than the "
-            f"teacher's ({missing[0]} is in one only): keep the teacher's networks"
+            f"teacher's ({only_one[0]} is in one only): keep the teacher's networks"
         )
     weights = {}
     for key, w in mine.items():
@@ -142,7 +142,7 @@ def start_from_teacher(student: Any, teacher: Any) -> None:
         if t.shape != w.shape:
             raise LcrlError(
                 f"--init-from-teacher: the student's {key} is {tuple(w.shape)}, the teacher's "
-                f"{tuple(theirs[key].shape)}: keep the teacher's networks (no --hidden)"
+                f"{tuple(theirs[key].shape)}: keep the teacher's networks"
             )
         weights[key] = t
     norms = teacher.norms.state_dict()
