@@ -277,7 +277,8 @@ def build_parser() -> argparse.ArgumentParser:
         "--push-init-teacher",
         action="store_true",
         help="the push student through perception starts as a copy of the teacher "
-        "(lcrl distill --init-from-teacher)",
+        "(lcrl distill --init-from-teacher; with --push-hidden, the teacher's layers grown "
+        "to those sizes)",
     )
     parser.add_argument(
         "--push-lr",

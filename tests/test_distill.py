@@ -169,7 +169,8 @@ def test_eval_sets_limit_the_periodic_evaluations_not_the_final_one(
 
 def test_a_student_started_from_the_teacher_acts_as_the_teacher(teacher, perception, tmp_path):
     """``--init-from-teacher``: before any update the student's action is the teacher's
-    deterministic one on the same state; a student from nothing acts otherwise."""
+    deterministic one on the same state, also for a student with more and wider hidden
+    layers (the teacher's grown to them); a student from nothing acts otherwise."""
     from lcrl.checkpoint import load_checkpoint
     from train.config import DistillConfig
     from train.distill import DistillTrainer, student_config
@@ -177,14 +178,22 @@ def test_a_student_started_from_the_teacher_acts_as_the_teacher(teacher, percept
     from train.run_meta import run_meta
 
     teacher_cfg = run_meta(load_checkpoint(resolve_checkpoint(teacher))).config
-    actions = {}
-    for name, init in (("warm", True), ("cold", False)):
+    had = tuple(teacher_cfg.agent.net.hidden)
+    grown = (2 * had[0], *[h + 8 for h in had[1:]], had[-1] + 8)
+    actions, widths = {}, {}
+    for name, init, hidden in (("warm", True, had), ("grown", True, grown), ("cold", False, had)):
         distill = DistillConfig(teacher=str(teacher), init_from_teacher=init)
         cfg = student_config(
             teacher_cfg, state=True, out=str(tmp_path / name), distill=distill, total_steps=1
         )
+        cfg.agent.net.hidden = hidden
         trainer = DistillTrainer(cfg)
         try:
+            widths[name] = [
+                m.out_features
+                for m in trainer.agent.actor.head.net
+                if isinstance(m, torch.nn.Linear)
+            ][:-1]
             obs, _ = trainer.env.reset(seed=3)
             goal = np.asarray([trainer.task.goal(obs, trainer.env)])
             mine = {k: v[None] for k, v in trainer.task.storage_obs(obs, obs).items()}
@@ -192,8 +201,43 @@ def test_a_student_started_from_the_teacher_acts_as_the_teacher(teacher, percept
             theirs = trainer.teacher.agent.act(mine, goal, deterministic=True)[0]
         finally:
             trainer.close()
+    assert widths["grown"] == list(grown) and widths["warm"] == list(had)
     np.testing.assert_allclose(actions["warm"], theirs, atol=1e-5)
+    np.testing.assert_allclose(actions["grown"], theirs, atol=1e-5)
     assert np.abs(actions["cold"] - theirs).max() > 1e-2
+
+
+def test_grown_layers_compute_the_same_function_and_learn_apart():
+    """Net2Net growth: deeper and wider ReLU layers give the same outputs, copied units
+    get different outgoing weights, and a narrower or shallower target is refused."""
+    from lcrl.errors import LcrlError
+    from train.distill import grown_layers
+
+    gen = torch.Generator().manual_seed(0)
+    layers = [
+        (torch.randn(8, 5, generator=gen), torch.randn(8, generator=gen)),
+        (torch.randn(8, 8, generator=gen), torch.randn(8, generator=gen)),
+        (torch.randn(3, 8, generator=gen), torch.randn(3, generator=gen)),
+    ]
+
+    def forward(stack, x):
+        for i, (w, b) in enumerate(stack):
+            x = x @ w.T + b
+            x = torch.relu(x) if i < len(stack) - 1 else x
+        return x
+
+    x = torch.randn(64, 5, generator=gen)
+    grown = grown_layers(layers, (16, 12, 20))
+    assert [tuple(w.shape) for w, _ in grown] == [(16, 5), (12, 16), (20, 12), (3, 20)]
+    torch.testing.assert_close(forward(grown, x), forward(layers, x), atol=1e-4, rtol=1e-4)
+    w_in, w_out = grown[0][0], grown[1][0]
+    for j in range(8, 16):  # each new unit copies one of the first 8 ...
+        (source,) = [i for i in range(8) if torch.equal(w_in[j], w_in[i])]
+        # ... and takes another share of its outgoing weights
+        assert not torch.allclose(w_out[:, j], w_out[:, source])
+    for bad in ((4, 8), (8,), (8, 8, 4)):
+        with pytest.raises(LcrlError, match="cannot grow"):
+            grown_layers(layers, bad)
 
 
 def test_init_from_teacher_over_perception_and_its_refusals(teacher, perception, tmp_path, capsys):

@@ -747,7 +747,8 @@ class DistillCommand:
     """The student's hidden layer sizes (default: the teacher's)."""
     init_from_teacher: bool = False
     """Start the student as a copy of the teacher's policy network and normalisers (then
-    DAgger fine-tunes it on what the student reads); needs the teacher's networks."""
+    DAgger fine-tunes it on what the student reads); a wider or deeper ``--hidden`` grows
+    the teacher's layers to it, acting the same."""
     slot_mode: str = ""
     """How the student picks object slots: ``attention``, ``select`` or ``attributes``
     (through their colour and shape); default: as the teacher."""

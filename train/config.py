@@ -445,8 +445,9 @@ class DistillConfig:
     """The student starts as the teacher: its policy network and observation and goal
     normalisers are copies of the teacher's actor (the mean half of a stochastic actor's
     output layer), so DAgger fine-tunes a policy that already acts, from the first round,
-    as the teacher does on the student's input. Needs the teacher's networks (no other
-    ``--hidden`` or slot mode)."""
+    as the teacher does on the student's input. Needs the teacher's slot mode; a student
+    with more or wider hidden layers (``--hidden``, at least the teacher's) starts from
+    the teacher's layers grown to them without changing what it computes (Net2Net)."""
 
     def validate(self) -> None:
         """Raise :class:`LcrlError` for settings that cannot train."""

@@ -28,7 +28,8 @@ DAgger (Ross et al., 2011), one round at a time:
 
 With ``distill.init_from_teacher`` (``--init-from-teacher``) the student starts as a copy
 of the teacher's actor, so the first rounds fine-tune a policy that already acts, instead of
-one that learns from nothing.
+one that learns from nothing; a student given more or wider hidden layers starts from the
+teacher's grown to them (Net2Net), still acting as the teacher.
 
 ``total_steps``, ``eval_every``, ``checkpoint_every`` and ``log_every`` count rounds. The
 student's checkpoints are ``bc`` policies in the format of every run (with the perception
@@ -45,6 +46,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+import torch
 
 from lcrl.buffer import Batch
 from lcrl.errors import LcrlError
@@ -107,14 +109,59 @@ def student_config(
     )
 
 
+def grown_layers(
+    layers: list[tuple[torch.Tensor, torch.Tensor]], hidden: tuple[int, ...], seed: int = 0
+) -> list[tuple[torch.Tensor, torch.Tensor]]:
+    """A ReLU MLP's ``(weight, bias)`` layers (the last one the output layer) grown to the
+    hidden widths ``hidden`` so that it computes the same function (Net2Net, Chen et al.
+    2016). Deeper: identity layers are inserted after the last hidden layer (its outputs
+    are >= 0, so ``relu(I h) = h``). Wider: a hidden layer's new units copy randomly
+    chosen units' incoming weights, and each copied unit's outgoing weights are split
+    among it and its copies in random positive shares that sum to one, so copies start
+    equal but learn apart.
+
+    Raises:
+        LcrlError: fewer layers than the MLP has, or a layer narrower than the one it grows
+            from.
+    """
+    layers = [(w.detach().clone(), b.detach().clone()) for w, b in layers]
+    widths = tuple(w.shape[0] for w, _ in layers[:-1])
+    if len(hidden) < len(widths) or any(
+        h < w for h, w in zip(hidden, [*widths, *[widths[-1]] * len(hidden)], strict=False)
+    ):
+        raise LcrlError(
+            f"the student's hidden layers {tuple(hidden)} cannot grow from the teacher's "
+            f"{widths}: give at least as many layers, each at least as wide"
+        )
+    while len(layers) - 1 < len(hidden):
+        width = layers[-2][0].shape[0]
+        layers.insert(-1, (torch.eye(width), torch.zeros(width)))
+    gen = torch.Generator().manual_seed(seed)
+    for i, target in enumerate(hidden):
+        (w, b), (w_next, b_next) = layers[i], layers[i + 1]
+        n = w.shape[0]
+        if target == n:
+            continue
+        pick = torch.cat([torch.arange(n), torch.randint(n, (target - n,), generator=gen)])
+        share = torch.rand(target, generator=gen) + 0.5
+        share = share / torch.zeros(n).index_add_(0, pick, share)[pick]
+        layers[i] = (w[pick], b[pick])
+        layers[i + 1] = (w_next[:, pick] * share[None, :], b_next)
+    return layers
+
+
 def start_from_teacher(student: Any, teacher: Any) -> None:
     """Make ``student`` (a :class:`lcrl.algos.bc.BC` agent) act as ``teacher``'s actor:
     copy its policy network and its observation and goal normalisers. A stochastic
     actor's output layer gives its mean half (the first ``action_dim`` outputs) to a
-    deterministic student; any other difference of shape is refused.
+    deterministic student. A student with more or wider hidden layers (``--hidden``)
+    gets the teacher's head grown to them (:func:`grown_layers`), still acting as the
+    teacher; any other difference of shape is refused.
 
     Raises:
-        LcrlError: the teacher has no actor, or networks of other inputs or sizes.
+        LcrlError: the teacher has no actor, or networks of other inputs, of a fusion
+            other than ``concat`` when the sizes differ, or a student narrower or
+            shallower than the teacher.
     """
     actor = getattr(teacher, "actor", None)
     if actor is None:
@@ -122,12 +169,9 @@ def start_from_teacher(student: Any, teacher: Any) -> None:
             f"--init-from-teacher: the teacher ({teacher.name}) has no actor network to start from"
         )
     sizes = [tuple(a.options.net.hidden) for a in (student, teacher)]
-    if sizes[0] != sizes[1]:
-        raise LcrlError(
-            f"--init-from-teacher: the student's hidden layers are {sizes[0]}, the teacher's "
-            f"{sizes[1]}: keep the teacher's networks (no --hidden)"
-        )
     mine, theirs = student.actor.state_dict(), actor.state_dict()
+    if sizes[0] != sizes[1]:
+        theirs = grown_head(theirs, sizes[0], sizes[1], student.options.net)
     if mine.keys() != theirs.keys():
         only_one = sorted(set(mine) ^ set(theirs))
         raise LcrlError(
@@ -153,6 +197,39 @@ def start_from_teacher(student: Any, teacher: Any) -> None:
         )
     student.actor.load_state_dict(weights)
     student.norms.load_state_dict(norms)
+
+
+def grown_head(
+    theirs: dict[str, torch.Tensor], hidden: tuple[int, ...], had: tuple[int, ...], net: Any
+) -> dict[str, torch.Tensor]:
+    """The teacher actor's weights ``theirs`` with its head's MLP (hidden layers ``had``)
+    grown to the student's ``hidden`` layers (:func:`grown_layers`).
+
+    Raises:
+        LcrlError: a head other than one ``concat`` MLP, or sizes it cannot grow to.
+    """
+    if net.fusion != "concat" or net.task_heads:
+        raise LcrlError(
+            f"--init-from-teacher: the student's hidden layers are {hidden}, the teacher's "
+            f"{had}; only a concat head without task heads can grow: keep the teacher's "
+            "networks (no --hidden)"
+        )
+    prefix = "head.net."
+    count = len(had) + 1
+    keys = [(f"{prefix}{2 * i}.weight", f"{prefix}{2 * i}.bias") for i in range(count)]
+    if any(k not in theirs for pair in keys for k in pair):
+        raise LcrlError(
+            f"--init-from-teacher: the teacher's head is not an MLP of {had}: keep the "
+            "teacher's networks (no --hidden)"
+        )
+    try:
+        grown = grown_layers([(theirs[w], theirs[b]) for w, b in keys], hidden)
+    except LcrlError as e:
+        raise LcrlError(f"--init-from-teacher: {e} (--hidden)") from None
+    out = {k: v for k, v in theirs.items() if not k.startswith(prefix)}
+    for i, (w, b) in enumerate(grown):
+        out[f"{prefix}{2 * i}.weight"], out[f"{prefix}{2 * i}.bias"] = w, b
+    return out
 
 
 class DistillTrainer(BaseTrainer):
