@@ -166,6 +166,31 @@ def error_bands(errors) -> list[dict]:
     return out
 
 
+#: The evaluation seed of :func:`recheck` (the final evaluations use seed 0).
+RECHECK_SEED = 1
+
+
+def recheck(teacher: Path, student: Path, episodes: int) -> dict:
+    """Teacher and student evaluated again, on ``episodes`` other seen push episodes
+    (evaluation seed :data:`RECHECK_SEED`: other layouts and instructions than the final
+    evaluation's), each with the ``lcrl eval`` command that gives it."""
+    out: dict = {"seed": RECHECK_SEED, "episodes": episodes, "commands": []}
+    for who, run in (("teacher", teacher), ("student", student)):
+        path = run / f"eval-seed{RECHECK_SEED}.json"
+        cmd = ["lcrl", "eval", str(run), "--episodes", str(episodes), "--sets", "train"]
+        cmd += ["--seed", str(RECHECK_SEED), "--json", str(path)]
+        subprocess.run(
+            [*LCRL, *cmd[1:], "--no-progress"],
+            check=True,
+            env=child_env(),
+            preexec_fn=die_with_parent,
+        )
+        result = json.loads(path.read_text())["sets"]["train"]
+        out[who] = {"success": result["success"], "ci": result["ci"]}
+        out["commands"].append(" ".join(cmd))
+    return out
+
+
 def push_stage(args: argparse.Namespace) -> dict:
     """The push teacher distilled too: both evaluated on seen push instructions. With
     ``--push-state-check`` a second student that reads the teacher's own privileged
@@ -216,6 +241,8 @@ def push_stage(args: argparse.Namespace) -> dict:
         "rounds": rows(student / "progress.csv"),
         "student_evals": rows(student / "eval.csv"),
     }
+    if args.push_recheck:
+        out["recheck"] = recheck(teacher, student, args.push_recheck)
     if args.push_noise_check:
         out["teacher_on_estimates"] = teacher_on_estimates(
             teacher, args.perception, args.push_noise_check
@@ -279,6 +306,14 @@ def build_parser() -> argparse.ArgumentParser:
         help="the push student through perception starts as a copy of the teacher "
         "(lcrl distill --init-from-teacher; with --push-hidden, the teacher's layers grown "
         "to those sizes)",
+    )
+    parser.add_argument(
+        "--push-recheck",
+        type=int,
+        default=0,
+        metavar="N",
+        help="also evaluate the push teacher and student on N other episodes (evaluation "
+        f"seed {RECHECK_SEED})",
     )
     parser.add_argument(
         "--push-lr",
@@ -505,6 +540,16 @@ def render(payload: dict, info: dict) -> None:
         ]
         if push.get("student_evals"):
             lines += ["", f"Push student's seen success {along(push['student_evals'])}."]
+        again = push.get("recheck")
+        if again:
+            gap = again["teacher"]["success"] - again["student"]["success"]
+            lines += [
+                "",
+                f"Again on {again['episodes']} other episodes (evaluation seed "
+                f"{again['seed']}: other layouts and instructions): teacher "
+                f"{cell(again['teacher'])}, student {cell(again['student'])} (gap "
+                f"{gap:+.2f}); `{'`, `'.join(again['commands'])}`.",
+            ]
         check = push.get("state_student")
         if check:
             lines += [

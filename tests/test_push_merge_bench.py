@@ -108,6 +108,20 @@ def test_distill_push_only_keeps_reach_and_adds_push(results, tmp_path, monkeypa
     curves = distill.push_curves({**after, "push": fake})
     assert curves["push (this result)"] == [(5.0, 0.5)] and curves["push_kept"] == [(10.0, 0.7)]
     assert "push_older" not in curves  # a build without evaluations draws nothing
+    fake["recheck"] = {
+        "seed": 1,
+        "episodes": 200,
+        "teacher": {"success": 0.92, "ci": [0.88, 0.95]},
+        "student": {"success": 0.9, "ci": [0.85, 0.93]},
+        "commands": ["lcrl eval t --seed 1", "lcrl eval s --seed 1"],
+    }
+    distill.render({**after, "push": fake}, after["machine"])
+    md = (results / "distill-robosuite.md").read_text()
+    assert (
+        "Again on 200 other episodes (evaluation seed 1: other layouts and instructions): "
+        "teacher 0.92 [0.88, 0.95], student 0.90 [0.85, 0.93] (gap +0.02); "
+        "`lcrl eval t --seed 1`, `lcrl eval s --seed 1`." in md
+    )
 
     with pytest.raises(SystemExit):  # push-only needs the push teacher
         distill.main(["--perception", "p", "--push-only"])
@@ -208,3 +222,29 @@ def test_distill_push_stage_can_start_the_student_from_the_teacher(push_stage):
     assert out["settings"]["init_from_teacher"] is True and out["settings"]["lr"] == 3e-4
     _, plain = push_stage()
     assert plain["settings"]["init_from_teacher"] is False and plain["settings"]["lr"] is None
+
+
+def test_distill_push_stage_rechecks_on_other_episodes(push_stage, tmp_path, monkeypatch):
+    """--push-recheck N evaluates teacher and student again on N episodes at evaluation
+    seed 1 with lcrl eval, and the push section keeps both results and the commands."""
+    import benchmarks.distill as distill
+
+    calls = []
+
+    def fake_run(cmd, **kw):
+        calls.append(cmd)
+        path = Path(cmd[cmd.index("--json") + 1])
+        path.parent.mkdir(parents=True, exist_ok=True)
+        rate = 0.9 if path.parent.name == "student" else 0.95
+        path.write_text(json.dumps({"sets": {"train": {"success": rate, "ci": [0.8, 0.99]}}}))
+
+    monkeypatch.setattr(distill.subprocess, "run", fake_run)
+    _, out = push_stage("--push-recheck", "200", "--push-student", str(tmp_path / "student"))
+    again = out["recheck"]
+    assert again["seed"] == 1 and again["episodes"] == 200 and len(calls) == 2
+    assert again["teacher"]["success"] == 0.95 and again["student"]["success"] == 0.9
+    for cmd in calls:
+        assert cmd[cmd.index("--seed") + 1] == "1" and cmd[cmd.index("--episodes") + 1] == "200"
+    assert again["commands"][1].startswith(f"lcrl eval {tmp_path / 'student'} --episodes 200")
+    _, plain = push_stage()
+    assert "recheck" not in plain
