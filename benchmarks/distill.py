@@ -176,18 +176,11 @@ def recheck(teacher: Path, student: Path, episodes: int) -> dict:
     evaluation's), each with the ``lcrl eval`` command that gives it."""
     out: dict = {"seed": RECHECK_SEED, "episodes": episodes, "commands": []}
     for who, run in (("teacher", teacher), ("student", student)):
-        path = run / f"eval-seed{RECHECK_SEED}.json"
-        cmd = ["lcrl", "eval", str(run), "--episodes", str(episodes), "--sets", "train"]
-        cmd += ["--seed", str(RECHECK_SEED), "--json", str(path)]
-        subprocess.run(
-            [*LCRL, *cmd[1:], "--no-progress"],
-            check=True,
-            env=child_env(),
-            preexec_fn=die_with_parent,
-        )
-        result = json.loads(path.read_text())["sets"]["train"]
+        result = evaluate(run, episodes, ("train",), seed=RECHECK_SEED)["train"]
         out[who] = {"success": result["success"], "ci": result["ci"]}
-        out["commands"].append(" ".join(cmd))
+        out["commands"].append(
+            f"lcrl eval {run} --episodes {episodes} --sets train --seed {RECHECK_SEED}"
+        )
     return out
 
 

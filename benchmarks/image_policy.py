@@ -140,11 +140,12 @@ def train_args(
     ]
 
 
-def evaluate(run: Path, episodes: int, sets: tuple[str, ...]) -> dict:
-    """``lcrl eval`` of a run's final checkpoint."""
-    path = run / "final-eval.json"
+def evaluate(run: Path, episodes: int, sets: tuple[str, ...], seed: int = 0) -> dict:
+    """``lcrl eval`` of a run's final checkpoint (at evaluation ``seed``; another seed than
+    0 writes ``eval-seed<seed>.json`` beside the run's ``final-eval.json``)."""
+    path = run / (f"eval-seed{seed}.json" if seed else "final-eval.json")
     cmd = [*LCRL, "eval", str(run), "--episodes", str(episodes), "--json", str(path)]
-    cmd += ["--sets", *sets, "--no-progress"]
+    cmd += ["--sets", *sets, *(("--seed", str(seed)) if seed else ()), "--no-progress"]
     subprocess.run(cmd, check=True, env=child_env(), preexec_fn=die_with_parent)
     return json.loads(path.read_text())["sets"]
 

@@ -193,7 +193,7 @@ def push_stage(tmp_path, monkeypatch):
     seen = []
     monkeypatch.setattr(distill, "distill", lambda *a, **kw: seen.append(kw["how"]) or 1.0)
     final = {"train": {"success": 0.5, "ci": [0.4, 0.6]}}
-    monkeypatch.setattr(distill, "evaluate", lambda *a: final)
+    monkeypatch.setattr(distill, "evaluate", lambda *a, **kw: final)
     monkeypatch.setattr(distill, "rows", lambda path: [{"step": 1.0}])
     base = ["--perception", "p", "--push-teacher", str(tmp_path / "t"), "--push-only"]
 
@@ -228,6 +228,7 @@ def test_distill_push_stage_rechecks_on_other_episodes(push_stage, tmp_path, mon
     """--push-recheck N evaluates teacher and student again on N episodes at evaluation
     seed 1 with lcrl eval, and the push section keeps both results and the commands."""
     import benchmarks.distill as distill
+    import benchmarks.image_policy as image_policy
 
     calls = []
 
@@ -239,6 +240,12 @@ def test_distill_push_stage_rechecks_on_other_episodes(push_stage, tmp_path, mon
         path.write_text(json.dumps({"sets": {"train": {"success": rate, "ci": [0.8, 0.99]}}}))
 
     monkeypatch.setattr(distill.subprocess, "run", fake_run)
+    stubbed = distill.evaluate  # the final evaluations stay stubbed; the recheck runs lcrl eval
+    monkeypatch.setattr(
+        distill,
+        "evaluate",
+        lambda *a, seed=0: image_policy.evaluate(*a, seed=seed) if seed else stubbed(*a),
+    )
     _, out = push_stage("--push-recheck", "200", "--push-student", str(tmp_path / "student"))
     again = out["recheck"]
     assert again["seed"] == 1 and again["episodes"] == 200 and len(calls) == 2

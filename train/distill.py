@@ -126,9 +126,9 @@ def grown_layers(
     """
     layers = [(w.detach().clone(), b.detach().clone()) for w, b in layers]
     widths = tuple(w.shape[0] for w, _ in layers[:-1])
-    if len(hidden) < len(widths) or any(
-        h < w for h, w in zip(hidden, [*widths, *[widths[-1]] * len(hidden)], strict=False)
-    ):
+    # an added layer starts as the identity of the teacher's last hidden layer
+    floor = [*widths, *[widths[-1]] * (len(hidden) - len(widths))]
+    if len(hidden) < len(widths) or any(h < f for h, f in zip(hidden, floor, strict=True)):
         raise LcrlError(
             f"the student's hidden layers {tuple(hidden)} cannot grow from the teacher's "
             f"{widths}: give at least as many layers, each at least as wide"
