@@ -197,6 +197,8 @@ def push_stage(args: argparse.Namespace) -> dict:
         student_args += ("--init-from-teacher",)
     if args.push_lr:
         student_args += ("--lr", str(args.push_lr))
+    if args.push_ema:
+        student_args += ("--ema", str(args.push_ema))
     seconds = distill(
         args,
         teacher,
@@ -225,6 +227,7 @@ def push_stage(args: argparse.Namespace) -> dict:
             "hidden": args.push_hidden,
             "init_from_teacher": args.push_init_teacher,
             "lr": args.push_lr or None,
+            "ema": args.push_ema or None,
         },
         "student_distill_s": seconds,
         "final": {
@@ -313,6 +316,13 @@ def build_parser() -> argparse.ArgumentParser:
         type=float,
         default=0.0,
         help="the push student's learning rate (default: lcrl distill's)",
+    )
+    parser.add_argument(
+        "--push-ema",
+        type=float,
+        default=0.0,
+        help="the push student acts with the Polyak average of its weights (lcrl distill "
+        "--ema; default: off)",
     )
     parser.add_argument(
         "--resume-push",
@@ -519,6 +529,8 @@ def render(payload: dict, info: dict) -> None:
             layers += ", started as a copy of the teacher's policy (`--init-from-teacher`)"
         if settings.get("lr"):
             layers += f", learning rate {settings['lr']:g}"
+        if settings.get("ema"):
+            layers += f", acting with the average of its weights (`--ema {settings['ema']:g}`)"
         lines += [
             "",
             f"Push (teacher `{push['teacher']}`, privileged state, started from scripted "

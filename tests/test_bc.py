@@ -180,6 +180,44 @@ def test_bc_fits_a_fixed_dataset(loss):
         assert np.abs(sampled).max() <= 1.0 and not np.allclose(sampled, acted)
 
 
+def test_bc_averaged_policy_moves_by_one_minus_ema_and_acts():
+    """``BCConfig.ema``: after each update the averaged weights move ``1 - ema`` of the way
+    to the trained ones, the average is what acts and what ``modules()`` checkpoints; a
+    bad value is refused."""
+    rng = np.random.default_rng(2)
+    goals = rng.normal(size=(2, 8)).astype(np.float32)
+    obs = rng.normal(size=(32, 4)).astype(np.float32)
+    goal = np.arange(32) % 2
+    action = np.tanh(obs[:, :2]).astype(np.float32)
+    problem = Problem({"observation": (4,)}, "vector", (8,), 2)
+    options = AgentOptions(net=NetConfig(hidden=(32, 32)), normalize_goal=False)
+    agent = BC(problem, options, fake_embed(goals), BCConfig(lr=1e-2, ema=0.9))
+    plain = BC(problem, options, fake_embed(goals), BCConfig(lr=1e-2))
+    assert "actor_ema" in agent.modules() and "actor_ema" not in plain.modules()
+    rows = Rows({"observation": obs}, action, goal)
+    agent.observe(rows.obs)
+    start = [p.detach().clone() for p in agent.actor_ema.parameters()]
+    for before, w in zip(start, agent.actor.parameters(), strict=True):
+        torch.testing.assert_close(before, w.detach())  # the average starts as the policy
+    agent.update(rows)
+    for before, avg, w in zip(
+        start, agent.actor_ema.parameters(), agent.actor.parameters(), strict=True
+    ):
+        torch.testing.assert_close(avg, 0.9 * before + 0.1 * w.detach())
+    for _ in range(50):
+        agent.update(rows)
+    acted = agent.act({"observation": obs}, goal, deterministic=True)
+    with torch.no_grad():
+        o, g = agent.obs_tensors({"observation": obs}), agent.goal_tensor(goal)
+        averaged = torch.tanh(agent.actor_ema(o, g)).numpy()
+        trained = torch.tanh(agent.actor(o, g)).numpy()
+    np.testing.assert_allclose(acted, averaged, atol=1e-6)
+    assert np.abs(acted - trained).max() > 1e-4
+    for bad in (1.0, -0.1):
+        with pytest.raises(LcrlError, match=r"bc\.ema"):
+            BCConfig(ema=bad).validate()
+
+
 def test_bc_discrete_actions_use_cross_entropy():
     rng = np.random.default_rng(1)
     goals = np.eye(2, dtype=np.float32)

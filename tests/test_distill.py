@@ -6,6 +6,7 @@ teachers or students that cannot work are refused in one line."""
 from __future__ import annotations
 
 import csv
+import dataclasses
 import json
 from pathlib import Path
 
@@ -181,12 +182,15 @@ def test_a_student_started_from_the_teacher_acts_as_the_teacher(teacher, percept
     had = tuple(teacher_cfg.agent.net.hidden)
     grown = (2 * had[0], *[h + 8 for h in had[1:]], had[-1] + 8)
     actions, widths = {}, {}
-    for name, init, hidden in (("warm", True, had), ("grown", True, grown), ("cold", False, had)):
+    cases = [("warm", True, had, 0.0), ("grown", True, grown, 0.0), ("cold", False, had, 0.0)]
+    cases.append(("averaged", True, grown, 0.99))  # the average acts, and starts as the teacher
+    for name, init, hidden, ema in cases:
         distill = DistillConfig(teacher=str(teacher), init_from_teacher=init)
         cfg = student_config(
             teacher_cfg, state=True, out=str(tmp_path / name), distill=distill, total_steps=1
         )
         cfg.agent.net.hidden = hidden
+        cfg.bc = dataclasses.replace(cfg.bc, ema=ema)
         trainer = DistillTrainer(cfg)
         try:
             widths[name] = [
@@ -204,7 +208,34 @@ def test_a_student_started_from_the_teacher_acts_as_the_teacher(teacher, percept
     assert widths["grown"] == list(grown) and widths["warm"] == list(had)
     np.testing.assert_allclose(actions["warm"], theirs, atol=1e-5)
     np.testing.assert_allclose(actions["grown"], theirs, atol=1e-5)
+    np.testing.assert_allclose(actions["averaged"], theirs, atol=1e-5)
     assert np.abs(actions["cold"] - theirs).max() > 1e-2
+
+
+def test_an_averaged_student_is_checkpointed_and_acts_through_load(teacher, perception, tmp_path):
+    """``--ema``: the student's weight average is saved beside the trained weights, and the
+    policy ``lcrl.load`` gives acts with the average; ``--ema 1`` is refused in one line."""
+    import lcrl
+    from lcrl.checkpoint import load_checkpoint
+    from train.evaluate import resolve_checkpoint
+
+    out = tmp_path / "averaged"
+    args = ["distill", str(teacher), "--perception", str(perception), "--ema", "0.9"]
+    args += ["--rounds", "1", "--episodes-per-round", "2", "--updates-per-round", "20"]
+    args += ["--batch-size", "32", "--eval-every", "0", "--eval-episodes", "1"]
+    args += ["--no-progress", "--no-tensorboard"]
+    assert cli(*args, "--out", str(out)) == 0
+    ckpt = load_checkpoint(resolve_checkpoint(out))
+    averaged, trained = ckpt.weights("actor_ema"), ckpt.weights("actor")
+    assert averaged.keys() == trained.keys()
+    assert any(not torch.equal(averaged[k], trained[k]) for k in averaged)
+    policy = lcrl.load(out)
+    agent = policy.agent
+    for k, w in agent.actor_ema.state_dict().items():
+        torch.testing.assert_close(w, averaged[k])
+    assert agent.cfg.ema == 0.9
+    bad = ["distill", str(teacher), "--perception", str(perception), "--ema", "1.0"]
+    assert cli(*bad, "--out", str(tmp_path / "bad"), "--no-progress") == 2
 
 
 def test_grown_layers_compute_the_same_function_and_learn_apart():

@@ -771,6 +771,10 @@ class DistillCommand:
     """Rows per student update."""
     lr: float = 1e-3
     """The student's learning rate."""
+    ema: float = 0.0
+    """Polyak average of the student's weights, the student that acts, is evaluated and
+    checkpointed: ``avg = ema * avg + (1 - ema) * w`` after each update (0: off; e.g.
+    0.999)."""
     eval_every: int = 2
     """Evaluate the student every this many rounds (0: only at the end)."""
     eval_episodes: int = 50
@@ -830,7 +834,7 @@ class DistillCommand:
             progress=self.progress,
             tensorboard=self.tensorboard,
         )
-        cfg.bc = BCConfig(lr=self.lr, loss="mse", hindsight=False)
+        cfg.bc = BCConfig(lr=self.lr, loss="mse", hindsight=False, ema=self.ema)
         if self.hidden:
             if min(self.hidden) <= 0:
                 raise LcrlError(f"--hidden sizes must be positive, got {self.hidden}")

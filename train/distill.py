@@ -197,6 +197,7 @@ def start_from_teacher(student: Any, teacher: Any) -> None:
         )
     student.actor.load_state_dict(weights)
     student.norms.load_state_dict(norms)
+    student.reset_average()
 
 
 def grown_head(

@@ -28,6 +28,7 @@ they stay fixed, since :meth:`BC.update` never updates them.
 
 from __future__ import annotations
 
+import copy
 import math
 from collections.abc import Mapping
 from dataclasses import dataclass
@@ -73,6 +74,10 @@ class BCConfig:
     norm_rows: int = 50_000
     """Dataset rows the observation normalisers are fitted on before training (at most
     the dataset's size, drawn at random)."""
+    ema: float = 0.0
+    """Polyak average of the policy's weights, the policy that acts (and is evaluated and
+    checkpointed as ``actor_ema``): after each update ``avg = ema * avg + (1 - ema) * w``;
+    0 turns it off and the trained weights act. Typical: 0.999."""
 
     def validate(self) -> None:
         """Raise :class:`LcrlError` for settings that cannot train."""
@@ -85,6 +90,8 @@ class BCConfig:
             non_negative=("weight_decay",),
             positive_or_none=("max_grad_norm",),
         )
+        if not 0.0 <= self.ema < 1.0:
+            raise LcrlError(f"bc.ema must be in [0, 1) (0: off), got {self.ema}")
 
 
 def tanh_gaussian_log_prob(
@@ -124,13 +131,44 @@ class BC(Agent):
         self.gaussian = not problem.discrete and cfg.loss == "gaussian"
         self.actor = self._net(2 * n if self.gaussian else n)
         self.opt = FlatAdam(self.actor.parameters(), cfg.lr, max_grad_norm=cfg.max_grad_norm)
+        #: The averaged policy that acts (:attr:`BCConfig.ema`); None: the trained one acts.
+        self.actor_ema: nn.Module | None = None
+        if cfg.ema:
+            self.actor_ema = copy.deepcopy(self.actor).requires_grad_(False)
+            self.reset_average()
+
+    def reset_average(self) -> None:
+        """Make the averaged policy equal the trained one (after its weights were set
+        from elsewhere, e.g. a teacher's); nothing without :attr:`BCConfig.ema`."""
+        if self.actor_ema is None:
+            return
+        pairs = [
+            *zip(self.actor_ema.parameters(), self.actor.parameters(), strict=True),
+            *zip(self.actor_ema.buffers(), self.actor.buffers(), strict=True),
+        ]
+        with torch.no_grad():
+            for avg, w in pairs:
+                avg.grad = None
+                avg.copy_(w)
+
+    def _average(self) -> None:
+        """Move the averaged policy towards the trained one by ``1 - ema``."""
+        if self.actor_ema is None:
+            return
+        with torch.no_grad():
+            avg = list(self.actor_ema.parameters())
+            torch._foreach_lerp_(avg, list(self.actor.parameters()), 1.0 - self.cfg.ema)
+            for b, w in zip(self.actor_ema.buffers(), self.actor.buffers(), strict=True):
+                b.copy_(w)
 
     # --- acting ----------------------------------------------------------------------
     def _outputs(
-        self, obs: Mapping[str, torch.Tensor], goal: torch.Tensor
+        self, obs: Mapping[str, torch.Tensor], goal: torch.Tensor, acting: bool = False
     ) -> tuple[torch.Tensor, torch.Tensor | None]:
-        """Action mean (pre-tanh) or logits, and the log-std of the gaussian loss."""
-        out = self.actor(obs, goal)
+        """Action mean (pre-tanh) or logits, and the log-std of the gaussian loss, of the
+        trained policy, or with ``acting`` of the one that acts (the average, if any)."""
+        net = self.actor_ema if acting and self.actor_ema is not None else self.actor
+        out = net(obs, goal)
         if not self.gaussian:
             return out, None
         mean, log_std = out.chunk(2, -1)
@@ -151,7 +189,9 @@ class BC(Agent):
         the logits, or a sample of their softmax when not ``deterministic``.
         """
         with torch.inference_mode():
-            mean, log_std = self._outputs(self.obs_tensors(obs), self.goal_tensor(goal, embedded))
+            mean, log_std = self._outputs(
+                self.obs_tensors(obs), self.goal_tensor(goal, embedded), acting=True
+            )
             if self.problem.discrete:
                 if deterministic:
                     a = mean.argmax(-1)
@@ -225,6 +265,7 @@ class BC(Agent):
             with torch.no_grad():
                 self.opt.flat.mul_(1.0 - self.cfg.lr * self.cfg.weight_decay)
         norm = self.opt.step()
+        self._average()
         self.updates += 1
         metrics["loss"] = loss.item()
         if self.cfg.max_grad_norm is not None:
@@ -233,8 +274,11 @@ class BC(Agent):
 
     # --- saving ----------------------------------------------------------------------
     def modules(self) -> dict[str, nn.Module]:
-        """The policy network and the normalisers."""
-        return {**super().modules(), "actor": self.actor}
+        """The policy network (and its average) and the normalisers."""
+        out = {**super().modules(), "actor": self.actor}
+        if self.actor_ema is not None:
+            out["actor_ema"] = self.actor_ema
+        return out
 
     def states(self) -> dict[str, Any]:
         """Optimiser state, generator and counters."""
