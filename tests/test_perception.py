@@ -308,7 +308,8 @@ def test_perception_that_does_not_fit_the_env_is_refused(trained, tmp_path, caps
 
 def test_cached_estimates_equal_recomputed_ones(trained, tmp_path):
     """The replay buffer stores perception's estimate (with the slot features) computed
-    once per frame; recomputed from the same frames and proprioception it is the same."""
+    once per frame; recomputed from the same frames and proprioception (presence from the
+    episode's first frame, as policies read it) it is the same."""
     from helpers import tiny
 
     from envs.features import SlotFeatures
@@ -352,7 +353,10 @@ def test_cached_estimates_equal_recomputed_ones(trained, tmp_path):
     )
     model, _ = load_model(trained)
     assert model.cfg.hold_radius > 0  # objects the gripper stays away from are held
-    estimate = model.observation(np.stack(frames), np.stack(proprio))
+    # presence is read in the episode's first frame and holds for its later frames
+    first_flags = model.presence(model.observation(frames[0][None], proprio[0][None]))
+    flags = np.repeat(first_flags, len(frames), axis=0)
+    estimate = model.observation(np.stack(frames), np.stack(proprio), flags)
     held = HeldSlots(model.layout, model.cfg.hold_radius)
     estimate = np.concatenate([held(row[None]) for row in estimate])
     features = next(w for w in _wrappers(env) if isinstance(w, SlotFeatures))
