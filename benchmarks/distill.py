@@ -604,6 +604,12 @@ def render(payload: dict, info: dict) -> None:
                 f"reach's figures are those of the first command (on "
                 f"{payload['machine']['date']}).",
             ]
+        if push.get("student_command"):  # a student distilled apart, then resumed here
+            lines += [
+                "",
+                f"The push student's rounds ran as `{push['student_command']}`; the command "
+                "above resumed the finished run (`--resume-push`) and evaluated it.",
+            ]
     title = "Teacher -> student distillation (DAgger), robosuite reach" + (
         " and push" if push else ""
     )

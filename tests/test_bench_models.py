@@ -1,0 +1,48 @@
+"""The models kept in ``benchmarks/models`` (see its README) load and act: the perception
+models read the robosuite tabletop's 84 px frames into its object slots, and the push
+teacher acts on the tabletop's privileged state, without the replay buffer or optimiser
+state that its folder leaves out."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+MODELS = Path(__file__).resolve().parent.parent / "benchmarks" / "models"
+
+
+@pytest.mark.parametrize("name", ["perception-3k", "perception-push"])
+def test_a_kept_perception_model_reads_robosuite_frames(name):
+    from lcrl.perception import load_model
+
+    model, meta = load_model(MODELS / name / "model")
+    assert meta["env"] == "robosuite" and model.frame_shape == (84, 84, 3)
+    assert model.layout.to_list() == [4, 8, 4, 3]
+    frames = np.random.default_rng(0).integers(0, 256, (2, 84, 84, 3), dtype=np.uint8)
+    estimate = model.observation(frames, np.zeros((2, 4), np.float32))
+    assert estimate.shape == (2, model.layout.dim) and np.isfinite(estimate).all()
+    figures = json.loads((MODELS / name / "eval.json").read_text())
+    assert figures  # the evaluation its README quotes is kept beside it
+    assert f"`{name}/`" in (MODELS / "README.md").read_text()
+
+
+def test_the_kept_push_teacher_acts_on_the_privileged_state(one_thread):
+    pytest.importorskip("robosuite")
+    from train.evaluate import load_policy, resolve_checkpoint
+
+    policy = load_policy(resolve_checkpoint(str(MODELS / "push-teacher")))
+    try:
+        assert policy.cfg.env.kind == "robosuite" and policy.agent.name == "sac"
+        assert not (policy.checkpoint.path / "arrays.npz").exists()  # weights only
+        obs, _ = policy.env.reset(seed=0)
+        goal = np.asarray([policy.task.goal(obs, policy.env)])
+        view = policy.task.storage_obs(obs, obs)
+        action = policy.agent.act({k: v[None] for k, v in view.items()}, goal, deterministic=True)
+        assert action.shape == (1, policy.task.problem().action_dim)
+        assert np.abs(action).max() <= 1.0
+    finally:
+        policy.env.close()
+    assert "`push-teacher/`" in (MODELS / "README.md").read_text()
