@@ -384,8 +384,10 @@ class FinetuneConfig:
     decay_steps: int = 20_000
     """Environment steps over which the BC weight falls to 0."""
 
-    def validate(self, algo: str) -> None:
-        """Raise :class:`LcrlError` for settings that cannot train."""
+    def validate(self, algo: str, files: bool = True) -> None:
+        """Raise :class:`LcrlError` for settings that cannot train; ``files``: also refuse
+        a demonstration file that is not there (a saved policy's config, loaded to act,
+        does not need it)."""
         if not self.demos:
             return
         if algo not in ("sac", "auto"):
@@ -395,7 +397,7 @@ class FinetuneConfig:
                 "finetune.pretrain_updates, finetune.bc_weight and finetune.decay_steps must "
                 "be >= 0"
             )
-        if not Path(self.demos).is_file():
+        if files and not Path(self.demos).is_file():
             raise LcrlError(f"no demonstration file at {self.demos} (--finetune.demos)")
 
     def weight(self, step: int) -> float:
@@ -603,8 +605,9 @@ class TrainConfig:
         """The algorithm after resolving ``auto`` (``bc`` for behavioural cloning)."""
         return resolve_algo(self.algo, discrete)
 
-    def validate(self) -> None:
-        """Raise :class:`LcrlError` for inconsistent settings."""
+    def validate(self, files: bool = True) -> None:
+        """Raise :class:`LcrlError` for inconsistent settings; ``files``: also for input
+        files that are missing (not for a saved run's config, read to act or evaluate)."""
         check_algo(self.algo)
         # the chosen algorithm's config (for auto: both algorithms it may resolve to)
         for name in dict.fromkeys(resolve_algo(self.algo, d) for d in (False, True)):
@@ -697,7 +700,7 @@ class TrainConfig:
         if self.explore.active:
             self._validate_explore()
         self.sequential.validate(tuple(self.env.families), self.algo)
-        self.finetune.validate(self.algo)
+        self.finetune.validate(self.algo, files)
         if self.finetune.demos and (self.offline or self.demos):
             raise LcrlError("--finetune.demos trains online: not with --offline or --demos")
         if self.sequential.stages and self.collect.backend != "local":

@@ -78,7 +78,7 @@ def _config(config: dict[str, Any], where: Any) -> TrainConfig:
     except ConfigFieldError as e:
         raise CheckpointError(f"{where}: {e}") from None
     try:
-        cfg.validate()
+        cfg.validate(files=False)  # acting from a checkpoint needs none of its input files
     except LcrlError as e:
         raise CheckpointError(f"{where}: the field 'config' is not a valid config: {e}") from None
     except (TypeError, ValueError, AttributeError, KeyError) as e:
