@@ -14,7 +14,7 @@ import pytest
 MODELS = Path(__file__).resolve().parent.parent / "benchmarks" / "models"
 
 
-@pytest.mark.parametrize("name", ["perception-3k", "perception-push"])
+@pytest.mark.parametrize("name", ["perception-3k", "perception-push", "perception-push-student"])
 def test_a_kept_perception_model_reads_robosuite_frames(name):
     from lcrl.perception import load_model
 

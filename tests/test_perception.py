@@ -673,3 +673,48 @@ def test_extra_datasets_train_too_and_must_match(trained, dataset, capsys, tmp_p
     assert cli(*args, "--out", str(tmp_path / "x"), "--extra-data", str(small)) == 2
     line = error_line(capsys.readouterr().err)
     assert "(32, 32, 3) frames" in line and "(64, 64, 3)" in line
+
+
+def test_the_hold_radius_is_set_when_acting_and_refused_where_it_cannot_apply(
+    trained, tmp_path, capsys
+):
+    """``--env.perception-hold-radius`` (``lcrl eval --hold-radius`` for a saved policy)
+    replaces the model's own object permanence in the env and in ``lcrl.load``'s policy;
+    it needs a perception model and a radius >= 0."""
+    from helpers import tiny
+
+    import lcrl
+    from train.loop import Trainer
+    from train.tasks import make_env
+
+    model, _ = load_model(trained)
+    cfg = tiny("lang2d-quick", tmp_path / "run", total_steps=80, learning_starts=40)
+    cfg.env.perception = str(trained)
+    assert make_env(cfg.env, "train").get_wrapper_attr("held").radius == model.cfg.hold_radius
+    cfg.env.perception_hold_radius = 0.0
+    assert make_env(cfg.env, "train").get_wrapper_attr("held").radius == 0.0
+    Trainer(cfg).run()
+    policy = lcrl.load(tmp_path / "run", device="cpu")
+    obs, _ = policy.make_env().reset(seed=0)
+    policy.act({"image": obs["image"], "proprio": obs["privileged"][:2]}, "reach the red cube")
+    assert policy._held.radius == 0.0  # the frames-alone path holds as the env does
+
+    cfg.env.perception_hold_radius = -1.0
+    with pytest.raises(LcrlError, match="perception_hold_radius must be >= 0"):
+        make_env(cfg.env, "train")
+    args = ["eval", str(tmp_path / "run"), "--episodes", "2", "--sets", "train"]
+    assert cli(*args, "--hold-radius", "-0.5", "--no-progress") == 2
+    assert "--hold-radius must be >= 0" in error_line(capsys.readouterr().err)
+    out = tmp_path / "eval.json"
+    args += ["--hold-radius", "0.05", "--json", str(out), "--no-progress"]
+    assert cli(*args) == 0
+    settings = json.loads(out.read_text())["settings"]
+    assert settings["hold_radius"] == 0.05 and "--hold-radius 0.05" in settings["command"]
+
+    state = tiny("lang2d-quick", tmp_path / "state", total_steps=40, learning_starts=20)
+    Trainer(state).run()
+    assert cli("eval", str(tmp_path / "state"), "--hold-radius", "0.05") == 2
+    assert "through no perception model" in error_line(capsys.readouterr().err)
+    args = ["train", "lang2d-quick", "--env.perception-hold-radius", "0.05"]
+    assert cli(*args, "--out", str(tmp_path / "refused")) == 2
+    assert "set --env.perception MODEL too" in error_line(capsys.readouterr().err)

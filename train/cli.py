@@ -168,6 +168,10 @@ class EvalCommand:
     reads. A checkpoint trained with one uses its own; for one without, a reader is fitted
     first on the run's training instructions and their training-only phrasings (about a
     minute), the same way training fits it."""
+    hold_radius: float | None = None
+    """A policy acting through perception: hold each object's estimated position while the
+    gripper is farther than this from it (metres; ``--env.perception-hold-radius``; 0:
+    every frame's own estimate). Default: the radius the policy was trained with."""
     out: str = ""
     """Write eval.json (every figure), eval.md and PNG figures to this folder; inside a
     run folder (e.g. RUN/evals/NAME) ``lcrl report RUN`` includes them."""
@@ -217,6 +221,15 @@ class EvalCommand:
         overrides: dict[str, Any] = {"families": tuple(self.families)} if self.families else {}
         if self.canonical_reader:
             overrides.update(canonical_override(saved))
+        if self.hold_radius is not None:
+            if not saved.perception:
+                raise LcrlError(
+                    "--hold-radius holds perception's estimates; this checkpoint acts on "
+                    "the simulator's state, through no perception model"
+                )
+            if not self.hold_radius >= 0:
+                raise LcrlError(f"--hold-radius must be >= 0, got {self.hold_radius}")
+            overrides["perception_hold_radius"] = float(self.hold_radius)
         policy = load_policy(self.checkpoint, overrides or None, self.device)
         extra = self.episodes % len(tasks) if tasks else 0
         if extra and (not self.sets or "train" in self.sets):
@@ -261,6 +274,7 @@ class EvalCommand:
             "tasks": list(tasks),
             "num_envs": num_envs,
             "canonical_reader": bool(policy.cfg.env.canonical_reader),
+            "hold_radius": self.hold_radius,
             "command": self._command(),
         }
         doc = evaluation_document(policy.checkpoint.path, step, policy.cfg, results, settings)
@@ -290,6 +304,8 @@ class EvalCommand:
             parts.append(f"--chain {self.chain}")
         if self.canonical_reader:
             parts.append("--canonical-reader")
+        if self.hold_radius is not None:
+            parts.append(f"--hold-radius {self.hold_radius:g}")
         return " ".join(parts)
 
 

@@ -109,6 +109,11 @@ class EnvConfig:
     is its estimate of the object slots from the camera frame and the proprioception
     instead of the privileged state (:class:`train.perception.PerceptionObservation`;
     frozen, computed once per frame). The frames are rendered at the model's size."""
+    perception_hold_radius: float | None = None
+    """Object permanence of perception's estimate (:class:`lcrl.perception.HeldSlots`): an
+    object's estimated position is held while the gripper is farther than this from it
+    (metres); 0 takes every frame's own estimate. Default: the perception model's own
+    ``hold_radius``. ``lcrl eval --hold-radius`` sets it for a saved policy."""
     train_until_success: bool = True
     """Language goals: training episodes end when their instruction is achieved. ``False``
     runs them to the time limit and keeps what happens after the success (an object
@@ -226,6 +231,15 @@ def check_env_config(cfg: EnvConfig) -> EnvSpec:
         raise LcrlError(
             f"min_objects ({cfg.min_objects}) is larger than max_objects ({cfg.max_objects})"
         )
+    radius = cfg.perception_hold_radius
+    if radius is not None:
+        if not cfg.perception:
+            raise LcrlError(
+                "env.perception_hold_radius holds perception's estimates: set "
+                "--env.perception MODEL too"
+            )
+        if not radius >= 0:
+            raise LcrlError(f"env.perception_hold_radius must be >= 0, got {radius}")
     if cfg.text_reader and cfg.canonical_reader:
         raise LcrlError(
             "env.text_reader and env.canonical_reader are two ways to use the reader: "
@@ -248,7 +262,7 @@ def features(env: gym.Env, cfg: EnvConfig) -> gym.Env:
     if cfg.perception:
         from train.perception import PerceptionObservation
 
-        env = PerceptionObservation(env, cfg.perception)
+        env = PerceptionObservation(env, cfg.perception, cfg.perception_hold_radius)
     if cfg.relative_positions or cfg.displacements:
         from envs.features import SlotFeatures
 

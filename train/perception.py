@@ -540,13 +540,17 @@ class PerceptionObservation(gym.ObservationWrapper):
         env: a tabletop made with camera frames (``image=True``), not yet wrapped by
             :class:`envs.features.SlotFeatures`.
         model: the perception model (or the folder it was trained into).
+        hold_radius: object permanence (:class:`lcrl.perception.HeldSlots`) in the env's
+            units; ``None``: the model's own ``hold_radius``.
 
     Raises:
         LcrlError: the env gives no frames, frames of another size, or another slot
             layout than the model reads.
     """
 
-    def __init__(self, env: gym.Env, model: Perception | str | Path) -> None:
+    def __init__(
+        self, env: gym.Env, model: Perception | str | Path, hold_radius: float | None = None
+    ) -> None:
         super().__init__(env)
         if not isinstance(model, Perception):
             model = load_model(model)[0]
@@ -575,7 +579,10 @@ class PerceptionObservation(gym.ObservationWrapper):
             )
         self.observation_space = gym.spaces.Dict({**space.spaces, "privileged": box})
         self._present: np.ndarray | None = None
-        self.held = HeldSlots(model.layout, model.cfg.hold_radius)
+        radius = model.cfg.hold_radius if hold_radius is None else float(hold_radius)
+        if not radius >= 0:
+            raise LcrlError(f"the hold radius must be >= 0, got {radius}")
+        self.held = HeldSlots(model.layout, radius)
 
     def reset(self, **kwargs: Any) -> tuple[Any, dict[str, Any]]:
         """Reset; the first frame's presence flags then hold for the episode, and the

@@ -424,7 +424,9 @@ class Policy:
         estimate = model.observation(image.reshape(-1, *frame), proprio.reshape(-1, start), present)
         held = getattr(self, "_held", None)
         if held is None:
-            held = self._held = HeldSlots(model.layout, model.cfg.hold_radius)
+            radius = self.cfg.env.perception_hold_radius  # as the env holds them
+            radius = model.cfg.hold_radius if radius is None else radius
+            held = self._held = HeldSlots(model.layout, radius)
         if new_episode:
             held.reset()
             self._origin = estimate
