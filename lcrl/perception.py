@@ -238,6 +238,11 @@ class Perception(nn.Module):
         flags = None if present is None else torch.as_tensor(np.asarray(present, np.float32))
         return self.estimate(f, p, flags).cpu().numpy()
 
+    def held_slots(self, radius: float | None = None) -> HeldSlots:
+        """Object permanence for this model's estimates (:class:`HeldSlots`), at ``radius``
+        or, by default, the model's own ``hold_radius``."""
+        return HeldSlots(self.layout, self.cfg.hold_radius if radius is None else radius)
+
     def presence(self, observation: np.ndarray) -> np.ndarray:
         """The presence flags ``(..., count)`` of observations as :meth:`observation`
         assembles them: what :meth:`observation` takes as ``present`` for the later frames
@@ -264,6 +269,8 @@ class HeldSlots:
     """
 
     def __init__(self, layout: SlotLayout, radius: float) -> None:
+        if not radius >= 0:
+            raise LcrlError(f"the hold radius must be >= 0, got {radius}")
         self.layout, self.radius = layout, float(radius)
         self.reset()
 

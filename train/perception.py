@@ -579,10 +579,7 @@ class PerceptionObservation(gym.ObservationWrapper):
             )
         self.observation_space = gym.spaces.Dict({**space.spaces, "privileged": box})
         self._present: np.ndarray | None = None
-        radius = model.cfg.hold_radius if hold_radius is None else float(hold_radius)
-        if not radius >= 0:
-            raise LcrlError(f"the hold radius must be >= 0, got {radius}")
-        self.held = HeldSlots(model.layout, radius)
+        self.held = model.held_slots(hold_radius)
 
     def reset(self, **kwargs: Any) -> tuple[Any, dict[str, Any]]:
         """Reset; the first frame's presence flags then hold for the episode, and the

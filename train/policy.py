@@ -59,7 +59,6 @@ import numpy as np
 from lcrl.algos import Agent
 from lcrl.checkpoint import Checkpoint
 from lcrl.errors import LcrlError
-from lcrl.perception import HeldSlots
 from train.config import TrainConfig
 from train.environments import describe
 from train.tasks import Task, goal_modality, make_env, task_texts
@@ -424,9 +423,8 @@ class Policy:
         estimate = model.observation(image.reshape(-1, *frame), proprio.reshape(-1, start), present)
         held = getattr(self, "_held", None)
         if held is None:
-            radius = self.cfg.env.perception_hold_radius  # as the env holds them
-            radius = model.cfg.hold_radius if radius is None else radius
-            held = self._held = HeldSlots(model.layout, radius)
+            # objects are held as the env holds them
+            held = self._held = model.held_slots(self.cfg.env.perception_hold_radius)
         if new_episode:
             held.reset()
             self._origin = estimate
