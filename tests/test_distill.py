@@ -147,6 +147,38 @@ def test_students_and_teachers_that_cannot_work_are_refused(teacher, perception,
     assert "the perception model reads [4, 8, 4, 3]" in line and "[2, 8, 3, 2]" in line
 
 
+def test_a_student_distilled_with_a_hold_radius_acts_with_it(teacher, perception, tmp_path, capsys):
+    """``lcrl distill --hold-radius R`` collects, checkpoints and acts with objects held at
+    ``R`` (in place of the perception model's own radius); it needs a perception student
+    and a radius >= 0."""
+    from lcrl.perception import load_model
+
+    out = tmp_path / "held"
+    args = ["distill", str(teacher), "--perception", str(perception), "--out", str(out)]
+    args += ["--rounds", "1", "--episodes-per-round", "2", "--updates-per-round", "5"]
+    args += ["--batch-size", "16", "--eval-every", "0", "--eval-episodes", "1"]
+    assert cli(*args, "--hold-radius", "0.02", "--no-progress", "--no-tensorboard") == 0
+    saved = json.loads((out / "config.json").read_text())["env"]
+    assert saved["perception_hold_radius"] == 0.02
+    assert load_model(perception)[0].cfg.hold_radius != 0.02
+
+    import lcrl
+
+    policy = lcrl.load(out)
+    env = policy.make_env()
+    assert env.get_wrapper_attr("held").radius == 0.02
+    obs, _ = env.reset(seed=0)
+    policy.act({"image": obs["image"], "proprio": obs["privileged"][:2]}, "reach the red cube")
+    assert policy._held.radius == 0.02
+
+    refused = ["distill", str(teacher), "--out", str(tmp_path / "refused")]
+    assert cli(*refused, "--state", "--hold-radius", "0.02") == 2
+    assert "give the student a --perception MODEL" in error_line(capsys.readouterr().err)
+    assert cli(*refused, "--perception", str(perception), "--hold-radius", "-1") == 2
+    assert "--hold-radius must be >= 0, got -1.0" in error_line(capsys.readouterr().err)
+    assert not (tmp_path / "refused").exists()
+
+
 def test_eval_sets_limit_the_periodic_evaluations_not_the_final_one(
     teacher, perception, tmp_path, capsys
 ):

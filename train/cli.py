@@ -771,6 +771,10 @@ class DistillCommand:
     grounding: float | None = None
     """Weight of the student's auxiliary grounding loss (which slots the instruction
     names; with ``--slot-mode attributes``); default: the teacher's."""
+    hold_radius: float | None = None
+    """With ``--perception``: hold each object's estimate while the gripper is farther than
+    this from it (env units), in place of the model's own ``hold_radius``; saved in the
+    student's config, so it acts and is evaluated the same way."""
     out: str = "runs/distill"
     """The student's run folder."""
     rounds: int = 10
@@ -861,6 +865,15 @@ class DistillCommand:
                 cfg.agent.net.slot_attributes = SLOT_ATTRIBUTES
         if self.grounding is not None:
             cfg.agent.grounding = self.grounding
+        if self.hold_radius is not None:
+            if not self.perception:
+                raise LcrlError(
+                    "--hold-radius holds perception's estimates: give the student a "
+                    "--perception MODEL"
+                )
+            if not self.hold_radius >= 0:
+                raise LcrlError(f"--hold-radius must be >= 0, got {self.hold_radius}")
+            cfg.env.perception_hold_radius = float(self.hold_radius)
         cfg.resume, cfg.overwrite = self.resume, self.overwrite
         DistillTrainer(cfg).run()
         print(f"evaluate again with: lcrl eval {cfg.out}")
