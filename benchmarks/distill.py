@@ -76,13 +76,16 @@ def rows(path: Path) -> list[dict[str, float]]:
         return [{k: float(v) for k, v in r.items() if v != ""} for r in csv.DictReader(f)]
 
 
-def teacher_on_estimates(teacher: Path, perception: str, episodes: int) -> dict:
+def teacher_on_estimates(
+    teacher: Path, perception: str, episodes: int, hold_radius: float | None = None
+) -> dict:
     """The teacher acting on perception's estimate of its state instead of the true state,
     on the same ``episodes`` layouts and instructions (seen push instructions) each way:
     how much of the teacher's skill survives perception's errors, whatever the student
     learns. Also the mean absolute difference of its actions on the two, over the steps
     of the true-state episodes, and perception's position error over those steps by the
-    object's distance from the gripper (:data:`ERROR_BANDS`)."""
+    object's distance from the gripper (:data:`ERROR_BANDS`). ``hold_radius`` replaces the
+    model's own object permanence (``--env.perception-hold-radius``)."""
     import numpy as np
 
     from envs.features import slot_layout
@@ -92,8 +95,11 @@ def teacher_on_estimates(teacher: Path, perception: str, episodes: int) -> dict:
     from train.tasks import make_env
 
     policy = load_policy(resolve_checkpoint(str(teacher)))
-    env = make_env(student_config(policy.cfg, perception=perception).env, "train")
-    task, out, gaps = policy.task, {}, []
+    env_cfg = student_config(policy.cfg, perception=perception).env
+    env_cfg.perception_hold_radius = hold_radius
+    env = make_env(env_cfg, "train")
+    task, gaps = policy.task, []
+    out: dict = {"hold_radius": env.get_wrapper_attr("held").radius}
     start, count, width, dims = slot_layout(env)
     errors: list[tuple[float, float]] = []  # (distance from the gripper, error), metres
 
@@ -199,6 +205,8 @@ def push_stage(args: argparse.Namespace) -> dict:
         student_args += ("--lr", str(args.push_lr))
     if args.push_ema:
         student_args += ("--ema", str(args.push_ema))
+    if args.push_hold_radius is not None:
+        student_args += ("--hold-radius", str(args.push_hold_radius))
     seconds = distill(
         args,
         teacher,
@@ -228,6 +236,7 @@ def push_stage(args: argparse.Namespace) -> dict:
             "init_from_teacher": args.push_init_teacher,
             "lr": args.push_lr or None,
             "ema": args.push_ema or None,
+            "hold_radius": args.push_hold_radius,
         },
         "student_distill_s": seconds,
         "final": {
@@ -241,7 +250,7 @@ def push_stage(args: argparse.Namespace) -> dict:
         out["recheck"] = recheck(teacher, student, args.push_recheck)
     if args.push_noise_check:
         out["teacher_on_estimates"] = teacher_on_estimates(
-            teacher, args.perception, args.push_noise_check
+            teacher, args.perception, args.push_noise_check, args.push_hold_radius
         )
     if args.push_state_check:
         check = Path(args.push_state_student or Path(args.work) / "push-state-student")
@@ -323,6 +332,14 @@ def build_parser() -> argparse.ArgumentParser:
         default=0.0,
         help="the push student acts with the Polyak average of its weights (lcrl distill "
         "--ema; default: off)",
+    )
+    parser.add_argument(
+        "--push-hold-radius",
+        type=float,
+        default=None,
+        metavar="R",
+        help="the push student holds each object's estimate while the gripper is farther "
+        "than R from it (lcrl distill --hold-radius; default: the perception model's own)",
     )
     parser.add_argument(
         "--resume-push",

@@ -471,6 +471,9 @@ def test_the_teacher_acting_on_perceptions_estimate(teacher, perception):
 
     out = teacher_on_estimates(teacher, str(perception), 2)
     assert out["episodes"] == 2 and out["action_gap"] > 0.01
+    assert out["hold_radius"] == 0.06  # the model's own
+    held = teacher_on_estimates(teacher, str(perception), 1, hold_radius=0.02)
+    assert held["hold_radius"] == 0.02 and held["episodes"] == 1
     for way in ("true_state", "estimate"):
         low, high = out[way]["ci"]
         assert out[way]["success"] in (0.0, 0.5, 1.0) and low <= out[way]["success"] <= high
