@@ -907,6 +907,28 @@ class RouteCommand:
 
 
 @dataclass
+class EnsembleCommand:
+    """One policy of runs trained apart (distilled students of other seeds, say) acting as
+    the mean of their actions. Writes a checkpoint folder for ``lcrl eval``, ``lcrl act``
+    and ``lcrl.load``; the members must read the same observation features, through the
+    same perception model held the same way."""
+
+    out: tyro.conf.Positional[str]
+    """The ensemble checkpoint folder to write."""
+    runs: tyro.conf.Positional[tuple[str, ...]]
+    """Two or more runs (or checkpoints); the first one's config is the ensemble's."""
+    overwrite: bool = False
+    """Replace ``out`` if it exists."""
+
+    def run(self) -> None:
+        from train.ensemble import write_ensemble
+
+        check_out_dir(Path(self.out).parent, "the folder of the ensemble checkpoint")
+        out = write_ensemble(self.out, self.runs, self.overwrite)
+        print(f"saved {out}: the mean of {', '.join(self.runs)}")
+
+
+@dataclass
 class DemosStub:
     """Demonstration datasets: ``lcrl demos record --help`` (also relabel, info,
     import-robomimic)."""
@@ -966,6 +988,7 @@ def main(argv: Sequence[str] | None = None) -> None:
         "demos": DemosStub,
         "distill": DistillCommand,
         "route": RouteCommand,
+        "ensemble": EnsembleCommand,
     }
     try:
         if args and args[0] == "train":

@@ -356,6 +356,10 @@ def load_policy(
         from train.route import routed
 
         loaded = routed(loaded, device)
+    if "ensemble" in ckpt.meta:  # the mean of policies trained apart (lcrl ensemble)
+        from train.ensemble import ensembled
+
+        loaded = ensembled(loaded, device)
     return loaded
 
 

@@ -1,0 +1,218 @@
+"""Policies trained apart acting as one: the mean of their actions.
+
+``lcrl ensemble OUT RUN RUN [RUN ...]`` writes a checkpoint folder that acts like any other
+(``lcrl eval``, ``lcrl act``, :func:`lcrl.load`, a teacher of ``lcrl distill``). Each row's
+action is the mean of the members' actions for it (their means when acting
+deterministically, their samples otherwise): students distilled with other seeds err on
+different episodes, and their mean errs less often than each.
+
+The folder is a copy of the first member's checkpoint (its weights, config, instruction
+table and, for a camera student, the perception model it acts through; the replay buffer
+is left out) with the other members' copies under ``members/I`` and their list in its
+``meta.json`` (``ensemble``). Every member reads the same observation features, goal
+embeddings and actions, with the same perception model held the same way (checked when the
+folder is written): the env shows every member one observation.
+"""
+
+from __future__ import annotations
+
+import json
+import shutil
+import uuid
+from collections.abc import Mapping, Sequence
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from lcrl.checkpoint import META_FILE
+from lcrl.errors import LcrlError
+
+#: The key of an ensemble checkpoint's ``meta.json`` that lists its other members.
+ENSEMBLE = "ensemble"
+#: Where the other members' checkpoints are, inside an ensemble checkpoint folder.
+MEMBERS_DIR = "members"
+
+
+class EnsembleAgent:
+    """Acts like an :class:`lcrl.algos.base.Agent`: the mean of its members' actions.
+
+    Args:
+        agents: the members' agents (the first one's attributes stand for the ensemble's).
+    """
+
+    def __init__(self, agents: Sequence[Any]) -> None:
+        if len(agents) < 2:
+            raise LcrlError("an ensemble needs at least two members")
+        self.members = list(agents)
+
+    def __getattr__(self, name: str) -> Any:
+        # device, problem, modules() ...: those of the first member
+        if name == "members":
+            raise AttributeError(name)
+        return getattr(self.members[0], name)
+
+    def act(
+        self,
+        obs: Mapping[str, np.ndarray],
+        goal: Any,
+        deterministic: bool = False,
+        embedded: bool = False,
+    ) -> np.ndarray:
+        """The mean of the members' actions for a batch."""
+        acts = [
+            np.asarray(a.act(obs, goal, deterministic=deterministic, embedded=embedded))
+            for a in self.members
+        ]
+        return np.mean(acts, axis=0).astype(acts[0].dtype)
+
+
+def _perception_weights(policy: Any) -> dict[str, np.ndarray] | None:
+    """The perception model a policy acts through, as arrays (None: it reads the state)."""
+    if not policy.cfg.env.perception:
+        return None
+    from lcrl.perception import load_model
+
+    model, _ = load_model(policy.cfg.env.perception)
+    return {k: v.detach().cpu().numpy() for k, v in model.state_dict().items()}
+
+
+def _hold(policy: Any) -> float | None:
+    from lcrl.perception import load_model
+
+    radius = policy.cfg.env.perception_hold_radius
+    if radius is None and policy.cfg.env.perception:
+        radius = load_model(policy.cfg.env.perception)[0].cfg.hold_radius
+    return radius
+
+
+def check_member(first: Any, member: Any, where: str) -> None:
+    """Refuse a member that cannot act beside ``first``, naming both."""
+    from train.evaluate import describe_problem
+
+    here = str(first.checkpoint.path)
+    if ENSEMBLE in member.checkpoint.meta or "router" in member.checkpoint.meta:
+        raise LcrlError(
+            f"the member {where} is itself an ensemble or routed: name plain runs instead"
+        )
+    if member.cfg.env.kind != first.cfg.env.kind:
+        raise LcrlError(
+            f"the member {where} was trained on the {member.cfg.env.kind} env, {here} on "
+            f"the {first.cfg.env.kind} env"
+        )
+    if member.task.problem() != first.task.problem():
+        raise LcrlError(
+            f"the member {where} reads {describe_problem(member.task.problem())}; {here} "
+            f"reads {describe_problem(first.task.problem())}: members must read the same "
+            "observation features"
+        )
+    if member.task.problem().discrete:
+        raise LcrlError(
+            f"the member {where} has discrete actions: an ensemble averages continuous ones"
+        )
+    if member.cfg.text_encoder.model != first.cfg.text_encoder.model:
+        raise LcrlError(
+            f"the member {where} embeds instructions with {member.cfg.text_encoder.model}, "
+            f"{here} with {first.cfg.text_encoder.model}"
+        )
+    mine, theirs = _perception_weights(first), _perception_weights(member)
+    same = (mine is None) == (theirs is None) and (
+        mine is None
+        or (
+            mine.keys() == theirs.keys()
+            and all(np.array_equal(mine[k], theirs[k]) for k in mine)
+            and _hold(first) == _hold(member)
+        )
+    )
+    if not same:
+        def how(p: Any) -> str:
+            if not p.cfg.env.perception:
+                return "the simulator's state"
+            return f"perception from {p.checkpoint.meta.get('perception', {}).get('source', '?')} held at {_hold(p)}"
+
+        raise LcrlError(
+            f"the member {where} acts through {how(member)}, {here} through {how(first)}: "
+            "members must read one estimate (the same perception model, held the same way)"
+        )
+
+
+def _copy_checkpoint(src: Path, dst: Path) -> None:
+    """A checkpoint folder without its replay buffer."""
+    from lcrl.checkpoint import ARRAYS_FILE
+
+    dst.mkdir(parents=True)
+    for p in sorted(src.iterdir()):
+        if p.is_file() and p.name != ARRAYS_FILE:
+            shutil.copy2(p, dst / p.name)
+
+
+def write_ensemble(out: str | Path, runs: Sequence[str], overwrite: bool = False) -> Path:
+    """Write the ensemble checkpoint folder ``out`` (see the module's docstring).
+
+    Raises:
+        LcrlError: fewer than two members, ``out`` exists (without ``overwrite``) or holds
+            a member, or a member that cannot act beside the first (:func:`check_member`).
+    """
+    from train.evaluate import load_policy, resolve_checkpoint
+
+    out = Path(out)
+    if len(runs) < 2:
+        raise LcrlError(f"name at least two runs to average, got {len(runs)}")
+    if out.exists() and not overwrite:
+        raise LcrlError(f"{out} already exists: choose another folder or pass --overwrite")
+    paths = [resolve_checkpoint(r) for r in runs]
+    if len({Path(p).resolve() for p in paths}) < len(paths):
+        raise LcrlError("a run is named twice: its mean with itself is itself")
+    policies = [load_policy(p) for p in paths]
+    try:
+        for path, member in zip(paths[1:], policies[1:], strict=True):
+            check_member(policies[0], member, str(path))
+        if ENSEMBLE in policies[0].checkpoint.meta or "router" in policies[0].checkpoint.meta:
+            raise LcrlError(
+                f"the member {paths[0]} is itself an ensemble or routed: name plain runs instead"
+            )
+    finally:
+        for p in policies:
+            p.env.close()
+    target = out.resolve()
+    for path in paths:
+        source = Path(path).resolve()
+        if source == target or target in source.parents:
+            raise LcrlError(f"{out} holds {path}, which it is made from: choose another folder")
+    tmp = out.parent / f".{out.name}.tmp-{uuid.uuid4().hex[:8]}"
+    try:
+        _copy_checkpoint(Path(paths[0]), tmp)
+        for i, path in enumerate(paths[1:], start=1):
+            _copy_checkpoint(Path(path), tmp / MEMBERS_DIR / str(i))
+        meta = json.loads((tmp / META_FILE).read_text())
+        meta[ENSEMBLE] = {
+            "members": [f"{MEMBERS_DIR}/{i}" for i in range(1, len(paths))],
+            "sources": [str(p) for p in paths],
+        }
+        (tmp / META_FILE).write_text(json.dumps(meta, indent=1))
+        if out.exists():
+            shutil.rmtree(out)
+        out.parent.mkdir(parents=True, exist_ok=True)
+        tmp.rename(out)
+    finally:
+        if tmp.exists():
+            shutil.rmtree(tmp, ignore_errors=True)
+    return out
+
+
+def ensembled(loaded: Any, device: str | None = None) -> Any:
+    """``loaded`` (a LoadedPolicy of an ensemble folder's first member) acting as the mean
+    of all its members."""
+    from train.evaluate import load_policy
+
+    entry: Mapping[str, Any] = loaded.checkpoint.meta[ENSEMBLE]
+    agents = [loaded.agent]
+    for rel in entry.get("members", []):
+        path = Path(loaded.checkpoint.path) / rel
+        if not (path / META_FILE).is_file():
+            raise LcrlError(f"the ensemble checkpoint {loaded.checkpoint.path} lacks {path}")
+        member = load_policy(path, device=device)
+        member.env.close()
+        agents.append(member.agent)
+    loaded.agent = EnsembleAgent(agents)
+    return loaded
