@@ -48,6 +48,7 @@ def distill(
     updates: int | None = None,
     how: tuple[str, ...] = (),
     resume: bool = False,
+    seed: int | None = None,
 ) -> float:
     """``lcrl distill`` of ``teacher`` into ``student`` (through ``--perception`` unless
     ``how`` says otherwise); the seconds it took. With ``resume`` a student already in
@@ -59,7 +60,8 @@ def distill(
     how = how or ("--perception", args.perception)
     cmd = [*LCRL, "distill", str(teacher), *how, "--out", str(student)]
     cmd += ["--rounds", str(rounds), "--episodes-per-round", str(args.episodes_per_round)]
-    cmd += ["--updates-per-round", str(updates), "--seed", str(args.seed)]
+    seed = args.seed if seed is None else seed
+    cmd += ["--updates-per-round", str(updates), "--seed", str(seed)]
     cmd += ["--beta-decay", str(args.beta_decay), "--eval-every", str(args.eval_every)]
     cmd += ["--eval-episodes", str(args.eval_episodes)]
     resumed = resume and (student / "latest.json").is_file()
@@ -207,16 +209,39 @@ def push_stage(args: argparse.Namespace) -> dict:
         student_args += ("--ema", str(args.push_ema))
     if args.push_hold_radius is not None:
         student_args += ("--hold-radius", str(args.push_hold_radius))
-    seconds = distill(
-        args,
-        teacher,
-        student,
-        rounds=rounds,
-        updates=updates,
-        how=("--perception", args.perception, *student_args),
-        resume=args.resume_push,
-    )
+    if args.push_eval_sets:
+        student_args += ("--eval-sets", *args.push_eval_sets)
+    seeds = args.push_seeds or [args.seed]
+    members, times = [], []
+    for i, seed in enumerate(seeds):
+        run = student if i == 0 else student.with_name(f"{student.name}-s{seed}")
+        times.append(
+            distill(
+                args,
+                teacher,
+                run,
+                rounds=rounds,
+                updates=updates,
+                how=("--perception", args.perception, *student_args),
+                resume=args.resume_push,
+                seed=seed,
+            )
+        )
+        members.append(run)
+    seconds = round(sum(times), 1)
     t = evaluate(teacher, args.final_episodes, ("train",))["train"]
+    member_finals = []
+    if len(members) > 1:
+        for run, seed, took in zip(members, seeds, times, strict=True):
+            m = evaluate(run, args.final_episodes, ("train",))["train"]
+            member_finals.append(
+                {"run": str(run), "seed": seed, "distill_s": took,
+                 "success": m["success"], "ci": m["ci"],
+                 "rounds": rows(run / "progress.csv"), "student_evals": rows(run / "eval.csv")}
+            )  # fmt: skip
+        student = student.with_name(f"{student.name}-ensemble")
+        cmd = [*LCRL, "ensemble", str(student), *map(str, members), "--overwrite"]
+        subprocess.run(cmd, check=True, env=child_env(), preexec_fn=die_with_parent)
     s = evaluate(student, args.final_episodes, ("train",))["train"]
     config = teacher / "config.json"
     teacher_cfg = json.loads(config.read_text()) if config.is_file() else {}
@@ -237,15 +262,19 @@ def push_stage(args: argparse.Namespace) -> dict:
             "lr": args.push_lr or None,
             "ema": args.push_ema or None,
             "hold_radius": args.push_hold_radius,
+            "seeds": seeds,
         },
         "student_distill_s": seconds,
         "final": {
             "teacher": {"success": t["success"], "ci": t["ci"]},
             "student": {"success": s["success"], "ci": s["ci"]},
         },
-        "rounds": rows(student / "progress.csv"),
-        "student_evals": rows(student / "eval.csv"),
+        "rounds": rows(members[0] / "progress.csv"),
+        "student_evals": rows(members[0] / "eval.csv"),
     }
+    if member_finals:
+        out["members"] = member_finals
+        out["ensemble_command"] = f"lcrl ensemble {student} " + " ".join(map(str, members))
     if args.push_recheck:
         out["recheck"] = recheck(teacher, student, args.push_recheck)
     if args.push_noise_check:
@@ -332,6 +361,24 @@ def build_parser() -> argparse.ArgumentParser:
         default=0.0,
         help="the push student acts with the Polyak average of its weights (lcrl distill "
         "--ema; default: off)",
+    )
+    parser.add_argument(
+        "--push-seeds",
+        type=int,
+        nargs="+",
+        default=[],
+        metavar="S",
+        help="distil one push student per seed (the first in --push-student, the others "
+        "beside it as NAME-sS) and evaluate the mean of their actions (lcrl ensemble, "
+        "NAME-ensemble); default: one student, of --seed",
+    )
+    parser.add_argument(
+        "--push-eval-sets",
+        nargs="+",
+        default=[],
+        metavar="SET",
+        help="instruction sets of the push students' periodic evaluations (lcrl distill "
+        "--eval-sets; default: every set)",
     )
     parser.add_argument(
         "--push-hold-radius",
@@ -560,8 +607,21 @@ def render(payload: dict, info: dict) -> None:
             f"{headline['push_gap']:+.2f}). Distillation took {push['student_distill_s']:.0f} s"
             " (collection and updates).",
         ]
+        members = push.get("members", [])
+        if members:
+            alone = "; ".join(
+                f"seed {m['seed']} (`{m['run']}`, {m['distill_s']:.0f} s) {cell(m)}"
+                for m in members
+            )
+            lines += [
+                "",
+                f"The push student is the mean of the actions of {len(members)} students "
+                f"distilled the same way with other seeds (`{push.get('ensemble_command', '')}`"
+                f"; the distillation time above is theirs together). Alone: {alone}.",
+            ]
         if push.get("student_evals"):
-            lines += ["", f"Push student's seen success {along(push['student_evals'])}."]
+            which = "The first of them" if members else "Push student"
+            lines += ["", f"{which}'s seen success {along(push['student_evals'])}."]
         again = push.get("recheck")
         if again:
             gap = again["teacher"]["success"] - again["student"]["success"]

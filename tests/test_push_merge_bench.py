@@ -127,6 +127,51 @@ def test_distill_push_only_keeps_reach_and_adds_push(results, tmp_path, monkeypa
         distill.main(["--perception", "p", "--push-only"])
 
 
+def test_push_students_of_several_seeds_are_averaged(results, tmp_path, monkeypatch):
+    """``--push-seeds 0 1``: one student per seed (the first at --push-student, the next
+    beside it as NAME-s1), each evaluated alone, then their ensemble evaluated as the push
+    student, with the command that writes it."""
+    import benchmarks.distill as distill
+
+    made, ran = [], []
+
+    def fake_distill(args, teacher, student, *, rounds, updates, how, resume, seed):
+        student.mkdir(parents=True, exist_ok=True)
+        (student / "progress.csv").write_text(
+            "step,teacher_share,loss,success,rows\n1,1.0,0.5,0.5,90\n"
+        )
+        (student / "eval.csv").write_text("step,train/success\n1,0.8\n")
+        made.append((student.name, seed, how))
+        return 10.0 + seed
+
+    scores = {"s": 0.9, "s-s1": 0.91, "s-ensemble": 0.95, "teacher": 0.99}
+
+    def fake_evaluate(run, episodes, sets, seed=0):
+        return {"train": {"success": scores[Path(run).name], "ci": [0.8, 1.0]}}
+
+    monkeypatch.setattr(distill, "distill", fake_distill)
+    monkeypatch.setattr(distill, "evaluate", fake_evaluate)
+    monkeypatch.setattr(distill.subprocess, "run", lambda cmd, **kw: ran.append(cmd))
+    argv = ["--perception", "p", "--push-teacher", str(tmp_path / "teacher"), "--push-only"]
+    argv += ["--push-student", str(tmp_path / "s"), "--push-seeds", "0", "1"]
+    argv += ["--push-eval-sets", "train", "--push-hold-radius", "0.03"]
+    out = distill.push_stage(distill.build_parser().parse_args(argv))
+    assert [(n, s) for n, s, _ in made] == [("s", 0), ("s-s1", 1)]
+    assert made[0][2][-4:] == ("--hold-radius", "0.03", "--eval-sets", "train")
+    assert [m["success"] for m in out["members"]] == [0.9, 0.91]
+    assert out["student"] == str(tmp_path / "s-ensemble") and out["student_distill_s"] == 21.0
+    assert out["final"]["student"]["success"] == 0.95 and out["settings"]["seeds"] == [0, 1]
+    assert ran[0][-4:] == [str(tmp_path / "s-ensemble"), str(tmp_path / "s"),
+                           str(tmp_path / "s-s1"), "--overwrite"]  # fmt: skip
+    assert out["ensemble_command"].startswith(f"lcrl ensemble {tmp_path / 's-ensemble'} ")
+    payload = json.loads((ROOT / "benchmarks/results/distill-robosuite.json").read_text())
+    payload["push"] = out
+    distill.render(payload, payload["machine"])
+    md = (results / "distill-robosuite.md").read_text()
+    assert "the mean of the actions of 2 students distilled the same way" in md
+    assert f"seed 1 (`{tmp_path / 's-s1'}`, 11 s) 0.91 [0.80, 1.00]" in md
+
+
 def test_image_policy_renders_push_from_demonstrations(results):
     import benchmarks.image_policy as ip
 

@@ -125,10 +125,12 @@ def check_member(first: Any, member: Any, where: str) -> None:
         )
     )
     if not same:
+
         def how(p: Any) -> str:
             if not p.cfg.env.perception:
                 return "the simulator's state"
-            return f"perception from {p.checkpoint.meta.get('perception', {}).get('source', '?')} held at {_hold(p)}"
+            source = p.checkpoint.meta.get("perception", {}).get("source", "?")
+            return f"perception from {source} held at {_hold(p)}"
 
         raise LcrlError(
             f"the member {where} acts through {how(member)}, {here} through {how(first)}: "
