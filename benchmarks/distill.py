@@ -504,7 +504,13 @@ def add_push(payload: dict) -> None:
         push_student_seen=round(student, 3),
         push_gap=round(teacher - student, 3),
     )
-    payload["reached"]["push_within_5_points"] = teacher - student <= TARGET_GAP
+    payload["reached"]["push_within_5_points"] = round(teacher - student, 9) <= TARGET_GAP
+    again = payload["push"].get("recheck")
+    if again:  # the same verdict on the other episodes
+        gap = again["teacher"]["success"] - again["student"]["success"]
+        payload["reached"]["push_within_5_points_recheck"] = round(gap, 9) <= TARGET_GAP
+    else:
+        payload["reached"].pop("push_within_5_points_recheck", None)
 
 
 def push_curves(payload: dict) -> dict[str, list[tuple[float, float]]]:
@@ -535,8 +541,11 @@ def render(payload: dict, info: dict) -> None:
     t, s = final["teacher"], final["student"]
     episodes = payload["settings"]["final_episodes"]
 
+    def rate(x: float) -> str:  # 2 decimals, 3 where 2 would round (0.895 of 200)
+        return f"{x:.2f}" if abs(x - round(x, 2)) < 1e-9 else f"{x:.3f}"
+
     def cell(v: dict) -> str:
-        return f"{v['success']:.2f} [{v['ci'][0]:.2f}, {v['ci'][1]:.2f}]"
+        return f"{rate(v['success'])} [{v['ci'][0]:.2f}, {v['ci'][1]:.2f}]"
 
     lines = [
         "| set | teacher (privileged state) | student (camera, perception) |",
@@ -625,12 +634,14 @@ def render(payload: dict, info: dict) -> None:
         again = push.get("recheck")
         if again:
             gap = again["teacher"]["success"] - again["student"]["success"]
+            within = "within" if round(gap, 9) <= TARGET_GAP else "NOT within"
             lines += [
                 "",
                 f"Again on {again['episodes']} other episodes (evaluation seed "
                 f"{again['seed']}: other layouts and instructions): teacher "
                 f"{cell(again['teacher'])}, student {cell(again['student'])} (gap "
-                f"{gap:+.2f}); `{'`, `'.join(again['commands'])}`.",
+                f"{'+' if gap >= 0 else '-'}{rate(abs(gap))}, {within} {TARGET_GAP:.2f}); "
+                f"`{'`, `'.join(again['commands'])}`.",
             ]
         check = push.get("state_student")
         if check:

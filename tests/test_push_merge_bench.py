@@ -119,9 +119,17 @@ def test_distill_push_only_keeps_reach_and_adds_push(results, tmp_path, monkeypa
     md = (results / "distill-robosuite.md").read_text()
     assert (
         "Again on 200 other episodes (evaluation seed 1: other layouts and instructions): "
-        "teacher 0.92 [0.88, 0.95], student 0.90 [0.85, 0.93] (gap +0.02); "
+        "teacher 0.92 [0.88, 0.95], student 0.90 [0.85, 0.93] (gap +0.02, within 0.05); "
         "`lcrl eval t --seed 1`, `lcrl eval s --seed 1`." in md
     )
+
+    fake["recheck"]["student"]["success"] = 0.865  # 173 of 200: 3 decimals, not rounded up
+    distill.render({**after, "push": fake}, after["machine"])
+    md = (results / "distill-robosuite.md").read_text()
+    assert "student 0.865 [0.85, 0.93] (gap +0.055, NOT within 0.05)" in md
+    payload = {**after, "push": fake}
+    distill.add_push(payload)
+    assert payload["reached"]["push_within_5_points_recheck"] is False
 
     with pytest.raises(SystemExit):  # push-only needs the push teacher
         distill.main(["--perception", "p", "--push-only"])
