@@ -73,3 +73,38 @@ def interrupt_update(monkeypatch, agent, at: int) -> None:
         return update(batch)
 
     monkeypatch.setattr(agent, "update", interrupted)
+
+
+def untrained_perception(out: Path, seed: int = 0) -> Path:
+    """A perception model for the 2D tabletop's 64 px frames with untrained weights (seeded):
+    enough for whatever only needs something that reads frames."""
+    import numpy as np
+    import torch
+
+    from lcrl.perception import Perception, SlotLayout
+    from train.perception import PerceptionTrainConfig, save_model
+
+    torch.manual_seed(seed)
+    layout = SlotLayout(2, 8, 3, 2)
+    stats = {
+        "pos_mean": np.zeros((8, 2), np.float32),
+        "pos_std": np.full((8, 2), 0.3, np.float32),
+        "proprio_mean": np.zeros(2, np.float32),
+        "proprio_std": np.full(2, 0.3, np.float32),
+    }
+    model = Perception((64, 64, 3), layout, stats=stats)
+    meta = {"env": "lang2d", "slot_layout": layout.to_list(), "image_size": 64}
+    save_model(out, model, PerceptionTrainConfig(), meta, 0, [], np.zeros(0, int))
+    return out
+
+
+def train_tiny(out: Path, preset: str, seed: int = 0, steps: int = 200, **env) -> Path:
+    """A tiny run of ``preset`` trained for ``steps`` (half of them before learning), with
+    ``env`` options replaced; its run folder."""
+    from train.loop import Trainer
+
+    cfg = tiny(preset, out, total_steps=steps, learning_starts=steps // 2, seed=seed)
+    if env:
+        cfg = dataclasses.replace(cfg, env=dataclasses.replace(cfg.env, **env))
+    Trainer(cfg).run()
+    return out

@@ -13,7 +13,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch
-from helpers import cli, error_line, tiny
+from helpers import cli, error_line, tiny, untrained_perception
 
 from lcrl.perception import Perception, SlotLayout
 from train.perception import PerceptionTrainConfig, save_model
@@ -39,19 +39,7 @@ def teacher(tmp_path_factory) -> Path:
 def perception(tmp_path_factory) -> Path:
     """A perception model for the 2D tabletop's 64 px frames (untrained weights: DAgger
     only needs something that reads frames)."""
-    torch.manual_seed(0)
-    out = tmp_path_factory.mktemp("distill") / "perception"
-    layout = SlotLayout(2, 8, 3, 2)
-    stats = {
-        "pos_mean": np.zeros((8, 2), np.float32),
-        "pos_std": np.full((8, 2), 0.3, np.float32),
-        "proprio_mean": np.zeros(2, np.float32),
-        "proprio_std": np.full(2, 0.3, np.float32),
-    }
-    model = Perception((64, 64, 3), layout, stats=stats)
-    meta = {"env": "lang2d", "slot_layout": layout.to_list(), "image_size": 64}
-    save_model(out, model, PerceptionTrainConfig(), meta, 0, [], np.zeros(0, int))
-    return out
+    return untrained_perception(tmp_path_factory.mktemp("distill") / "perception")
 
 
 def _rows(path: Path) -> list[dict[str, float]]:

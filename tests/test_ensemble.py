@@ -4,18 +4,14 @@ and members that cannot act beside each other are refused in one line."""
 
 from __future__ import annotations
 
-import dataclasses
 import json
 from pathlib import Path
 
 import numpy as np
 import pytest
-import torch
-from helpers import cli, error_line, tiny
+from helpers import cli, error_line, train_tiny, untrained_perception
 
 import lcrl
-from lcrl.perception import Perception, SlotLayout
-from train.perception import PerceptionTrainConfig, save_model
 
 
 @pytest.fixture(scope="module", autouse=True)
@@ -24,29 +20,7 @@ def _single_thread(one_thread):
 
 
 def _train(out: Path, seed: int = 0, steps: int = 200, **env) -> Path:
-    from train.loop import Trainer
-
-    cfg = tiny("lang2d-quick", out, total_steps=steps, learning_starts=steps // 2, seed=seed)
-    if env:
-        cfg = dataclasses.replace(cfg, env=dataclasses.replace(cfg.env, **env))
-    Trainer(cfg).run()
-    return out
-
-
-def _perception(out: Path, seed: int) -> Path:
-    """An untrained perception model for the 2D tabletop's 64 px frames."""
-    torch.manual_seed(seed)
-    layout = SlotLayout(2, 8, 3, 2)
-    stats = {
-        "pos_mean": np.zeros((8, 2), np.float32),
-        "pos_std": np.full((8, 2), 0.3, np.float32),
-        "proprio_mean": np.zeros(2, np.float32),
-        "proprio_std": np.full(2, 0.3, np.float32),
-    }
-    model = Perception((64, 64, 3), layout, stats=stats)
-    meta = {"env": "lang2d", "slot_layout": layout.to_list(), "image_size": 64}
-    save_model(out, model, PerceptionTrainConfig(), meta, 0, [], np.zeros(0, int))
-    return out
+    return train_tiny(out, "lang2d-quick", seed, steps, **env)
 
 
 @pytest.fixture(scope="module")
@@ -112,8 +86,8 @@ def test_members_that_cannot_act_together_get_one_line(runs, tmp_path, capsys):
 
 def test_camera_members_must_read_one_estimate(runs, tmp_path, capsys):
     root = runs["root"]
-    seen = _perception(root / "perception-0", seed=0)
-    other = _perception(root / "perception-1", seed=1)
+    seen = untrained_perception(root / "perception-0", seed=0)
+    other = untrained_perception(root / "perception-1", seed=1)
     x = _train(root / "px", steps=80, perception=str(seen))
     y = _train(root / "py", seed=1, steps=80, perception=str(seen))
     z = _train(root / "pz", seed=2, steps=80, perception=str(other))

@@ -5,13 +5,12 @@ are refused in one line."""
 
 from __future__ import annotations
 
-import dataclasses
 import json
 from pathlib import Path
 
 import numpy as np
 import pytest
-from helpers import cli, error_line, tiny
+from helpers import cli, error_line, train_tiny
 
 import lcrl
 
@@ -22,13 +21,7 @@ def _single_thread(one_thread):
 
 
 def _train(out: Path, preset: str = "lang2d", seed: int = 0, **env) -> Path:
-    from train.loop import Trainer
-
-    cfg = tiny(preset, out, total_steps=200, learning_starts=100, seed=seed)
-    if env:
-        cfg = dataclasses.replace(cfg, env=dataclasses.replace(cfg.env, **env))
-    Trainer(cfg).run()
-    return out
+    return train_tiny(out, preset, seed, **env)
 
 
 @pytest.fixture(scope="module")

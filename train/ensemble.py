@@ -16,9 +16,6 @@ folder is written): the env shows every member one observation.
 
 from __future__ import annotations
 
-import json
-import shutil
-import uuid
 from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any
@@ -86,34 +83,24 @@ def _hold(policy: Any) -> float | None:
     return radius
 
 
-def check_member(first: Any, member: Any, where: str) -> None:
-    """Refuse a member that cannot act beside ``first``, naming both."""
-    from train.evaluate import describe_problem
-
-    here = str(first.checkpoint.path)
+def check_plain(member: Any, where: str) -> None:
+    """Refuse a member that is itself made of others."""
     if ENSEMBLE in member.checkpoint.meta or "router" in member.checkpoint.meta:
         raise LcrlError(
             f"the member {where} is itself an ensemble or routed: name plain runs instead"
         )
-    if member.cfg.env.kind != first.cfg.env.kind:
-        raise LcrlError(
-            f"the member {where} was trained on the {member.cfg.env.kind} env, {here} on "
-            f"the {first.cfg.env.kind} env"
-        )
-    if member.task.problem() != first.task.problem():
-        raise LcrlError(
-            f"the member {where} reads {describe_problem(member.task.problem())}; {here} "
-            f"reads {describe_problem(first.task.problem())}: members must read the same "
-            "observation features"
-        )
+
+
+def check_member(first: Any, member: Any, where: str) -> None:
+    """Refuse a member that cannot act beside ``first``, naming both."""
+    from train.route import check_same_inputs
+
+    here = str(first.checkpoint.path)
+    check_plain(member, where)
+    check_same_inputs(member, f"the member {where}", first, here, "members")
     if member.task.problem().discrete:
         raise LcrlError(
             f"the member {where} has discrete actions: an ensemble averages continuous ones"
-        )
-    if member.cfg.text_encoder.model != first.cfg.text_encoder.model:
-        raise LcrlError(
-            f"the member {where} embeds instructions with {member.cfg.text_encoder.model}, "
-            f"{here} with {first.cfg.text_encoder.model}"
         )
     mine, theirs = _perception_weights(first), _perception_weights(member)
     same = (mine is None) == (theirs is None) and (
@@ -138,16 +125,6 @@ def check_member(first: Any, member: Any, where: str) -> None:
         )
 
 
-def _copy_checkpoint(src: Path, dst: Path) -> None:
-    """A checkpoint folder without its replay buffer."""
-    from lcrl.checkpoint import ARRAYS_FILE
-
-    dst.mkdir(parents=True)
-    for p in sorted(src.iterdir()):
-        if p.is_file() and p.name != ARRAYS_FILE:
-            shutil.copy2(p, dst / p.name)
-
-
 def write_ensemble(out: str | Path, runs: Sequence[str], overwrite: bool = False) -> Path:
     """Write the ensemble checkpoint folder ``out`` (see the module's docstring).
 
@@ -156,6 +133,7 @@ def write_ensemble(out: str | Path, runs: Sequence[str], overwrite: bool = False
             a member, or a member that cannot act beside the first (:func:`check_member`).
     """
     from train.evaluate import load_policy, resolve_checkpoint
+    from train.route import write_composite
 
     out = Path(out)
     if len(runs) < 2:
@@ -167,38 +145,18 @@ def write_ensemble(out: str | Path, runs: Sequence[str], overwrite: bool = False
         raise LcrlError("a run is named twice: its mean with itself is itself")
     policies = [load_policy(p) for p in paths]
     try:
+        check_plain(policies[0], str(paths[0]))
         for path, member in zip(paths[1:], policies[1:], strict=True):
             check_member(policies[0], member, str(path))
-        if ENSEMBLE in policies[0].checkpoint.meta or "router" in policies[0].checkpoint.meta:
-            raise LcrlError(
-                f"the member {paths[0]} is itself an ensemble or routed: name plain runs instead"
-            )
     finally:
         for p in policies:
             p.env.close()
-    target = out.resolve()
-    for path in paths:
-        source = Path(path).resolve()
-        if source == target or target in source.parents:
-            raise LcrlError(f"{out} holds {path}, which it is made from: choose another folder")
-    tmp = out.parent / f".{out.name}.tmp-{uuid.uuid4().hex[:8]}"
-    try:
-        _copy_checkpoint(Path(paths[0]), tmp)
-        for i, path in enumerate(paths[1:], start=1):
-            _copy_checkpoint(Path(path), tmp / MEMBERS_DIR / str(i))
-        meta = json.loads((tmp / META_FILE).read_text())
-        meta[ENSEMBLE] = {
-            "members": [f"{MEMBERS_DIR}/{i}" for i in range(1, len(paths))],
-            "sources": [str(p) for p in paths],
-        }
-        (tmp / META_FILE).write_text(json.dumps(meta, indent=1))
-        if out.exists():
-            shutil.rmtree(out)
-        out.parent.mkdir(parents=True, exist_ok=True)
-        tmp.rename(out)
-    finally:
-        if tmp.exists():
-            shutil.rmtree(tmp, ignore_errors=True)
+    entry = {
+        "members": [f"{MEMBERS_DIR}/{i}" for i in range(1, len(paths))],
+        "sources": [str(p) for p in paths],
+    }
+    parts = {f"{MEMBERS_DIR}/{i}": p for i, p in enumerate(paths[1:], start=1)}
+    return write_composite(out, paths[0], parts, ENSEMBLE, entry)
     return out
 
 

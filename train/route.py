@@ -131,28 +131,37 @@ def _check_language(policy: Any, who: str) -> None:
 def check_expert(base: Any, family: str, expert: Any, where: str) -> None:
     """Refuse an expert that cannot stand in for ``base`` on ``family``, naming both."""
     _check_language(expert, f"the expert {where}")
-    if expert.cfg.env.kind != base.cfg.env.kind:
-        raise LcrlError(
-            f"the expert {where} was trained on the {expert.cfg.env.kind} env, the base "
-            f"{base.checkpoint.path} on the {base.cfg.env.kind} env"
-        )
     if family not in expert.cfg.env.families:
         raise LcrlError(
             f"the expert {where} for {family!r} was trained on the families "
             f"{', '.join(expert.cfg.env.families)}, not {family}"
         )
-    if expert.task.problem() != base.task.problem():
-        from train.evaluate import describe_problem
+    check_same_inputs(
+        expert, f"the expert {where}", base, f"the base {base.checkpoint.path}", "experts"
+    )
 
+
+def check_same_inputs(other: Any, who: str, ref: Any, ref_name: str, plural: str) -> None:
+    """Refuse a policy ``other`` that cannot stand beside ``ref``: another env kind, other
+    observation features, goals or actions, or another text encoder; one line naming both
+    (``who``, ``ref_name``)."""
+    from train.evaluate import describe_problem
+
+    if other.cfg.env.kind != ref.cfg.env.kind:
         raise LcrlError(
-            f"the expert {where} reads {describe_problem(expert.task.problem())}; the base "
-            f"{base.checkpoint.path} reads {describe_problem(base.task.problem())}: experts "
-            "must read the same observation features"
+            f"{who} was trained on the {other.cfg.env.kind} env, {ref_name} on the "
+            f"{ref.cfg.env.kind} env"
         )
-    if expert.cfg.text_encoder.model != base.cfg.text_encoder.model:
+    if other.task.problem() != ref.task.problem():
         raise LcrlError(
-            f"the expert {where} embeds instructions with {expert.cfg.text_encoder.model}, "
-            f"the base {base.checkpoint.path} with {base.cfg.text_encoder.model}"
+            f"{who} reads {describe_problem(other.task.problem())}; {ref_name} reads "
+            f"{describe_problem(ref.task.problem())}: {plural} must read the same observation "
+            "features"
+        )
+    if other.cfg.text_encoder.model != ref.cfg.text_encoder.model:
+        raise LcrlError(
+            f"{who} embeds instructions with {other.cfg.text_encoder.model}, {ref_name} with "
+            f"{ref.cfg.text_encoder.model}"
         )
 
 
@@ -196,22 +205,38 @@ def write_router(
         check_expert(base, family, expert, str(paths[family]))
         expert.env.close()
     base.env.close()
-    target = out.resolve()
-    for path in (base_path, *paths.values()):
+    meta = {
+        "base": str(base_path),
+        "experts": {f: f"{EXPERTS_DIR}/{f}" for f in paths},
+        "sources": {f: str(p) for f, p in paths.items()},
+    }
+    parts = {f"{EXPERTS_DIR}/{f}": p for f, p in paths.items()}
+    return write_composite(out, base_path, parts, ROUTER, meta)
+
+
+def write_composite(
+    out: Path, first: str | Path, parts: Mapping[str, str | Path], key: str, entry: Any
+) -> Path:
+    """Write a checkpoint folder made of others: a copy of ``first`` (without its replay
+    buffer) with each of ``parts`` (``{folder inside it: checkpoint}``) copied under it and
+    ``entry`` under ``key`` in its ``meta.json``; written to a temporary folder beside
+    ``out`` and renamed, so an interrupted write leaves nothing.
+
+    Raises:
+        LcrlError: ``out`` is or holds a checkpoint it is made from.
+    """
+    target = Path(out).resolve()
+    for path in (first, *parts.values()):
         source = Path(path).resolve()
         if source == target or target in source.parents:
             raise LcrlError(f"{out} holds {path}, which it is made from: choose another folder")
     tmp = out.parent / f".{out.name}.tmp-{uuid.uuid4().hex[:8]}"
     try:
-        _copy_checkpoint(base_path, tmp)
-        for family, path in paths.items():
-            _copy_checkpoint(path, tmp / EXPERTS_DIR / family)
+        _copy_checkpoint(Path(first), tmp)
+        for rel, path in parts.items():
+            _copy_checkpoint(Path(path), tmp / rel)
         meta = json.loads((tmp / META_FILE).read_text())
-        meta[ROUTER] = {
-            "base": str(base_path),
-            "experts": {f: f"{EXPERTS_DIR}/{f}" for f in paths},
-            "sources": {f: str(p) for f, p in paths.items()},
-        }
+        meta[key] = entry
         (tmp / META_FILE).write_text(json.dumps(meta, indent=1))
         if out.exists():
             shutil.rmtree(out)
