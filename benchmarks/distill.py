@@ -178,18 +178,17 @@ def error_bands(errors) -> list[dict]:
 RECHECK_SEED = 1
 
 
-def recheck(teacher: Path, student: Path, episodes: int) -> dict:
-    """Teacher and student evaluated again, on ``episodes`` other seen push episodes
-    (evaluation seed :data:`RECHECK_SEED`: other layouts and instructions than the final
-    evaluation's), each with the ``lcrl eval`` command that gives it."""
-    out: dict = {"seed": RECHECK_SEED, "episodes": episodes, "commands": []}
-    for who, run in (("teacher", teacher), ("student", student)):
-        result = evaluate(run, episodes, ("train",), seed=RECHECK_SEED)["train"]
-        out[who] = {"success": result["success"], "ci": result["ci"]}
-        out["commands"].append(
-            f"lcrl eval {run} --episodes {episodes} --sets train --seed {RECHECK_SEED}"
-        )
-    return out
+def evaluate_all(jobs: dict[str, tuple[Path, int, int]]) -> dict[str, dict]:
+    """``{key: (run, episodes, evaluation seed)}`` evaluated on seen instructions, two
+    ``lcrl eval`` at a time: ``{key: its train-set result}``."""
+    from concurrent.futures import ThreadPoolExecutor
+
+    with ThreadPoolExecutor(2) as pool:
+        futures = {
+            key: pool.submit(evaluate, run, episodes, ("train",), seed=seed)
+            for key, (run, episodes, seed) in jobs.items()
+        }
+        return {key: f.result()["train"] for key, f in futures.items()}
 
 
 def push_stage(args: argparse.Namespace) -> dict:
@@ -229,20 +228,38 @@ def push_stage(args: argparse.Namespace) -> dict:
         )
         members.append(run)
     seconds = round(sum(times), 1)
-    t = evaluate(teacher, args.final_episodes, ("train",))["train"]
-    member_finals = []
-    if len(members) > 1:
-        for run, seed, took in zip(members, seeds, times, strict=True):
-            m = evaluate(run, args.final_episodes, ("train",))["train"]
-            member_finals.append(
-                {"run": str(run), "seed": seed, "distill_s": took,
-                 "success": m["success"], "ci": m["ci"],
-                 "rounds": rows(run / "progress.csv"), "student_evals": rows(run / "eval.csv")}
-            )  # fmt: skip
-        student = student.with_name(f"{student.name}-ensemble")
-        cmd = [*LCRL, "ensemble", str(student), *map(str, members), "--overwrite"]
+    ensemble = student.with_name(f"{student.name}-ensemble") if len(members) > 1 else None
+    if ensemble is not None:
+        cmd = [*LCRL, "ensemble", str(ensemble), *map(str, members), "--overwrite"]
         subprocess.run(cmd, check=True, env=child_env(), preexec_fn=die_with_parent)
-    s = evaluate(student, args.final_episodes, ("train",))["train"]
+    acting = ensemble or student
+    # every evaluation, two at a time (one torch thread each)
+    jobs = {"teacher": (teacher, 0), "student": (acting, 0)}
+    if ensemble is not None:
+        jobs.update({f"member-{i}": (run, 0) for i, run in enumerate(members)})
+    if args.push_recheck:
+        jobs.update(
+            {"recheck-teacher": (teacher, RECHECK_SEED), "recheck-student": (acting, RECHECK_SEED)}
+        )
+    results = evaluate_all(
+        {
+            key: (
+                run,
+                args.push_recheck if key.startswith("recheck") else args.final_episodes,
+                seed,
+            )
+            for key, (run, seed) in jobs.items()
+        }
+    )
+    t, s = results["teacher"], results["student"]
+    member_finals = [
+        {"run": str(run), "seed": seed, "distill_s": took,
+         "success": results[f"member-{i}"]["success"], "ci": results[f"member-{i}"]["ci"],
+         "rounds": rows(run / "progress.csv"), "student_evals": rows(run / "eval.csv")}
+        for i, (run, seed, took) in enumerate(zip(members, seeds, times, strict=True))
+        if ensemble is not None
+    ]  # fmt: skip
+    student = acting
     config = teacher / "config.json"
     teacher_cfg = json.loads(config.read_text()) if config.is_file() else {}
     out = {
@@ -276,7 +293,18 @@ def push_stage(args: argparse.Namespace) -> dict:
         out["members"] = member_finals
         out["ensemble_command"] = f"lcrl ensemble {student} " + " ".join(map(str, members))
     if args.push_recheck:
-        out["recheck"] = recheck(teacher, student, args.push_recheck)
+        out["recheck"] = {
+            "seed": RECHECK_SEED,
+            "episodes": args.push_recheck,
+            "commands": [
+                f"lcrl eval {run} --episodes {args.push_recheck} --sets train --seed {RECHECK_SEED}"
+                for run in (teacher, student)
+            ],
+            **{
+                who: {k: results[f"recheck-{who}"][k] for k in ("success", "ci")}
+                for who in ("teacher", "student")
+            },
+        }
     if args.push_noise_check:
         out["teacher_on_estimates"] = teacher_on_estimates(
             teacher, args.perception, args.push_noise_check, args.push_hold_radius
