@@ -222,14 +222,12 @@ class EvalCommand:
         if self.canonical_reader:
             overrides.update(canonical_override(saved))
         if self.hold_radius is not None:
-            if not saved.perception:
-                raise LcrlError(
-                    "--hold-radius holds perception's estimates; this checkpoint acts on "
-                    "the simulator's state, through no perception model"
-                )
-            if not self.hold_radius >= 0:
-                raise LcrlError(f"--hold-radius must be >= 0, got {self.hold_radius}")
-            overrides["perception_hold_radius"] = float(self.hold_radius)
+            overrides["perception_hold_radius"] = checked_hold_radius(
+                self.hold_radius,
+                bool(saved.perception),
+                "--hold-radius holds perception's estimates; this checkpoint acts on the "
+                "simulator's state, through no perception model",
+            )
         policy = load_policy(self.checkpoint, overrides or None, self.device)
         extra = self.episodes % len(tasks) if tasks else 0
         if extra and (not self.sets or "train" in self.sets):
@@ -725,6 +723,16 @@ def _perception(argv: Sequence[str]) -> None:
         cfg.run()
 
 
+def checked_hold_radius(radius: float, perceives: bool, without: str) -> float:
+    """``--hold-radius``: refused (``without``) for a policy that acts through no perception
+    model, and below 0."""
+    if not perceives:
+        raise LcrlError(without)
+    if not radius >= 0:
+        raise LcrlError(f"--hold-radius must be >= 0, got {radius}")
+    return float(radius)
+
+
 @dataclass
 class DistillCommand:
     """Distil a privileged-state teacher into a student that acts from camera frames (or
@@ -866,14 +874,11 @@ class DistillCommand:
         if self.grounding is not None:
             cfg.agent.grounding = self.grounding
         if self.hold_radius is not None:
-            if not self.perception:
-                raise LcrlError(
-                    "--hold-radius holds perception's estimates: give the student a "
-                    "--perception MODEL"
-                )
-            if not self.hold_radius >= 0:
-                raise LcrlError(f"--hold-radius must be >= 0, got {self.hold_radius}")
-            cfg.env.perception_hold_radius = float(self.hold_radius)
+            cfg.env.perception_hold_radius = checked_hold_radius(
+                self.hold_radius,
+                bool(self.perception),
+                "--hold-radius holds perception's estimates: give the student a --perception MODEL",
+            )
         cfg.resume, cfg.overwrite = self.resume, self.overwrite
         DistillTrainer(cfg).run()
         print(f"evaluate again with: lcrl eval {cfg.out}")

@@ -64,23 +64,17 @@ class EnsembleAgent:
         return np.mean(acts, axis=0).astype(acts[0].dtype)
 
 
-def _perception_weights(policy: Any) -> dict[str, np.ndarray] | None:
-    """The perception model a policy acts through, as arrays (None: it reads the state)."""
+def _reading(policy: Any) -> tuple[dict[str, np.ndarray], float] | None:
+    """The perception model a policy acts through, as arrays, and the radius it holds
+    objects at (None: it reads the simulator's state); the model is loaded once."""
     if not policy.cfg.env.perception:
         return None
     from lcrl.perception import load_model
 
     model, _ = load_model(policy.cfg.env.perception)
-    return {k: v.detach().cpu().numpy() for k, v in model.state_dict().items()}
-
-
-def _hold(policy: Any) -> float | None:
-    from lcrl.perception import load_model
-
     radius = policy.cfg.env.perception_hold_radius
-    if radius is None and policy.cfg.env.perception:
-        radius = load_model(policy.cfg.env.perception)[0].cfg.hold_radius
-    return radius
+    weights = {k: v.detach().cpu().numpy() for k, v in model.state_dict().items()}
+    return weights, model.cfg.hold_radius if radius is None else radius
 
 
 def check_plain(member: Any, where: str) -> None:
@@ -102,26 +96,27 @@ def check_member(first: Any, member: Any, where: str) -> None:
         raise LcrlError(
             f"the member {where} has discrete actions: an ensemble averages continuous ones"
         )
-    mine, theirs = _perception_weights(first), _perception_weights(member)
+    mine, theirs = _reading(first), _reading(member)
     same = (mine is None) == (theirs is None) and (
         mine is None
         or (
-            mine.keys() == theirs.keys()
-            and all(np.array_equal(mine[k], theirs[k]) for k in mine)
-            and _hold(first) == _hold(member)
+            mine[0].keys() == theirs[0].keys()
+            and all(np.array_equal(mine[0][k], theirs[0][k]) for k in mine[0])
+            and mine[1] == theirs[1]
         )
     )
     if not same:
 
-        def how(p: Any) -> str:
-            if not p.cfg.env.perception:
+        def how(p: Any, reading: tuple[dict, float] | None) -> str:
+            if reading is None:
                 return "the simulator's state"
             source = p.checkpoint.meta.get("perception", {}).get("source", "?")
-            return f"perception from {source} held at {_hold(p)}"
+            return f"perception from {source} held at {reading[1]}"
 
         raise LcrlError(
-            f"the member {where} acts through {how(member)}, {here} through {how(first)}: "
-            "members must read one estimate (the same perception model, held the same way)"
+            f"the member {where} acts through {how(member, theirs)}, {here} through "
+            f"{how(first, mine)}: members must read one estimate (the same perception model, "
+            "held the same way)"
         )
 
 
@@ -157,7 +152,6 @@ def write_ensemble(out: str | Path, runs: Sequence[str], overwrite: bool = False
     }
     parts = {f"{MEMBERS_DIR}/{i}": p for i, p in enumerate(paths[1:], start=1)}
     return write_composite(out, paths[0], parts, ENSEMBLE, entry)
-    return out
 
 
 def ensembled(loaded: Any, device: str | None = None) -> Any:
