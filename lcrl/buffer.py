@@ -215,6 +215,26 @@ class HindsightReplayBuffer:
         self._relabel_idx: np.ndarray | None = None
         self.only_relabelable = only_relabelable
 
+    @staticmethod
+    def estimate_bytes(
+        capacity: int,
+        obs_spec: Mapping[str, tuple[tuple[int, ...], Any]],
+        action_shape: tuple[int, ...],
+        action_dtype: Any,
+        goal_space: GoalSpace,
+    ) -> int:
+        """The bytes a buffer of these arguments allocates (observation arrays, camera
+        frames included, actions, flags, episode bounds and the goal space's arrays),
+        computed without allocating anything: what a trainer checks against the
+        machine's memory first."""
+        per_slot = sum(
+            int(np.prod(shape, dtype=np.int64)) * np.dtype(dt).itemsize
+            for shape, dt in obs_spec.values()
+        )
+        per_slot += int(np.prod(action_shape, dtype=np.int64)) * np.dtype(action_dtype).itemsize
+        per_slot += 4 + 1 + 1 + 8 + 8 + 1  # reward, terminated, demo, episode bounds, valid
+        return int(capacity) * per_slot + int(goal_space.nbytes(int(capacity)))
+
     # --- writing ---------------------------------------------------------------------
     def add_episode(self, episode: Mapping[str, Any]) -> None:
         """Store one finished episode.

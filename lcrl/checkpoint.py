@@ -16,6 +16,15 @@ No pickle
     (optimiser state dicts, RNG states, counters) is split by :func:`flatten_state` into
     named tensors plus a JSON skeleton of dicts, lists, tuples and scalars.
 
+Checksums
+    ``meta.json`` records the SHA-256 of every other file (``"checksums"``) and of its own
+    content (``"meta_checksum"``: the document without that key, keys sorted). Each file
+    is verified the first time a :class:`Checkpoint` reads it, so acting reads and checks
+    the weights and never the replay buffer, while resuming checks everything it reads. A
+    file whose bytes changed after the save (a flipped bit, a partial copy) raises
+    :class:`CheckpointCorruptError` naming it; checkpoints written before checksums
+    existed load unverified. :func:`verify_checkpoint` checks every file at once.
+
 Atomicity
     :func:`save_checkpoint` writes everything into a hidden temporary sibling directory,
     fsyncs every file and the directory, then renames it into place. An existing checkpoint
@@ -28,6 +37,7 @@ Atomicity
 from __future__ import annotations
 
 import contextlib
+import hashlib
 import json
 import math
 import os
@@ -50,6 +60,7 @@ from lcrl.errors import LcrlError
 __all__ = [
     "FORMAT_VERSION",
     "Checkpoint",
+    "CheckpointCorruptError",
     "CheckpointError",
     "CheckpointWriteError",
     "find_latest",
@@ -57,7 +68,9 @@ __all__ = [
     "load_checkpoint",
     "remove_stale",
     "save_checkpoint",
+    "seal_checkpoint",
     "unflatten_state",
+    "verify_checkpoint",
     "write_latest",
 ]
 
@@ -69,6 +82,11 @@ STATE_TENSORS_FILE = "state.safetensors"
 STATE_JSON_FILE = "state.json"
 ARRAYS_FILE = "arrays.npz"
 LATEST_FILE = "latest.json"
+#: ``meta.json`` keys of the checksums: every other file's, and its own content's.
+CHECKSUMS_KEY = "checksums"
+META_CHECKSUM_KEY = "meta_checksum"
+_RESERVED_META_KEYS = frozenset({"format_version", CHECKSUMS_KEY, META_CHECKSUM_KEY})
+_HASH_CHUNK = 1 << 20
 
 # weights.safetensors header metadata: JSON {module name: [parameter names in saved order]}.
 _MODULES_METADATA_KEY = "lcrl.modules"
@@ -97,6 +115,18 @@ _NATIVE_NUMPY_DTYPES = frozenset(
 
 class CheckpointError(LcrlError, ValueError):
     """A checkpoint cannot be written or read (missing or corrupt file, wrong format, mismatch)."""
+
+
+class CheckpointCorruptError(CheckpointError):
+    """A checkpoint file's bytes differ from those its checksum recorded when it was saved.
+
+    Attributes:
+        path: the corrupt file.
+    """
+
+    def __init__(self, path: Path, why: str) -> None:
+        super().__init__(f"corrupt checkpoint file {path}: {why}")
+        self.path = path
 
 
 class CheckpointWriteError(CheckpointError):
@@ -420,7 +450,7 @@ def save_checkpoint(
     # Validate and serialise everything in memory before touching the disk.
     weights, module_keys = _collect_weights(modules)
     state_tensors, skeletons = _collect_states(states or {})
-    meta_text = _meta_text(meta or {})
+    _meta_text(meta or {})  # refused before anything is written
     json_texts = _json_texts(json_files or {})
     array_dict = _collect_arrays(arrays) if arrays is not None else None
 
@@ -466,9 +496,11 @@ def save_checkpoint(
         if array_dict is not None:
             writing = final / ARRAYS_FILE
             write_npz(tmp / ARRAYS_FILE, array_dict)
-        # meta.json last: a directory with meta.json is a complete checkpoint.
+        # meta.json last, with every other file's checksum: a directory with meta.json
+        # is a complete checkpoint.
+        checksums = {f.name: file_checksum(f) for f in sorted(tmp.iterdir())}
         writing = final / META_FILE
-        _write_text(tmp / META_FILE, meta_text)
+        _write_text(tmp / META_FILE, _meta_text(meta or {}, checksums))
         writing = final
         _fsync_dir(tmp)
         _move_into_place(tmp, target)
@@ -598,16 +630,37 @@ def _json_default(obj: Any) -> Any:
     raise TypeError(f"Object of type {type(obj).__name__} is not JSON serializable")
 
 
-def _meta_text(meta: Mapping[str, Any]) -> str:
+def _meta_text(meta: Mapping[str, Any], checksums: Mapping[str, str] | None = None) -> str:
     if not isinstance(meta, Mapping):
         raise CheckpointError(
             f"cannot save meta: expected a mapping but found {type(meta).__name__}"
         )
-    if "format_version" in meta:
+    reserved = sorted(_RESERVED_META_KEYS & set(meta))
+    if reserved:
         raise CheckpointError(
-            "cannot save meta: key 'format_version' is reserved (it is added automatically)"
+            f"cannot save meta: key {reserved[0]!r} is reserved (it is added automatically)"
         )
-    return _json_dumps({"format_version": FORMAT_VERSION, **meta}, META_FILE)
+    doc = {"format_version": FORMAT_VERSION, **meta, CHECKSUMS_KEY: dict(checksums or {})}
+    # the document as it will read back, so that its checksum is that of what is loaded
+    doc = json.loads(_json_dumps(doc, META_FILE))
+    doc[META_CHECKSUM_KEY] = meta_checksum(doc)
+    return _json_dumps(doc, META_FILE)
+
+
+def file_checksum(path: Path) -> str:
+    """``sha256:<hex>`` of a file's bytes, read in 1 MiB chunks."""
+    digest = hashlib.sha256()
+    with open(path, "rb") as f:
+        while chunk := f.read(_HASH_CHUNK):
+            digest.update(chunk)
+    return f"sha256:{digest.hexdigest()}"
+
+
+def meta_checksum(doc: Mapping[str, Any]) -> str:
+    """``sha256:<hex>`` of a ``meta.json`` document without its own checksum, keys sorted."""
+    body = {k: v for k, v in doc.items() if k != META_CHECKSUM_KEY}
+    text = json.dumps(body, sort_keys=True, separators=(",", ":"), default=_json_default)
+    return f"sha256:{hashlib.sha256(text.encode()).hexdigest()}"
 
 
 def _json_texts(json_files: Mapping[str, Any]) -> dict[str, str]:
@@ -704,19 +757,61 @@ class Checkpoint:
 
     Attributes:
         path: The checkpoint directory.
-        meta: The contents of ``meta.json`` (including ``"format_version"``).
+        meta: The contents of ``meta.json`` (including ``"format_version"``; the
+            checksums are in :attr:`checksums`).
+        checksums: File name to ``sha256:<hex>`` of every file but ``meta.json``.
     """
 
-    def __init__(self, path: Path, meta: dict[str, Any]) -> None:
+    def __init__(
+        self, path: Path, meta: dict[str, Any], checksums: Mapping[str, str] | None = None
+    ) -> None:
         """Wrap an already validated checkpoint directory; use :func:`load_checkpoint`.
 
         Args:
             path: The checkpoint directory.
-            meta: The parsed ``meta.json``.
+            meta: The parsed ``meta.json``, without its checksums.
+            checksums: Every other file's recorded checksum (empty for checkpoints saved
+                without them).
         """
         self.path = path
         self.meta = meta
+        self.checksums = dict(checksums or {})
         self._skeletons: dict[str, Any] | None = None
+        self._verified: set[str] = set()
+
+    def verify(self, filename: str) -> None:
+        """Check ``filename``'s bytes against its recorded checksum (once per file; files
+        without one, as in older checkpoints, pass).
+
+        Raises:
+            CheckpointCorruptError: the bytes differ, naming the file.
+        """
+        if filename in self._verified:
+            return
+        expected = self.checksums.get(filename)
+        path = self.path / filename
+        if expected is not None and path.is_file():
+            try:
+                found = file_checksum(path)
+            except OSError as exc:
+                raise CheckpointError(f"cannot read {path}: {exc.strerror or exc}") from exc
+            if found != expected:
+                raise CheckpointCorruptError(
+                    path,
+                    "its bytes changed after it was saved (the SHA-256 recorded in "
+                    f"{META_FILE} does not match)",
+                )
+        self._verified.add(filename)
+
+    def verify_all(self) -> None:
+        """:meth:`verify` every file the checkpoint recorded a checksum for.
+
+        Raises:
+            CheckpointCorruptError: a file differs from its checksum.
+            CheckpointError: a recorded file is missing.
+        """
+        for filename in self.checksums:
+            self._require(filename)
 
     def __repr__(self) -> str:
         return f"Checkpoint({str(self.path)!r})"
@@ -743,6 +838,7 @@ class Checkpoint:
                 f"checkpoint {self.path}: expected {name}.json but found no such file "
                 f"(json documents: {', '.join(found) or 'none'})"
             )
+        self.verify(path.name)
         return _read_json(path)
 
     def _module_keys(self) -> dict[str, list[str]]:
@@ -781,7 +877,7 @@ class Checkpoint:
                 f"checkpoint {self.path}: expected module '{name}' but found only "
                 f"{', '.join(module_keys) or 'no modules'}"
             )
-        path = self.path / WEIGHTS_FILE
+        path = self._require(WEIGHTS_FILE)
         try:
             with safetensors.safe_open(path, framework="pt") as f:
                 available = set(f.keys())
@@ -895,7 +991,10 @@ class Checkpoint:
         return unflatten_state(tensors, skeleton)
 
     def has_state(self, name: str) -> bool:
-        """Whether ``states[name]`` was saved (older checkpoints may lack newer states)."""
+        """Whether ``states[name]`` was saved (older checkpoints may lack newer states, and
+        a checkpoint kept with its weights and configs only has no states at all)."""
+        if not (self.path / STATE_JSON_FILE).is_file():
+            return False
         return name in self._state_skeletons()
 
     def has_arrays(self) -> bool:
@@ -925,11 +1024,13 @@ class Checkpoint:
             ) from exc
 
     def _require(self, filename: str) -> Path:
+        """The path of a file the checkpoint must have, its checksum verified."""
         path = self.path / filename
         if not path.is_file():
             raise CheckpointError(
                 f"checkpoint {self.path}: expected {filename} but found no such file"
             )
+        self.verify(filename)
         return path
 
 
@@ -978,7 +1079,61 @@ def load_checkpoint(directory: str | Path) -> Checkpoint:
             f"unsupported checkpoint {path}: expected format_version {FORMAT_VERSION} in "
             f"{META_FILE} but found {version!r}"
         )
-    return Checkpoint(path, meta)
+    recorded = meta.pop(META_CHECKSUM_KEY, None)
+    if recorded is not None and recorded != meta_checksum(meta):
+        raise CheckpointCorruptError(
+            meta_path,
+            f"its content changed after it was saved (its {META_CHECKSUM_KEY} does not match)",
+        )
+    checksums = meta.pop(CHECKSUMS_KEY, None)
+    if checksums is not None and not (
+        isinstance(checksums, dict)
+        and all(isinstance(k, str) and isinstance(v, str) for k, v in checksums.items())
+    ):
+        raise CheckpointError(
+            f"corrupt {meta_path}: expected {CHECKSUMS_KEY!r} to map file names to checksums "
+            f"but found {_describe(checksums)}"
+        )
+    return Checkpoint(path, meta, checksums or {})
+
+
+def seal_checkpoint(directory: str | Path) -> Path:
+    """Record the checksums of a checkpoint's files as they are now: for a checkpoint
+    written before checksums existed, or one whose files were changed on purpose. Every
+    file beside ``meta.json`` is summed and ``meta.json`` is rewritten (atomically) with
+    the sums and its own.
+
+    Raises:
+        CheckpointError: not a checkpoint (no valid ``meta.json``).
+    """
+    path = Path(directory)
+    meta_path = path / META_FILE
+    if not meta_path.is_file():
+        raise CheckpointError(f"cannot seal {path}: expected {META_FILE} but found no such file")
+    meta = _read_json(meta_path)
+    if not isinstance(meta, dict):
+        raise CheckpointError(f"corrupt {meta_path}: expected a JSON object")
+    body = {k: v for k, v in meta.items() if k not in _RESERVED_META_KEYS}
+    files = sorted(p for p in path.iterdir() if p.is_file() and p.name != META_FILE)
+    text = _meta_text(body, {f.name: file_checksum(f) for f in files})
+    tmp = path / f".{META_FILE}.{uuid.uuid4().hex[:12]}.tmp"
+    _write_text(tmp, text)
+    os.replace(tmp, meta_path)
+    _fsync_dir(path)
+    return path
+
+
+def verify_checkpoint(directory: str | Path) -> Checkpoint:
+    """Open a checkpoint and verify every file against its checksum now (rather than as
+    each is read).
+
+    Raises:
+        CheckpointCorruptError: a file's bytes differ from its checksum, naming it.
+        CheckpointError: the checkpoint cannot be opened or a file is missing.
+    """
+    ckpt = load_checkpoint(directory)
+    ckpt.verify_all()
+    return ckpt
 
 
 def _read_json(path: Path) -> Any:

@@ -76,8 +76,12 @@ class GoalSpace(Protocol):
 
     kind: str
     terminate_on_success: bool
+    #: The lowest and highest reward of one transition (``None``: unknown).
+    reward_range: tuple[float, float] | None
 
     def allocate(self, capacity: int) -> None: ...
+
+    def nbytes(self, capacity: int) -> int: ...
 
     def write(self, start: int, episode: Mapping[str, Any]) -> None: ...
 
@@ -141,6 +145,8 @@ class StateGoals:
             termination when ``terminate_on_success``.
         terminate_on_success: whether reaching the goal ends the episode (a terminal
             transition, no bootstrap). Goal envs that run to a time limit use ``False``.
+        reward_range: the lowest and highest reward ``reward_fn`` gives (the bounds of
+            the critic's targets); ``None``: unknown.
     """
 
     kind = "state"
@@ -151,11 +157,13 @@ class StateGoals:
         reward_fn: RewardFn,
         success_reward: float = 1.0,
         terminate_on_success: bool = False,
+        reward_range: tuple[float, float] | None = None,
     ) -> None:
         self.dim = int(dim)
         self.reward_fn = reward_fn
         self.success_reward = float(success_reward)
         self.terminate_on_success = terminate_on_success
+        self.reward_range = reward_range
         self._achieved = np.zeros((0, self.dim), np.float32)
         self._desired = np.zeros((0, self.dim), np.float32)
 
@@ -163,6 +171,10 @@ class StateGoals:
         """Preallocate ``capacity`` slots."""
         self._achieved = np.zeros((capacity, self.dim), np.float32)
         self._desired = np.zeros((capacity, self.dim), np.float32)
+
+    def nbytes(self, capacity: int) -> int:
+        """The bytes :meth:`allocate` takes for ``capacity`` slots."""
+        return 2 * capacity * self.dim * 4
 
     def write(self, start: int, episode: Mapping[str, Any]) -> None:
         """Store an episode's achieved and desired goals at ``start .. start + T``."""
@@ -292,6 +304,8 @@ class LabelGoals:
     """
 
     kind = "label"
+    #: Rewards are 1 where the goal is achieved, 0 elsewhere.
+    reward_range: tuple[float, float] | None = (0.0, 1.0)
 
     def __init__(
         self,
@@ -340,6 +354,10 @@ class LabelGoals:
         self._rank = np.zeros(capacity, np.int32)
         self._pos = np.zeros(capacity, np.int64)
         self._total = np.zeros(capacity, np.int32)
+
+    def nbytes(self, capacity: int) -> int:
+        """The bytes :meth:`allocate` takes for ``capacity`` slots."""
+        return capacity * (2 + 2 * self.max_labels + 2 + self._nbytes + 4 + 8 + 4)
 
     def write(self, start: int, episode: Mapping[str, Any]) -> None:
         """Store an episode's goal id and per-observation labels."""
@@ -497,7 +515,7 @@ class ImageGoals(StateGoals):
         reward_fn: vectorised ``reward_fn(achieved, desired)`` on state goals.
         image_shape: ``(H, W, C)`` of a goal frame.
         image_key: the observation key whose frames are goals.
-        success_reward, terminate_on_success: as for :class:`StateGoals`.
+        success_reward, terminate_on_success, reward_range: as for :class:`StateGoals`.
         min_episode_steps: sizes the ring of desired frames (see above).
     """
 
@@ -512,8 +530,9 @@ class ImageGoals(StateGoals):
         success_reward: float = 1.0,
         terminate_on_success: bool = False,
         min_episode_steps: int = 20,
+        reward_range: tuple[float, float] | None = None,
     ) -> None:
-        super().__init__(dim, reward_fn, success_reward, terminate_on_success)
+        super().__init__(dim, reward_fn, success_reward, terminate_on_success, reward_range)
         self.image_shape = tuple(int(x) for x in image_shape)
         if len(self.image_shape) != 3:
             raise LcrlError(f"image_shape must be (H, W, C), got {self.image_shape}")
@@ -548,6 +567,13 @@ class ImageGoals(StateGoals):
         self._ring_ref = np.zeros(capacity, np.int64)  # ring entry of a slot's episode
         self._ep_first = np.zeros(capacity, np.int64)  # first observation slot of the episode
         self._ep_last = np.zeros(capacity, np.int64)  # last observation slot of the episode
+
+    def nbytes(self, capacity: int) -> int:
+        """The bytes :meth:`allocate` takes for ``capacity`` slots (the ring of desired
+        frames included)."""
+        ring = capacity // (self.min_episode_steps + 1) + 1 if capacity else 0
+        frame = int(np.prod(self.image_shape))
+        return super().nbytes(capacity) + ring * (frame + 8) + capacity * 3 * 8
 
     def attach(self, obs_arrays: Mapping[str, np.ndarray]) -> None:
         """Read goal frames from the buffer's observation arrays."""

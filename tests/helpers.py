@@ -5,6 +5,8 @@ from __future__ import annotations
 
 import copy
 import dataclasses
+import subprocess
+import sys
 from pathlib import Path
 
 from lcrl.nets import NetConfig
@@ -40,6 +42,7 @@ def tiny(preset: str, out: Path, **overrides) -> TrainConfig:
         progress=False,
         tensorboard=False,
         buffer=dataclasses.replace(base.buffer, capacity=2000),
+        collect=dataclasses.replace(base.collect, envs=1),  # one env: runs step by step
         agent=dataclasses.replace(
             base.agent, net=NetConfig(hidden=(32, 32), text_dim=8), grounding=0.0
         ),
@@ -108,3 +111,26 @@ def train_tiny(out: Path, preset: str, seed: int = 0, steps: int = 200, **env) -
         cfg = dataclasses.replace(cfg, env=dataclasses.replace(cfg.env, **env))
     Trainer(cfg).run()
     return out
+
+
+#: Holds a run folder's lock until its standard input closes: ``python -c HOLD FOLDER``.
+HOLD = """
+import sys
+from train.run_lock import lock_run
+print(lock_run(sys.argv[1]) or "held", flush=True)
+sys.stdin.read()
+"""
+
+
+def hold(folder: Path) -> subprocess.Popen:
+    """A real process holding ``folder`` (until its stdin closes or it is killed)."""
+    folder.mkdir(parents=True, exist_ok=True)
+    proc = subprocess.Popen(
+        [sys.executable, "-c", HOLD, str(folder)],
+        cwd=Path(__file__).resolve().parent.parent,
+        stdin=subprocess.PIPE,
+        stdout=subprocess.PIPE,
+        text=True,
+    )
+    assert proc.stdout.readline().strip() == "held"
+    return proc

@@ -19,7 +19,13 @@ import pytest
 from helpers import cli, error_line
 
 import lcrl
-from lcrl.checkpoint import CheckpointError, find_latest, load_checkpoint
+from lcrl.checkpoint import (
+    CheckpointCorruptError,
+    CheckpointError,
+    find_latest,
+    load_checkpoint,
+    seal_checkpoint,
+)
 
 TINY = [
     "--learning-starts", "50",
@@ -51,10 +57,13 @@ def copy_run(state_run, tmp_path) -> Path:
 
 
 def edit_meta(run: Path, change) -> Path:
+    """Change a checkpoint's meta.json and record the change in its checksums (a writer's
+    mistake, not a corruption on disk: the fields themselves are what is checked)."""
     path = find_latest(run) / "meta.json"
     meta = json.loads(path.read_text())
     change(meta)
     path.write_text(json.dumps(meta))
+    seal_checkpoint(path.parent)
     return path
 
 
@@ -123,6 +132,7 @@ def edit_state(run: Path, name: str, change) -> Path:
     doc = json.loads(path.read_text())
     change(doc["states"][name])
     path.write_text(json.dumps(doc))
+    seal_checkpoint(path.parent)
     return path
 
 
@@ -357,3 +367,78 @@ def test_json_below_a_file_fails_before_the_evaluation(state_run, tmp_path, caps
     assert cli("eval", str(state_run), "--episodes", "1", "--out", str(out)) == 2
     line = error_line(capsys.readouterr().err)
     assert line.startswith(f"lcrl: error: cannot write the evaluation folder {out}: ")
+
+
+def flip(path: Path, count: int = 4) -> None:
+    """Flip ``count`` bytes in the middle of a file: same size, header untouched."""
+    data = bytearray(path.read_bytes())
+    mid = len(data) // 2
+    for i in range(mid, mid + count):
+        data[i] ^= 0xFF
+    path.write_bytes(bytes(data))
+
+
+def test_flipped_bytes_in_the_weights_are_caught_by_eval_act_and_load(copy_run, capsys):
+    weights = find_latest(copy_run) / "weights.safetensors"
+    flip(weights)
+    for args in (
+        ("eval", str(copy_run), "--episodes", "1", "--no-progress"),
+        ("act", str(copy_run), "--episodes", "1"),
+    ):
+        assert cli(*args) == 2
+        line = error_line(capsys.readouterr().err)
+        assert line.startswith("lcrl: error: corrupt checkpoint file") and str(weights) in line
+    with pytest.raises(CheckpointCorruptError, match=re.escape(str(weights))):
+        lcrl.load(copy_run)
+
+
+def test_a_changed_value_in_meta_json_is_caught(copy_run, capsys):
+    """Valid JSON with one value changed (a bit flipped in a digit) is still caught."""
+    path = find_latest(copy_run) / "meta.json"
+    text = path.read_text()
+    path.write_text(text.replace('"step": 100', '"step": 900', 1))
+    assert cli("eval", str(copy_run), "--episodes", "1", "--no-progress") == 2
+    line = error_line(capsys.readouterr().err)
+    assert f"corrupt checkpoint file {path}" in line and "content changed" in line
+
+
+def test_resume_falls_back_to_the_newest_intact_checkpoint_and_keeps_the_corrupt_one(
+    tmp_path, capsys
+):
+    out = tmp_path / "run"
+    args = ["train", "state2d", "--out", str(out), *TINY, "--checkpoint-every", "100"]
+    assert cli(*args, "--total-steps", "300", "--keep-checkpoints", "3") == 0
+    latest = find_latest(out)
+    assert latest.name == "step_000000300"
+    flip(latest / "arrays.npz")  # the replay buffer: only a resume reads it
+    assert cli("eval", str(out), "--episodes", "1", "--no-progress") == 0  # acting is fine
+    capsys.readouterr()
+    assert cli("train", "state2d", "--out", str(out), "--resume", "--total-steps", "400") == 0
+    err = capsys.readouterr().err
+    assert f"corrupt checkpoint file {latest / 'arrays.npz'}" in err
+    assert "resuming from the newest intact checkpoint" in err and "step_000000200" in err
+    kept = latest.with_name("step_000000300.corrupt")
+    assert kept.is_dir() and (kept / "arrays.npz").is_file()  # never deleted
+    assert find_latest(out).name == "step_000000400"
+    steps = [int(r.split(",")[0]) for r in (out / "progress.csv").read_text().splitlines()[1:]]
+    assert steps == sorted(set(steps)) and steps[-1] == 400  # cut back to 200, then on
+
+
+def test_resume_with_every_checkpoint_corrupt_says_so(copy_run, capsys):
+    latest = find_latest(copy_run)
+    flip(latest / "state.safetensors")
+    assert resume(copy_run) == 2
+    line = error_line(capsys.readouterr().err)
+    assert f"corrupt checkpoint file {latest / 'state.safetensors'}" in line
+    assert "no other intact checkpoint" in line
+    assert latest.is_dir()
+
+
+def test_checkpoints_without_checksums_still_load(copy_run):
+    """Checkpoints saved before checksums existed (the meta has none) load unverified."""
+    path = find_latest(copy_run) / "meta.json"
+    meta = json.loads(path.read_text())
+    meta.pop("checksums"), meta.pop("meta_checksum")
+    path.write_text(json.dumps(meta))
+    flip(path.parent / "weights.safetensors", 0)
+    assert lcrl.load(copy_run).checkpoint.checksums == {}

@@ -13,7 +13,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch
-from helpers import cli, error_line, tiny, untrained_perception
+from helpers import cli, error_line, hold, tiny, untrained_perception
 
 from lcrl.perception import Perception, SlotLayout
 from train.perception import PerceptionTrainConfig, save_model
@@ -472,3 +472,18 @@ def test_the_teacher_acting_on_perceptions_estimate(teacher, perception):
     assert sum(b["object_steps"] for b in bands) >= 2 * 2  # two episodes, 2+ objects each
     assert all(b["p90_cm"] >= b["mean_cm"] * 0.5 > 0 for b in counted)
     assert all(b["mean_cm"] is None for b in bands if not b["object_steps"])
+
+
+def test_a_distillation_into_a_folder_another_process_holds_is_refused(
+    teacher, perception, tmp_path, capsys
+):
+    out = tmp_path / "student"
+    proc = hold(out)
+    try:
+        args = ["distill", str(teacher), "--perception", str(perception), "--out", str(out)]
+        assert cli(*args, "--rounds", "1", "--no-progress", "--no-tensorboard") == 2
+        assert f"in use by process {proc.pid}" in error_line(capsys.readouterr().err)
+        assert not (out / "progress.csv").exists()
+    finally:
+        proc.stdin.close()
+        proc.wait(timeout=30)

@@ -250,7 +250,7 @@ def test_cli_errors_name_the_fix(play, tmp_path, capsys):
         "--offline", str(play), "--algo", "td3", "--demos", str(play)
     )
     assert "steps no environment" in error(
-        "--offline", str(play), "--algo", "td3", "--collect.envs", "2"
+        "--offline", str(play), "--algo", "td3", "--collect.backend", "ray", "--collect.envs", "1"
     )
     assert not Path(out).exists()
 

@@ -281,3 +281,35 @@ def test_a_signal_during_start_up_stops_a_command_started_in_the_background(sig,
         raise AssertionError("the command ignored the signal") from None
     assert proc.returncode == status
     assert said in err and "Traceback" not in err
+
+
+@pytest.mark.parametrize("sig", [signal.SIGINT, signal.SIGTERM])
+@pytest.mark.parametrize("delay", [0.3, 1.5, 4.0])
+def test_a_signal_at_any_instant_of_start_up_stops_the_console_script(tmp_path, sig, delay):
+    """The real ``lcrl`` entry point (imports, tyro, the encoder, the env) started in the
+    background with SIGINT ignored: a signal while it imports (0.3 s), while it parses
+    and builds (1.5 s) or as it begins to train (4 s) stops it within seconds, with one
+    line, the signal's status and no traceback."""
+    out = tmp_path / "run"
+    cmd = [sys.executable, "-m", "train.entry", "train", "lang2d-quick", "--out", str(out)]
+    proc = subprocess.Popen(
+        [*cmd, "--no-progress", "--no-tensorboard", "--torch-threads", "1"],
+        cwd=ROOT,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+        preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_IGN),
+    )
+    time.sleep(delay)
+    proc.send_signal(sig)
+    sent = time.monotonic()
+    try:
+        stdout, err = proc.communicate(timeout=30)
+    except subprocess.TimeoutExpired:
+        proc.kill()
+        raise AssertionError(f"the command ignored {sig.name} sent after {delay} s") from None
+    assert time.monotonic() - sent < 10
+    assert proc.returncode == 128 + sig, (stdout, err)
+    assert "Traceback" not in err and "Exception ignored" not in err
+    said = [line for line in (stdout + err).splitlines() if sig.name in line]
+    assert len(said) == 1 and said[0].startswith(("lcrl: interrupted", "interrupted at"))

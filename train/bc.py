@@ -48,6 +48,7 @@ from lcrl.errors import LcrlError
 from train.config import PRESETS, TrainConfig
 from train.evaluate import build_agent, build_task
 from train.loop import attach_grounding, checkpoint_meta
+from train.memory import check_memory
 from train.run_meta import restoring, state_fields
 from train.tasks import make_env, make_task
 from train.trainer import BaseTrainer, open_run
@@ -154,6 +155,7 @@ class BCTrainer(BaseTrainer):
             self.goal_map[i] = task.ids[text]
         self.rows = int((self.segments[:, 2] - self.segments[:, 1]).sum())
         self.keys = list(self.problem.obs_shapes)
+        self._check_cache(data.num_observations)
         self.agent: BC = build_agent(self.algo, self.problem, cfg, task.goal_space.embed)
         self.step = 0
         self._metrics: dict[str, float] = {}
@@ -166,6 +168,17 @@ class BCTrainer(BaseTrainer):
             self.fit_normalisers()
 
     # --- data ------------------------------------------------------------------------
+    def _check_cache(self, observations: int) -> None:
+        """Refuse a demonstration cache (``bc.cache_steps`` observations held in memory,
+        camera frames included) that the machine's memory cannot hold."""
+        per_obs = sum(
+            int(np.prod(shape)) * (1 if len(shape) == 3 else 4)
+            for shape in self.problem.obs_shapes.values()
+        )
+        held = min(self.cfg.bc.cache_steps, observations)
+        what = f"the demonstration cache ({held:,} observations of {per_obs:,} bytes)"
+        check_memory(held * per_obs, what, "--bc.cache-steps", per_obs, "observations")
+
     def fit_normalisers(self) -> None:
         """Fit the observation normalisers on up to ``bc.norm_rows`` dataset rows (and the
         text-goal normaliser on the training instructions' embeddings)."""

@@ -23,7 +23,8 @@ Subcommands:
 
 User mistakes (bad options, unparseable instructions, missing files) print one line
 starting with ``lcrl: error:`` and exit with status 2; Ctrl-C exits with status 130.
-SIGINT and SIGTERM stop every command the same way from its first instant, even where the
+SIGINT and SIGTERM stop every command the same way from its first instant (the console
+script, :mod:`train.entry`, takes them before anything heavy is imported), even where the
 shell started ``lcrl`` in the background with SIGINT ignored (:func:`stop_on_signals`).
 """
 
@@ -41,6 +42,7 @@ from typing import Any
 import tyro
 
 from lcrl.errors import LcrlError
+from train.run_lock import abandon_locks, refuse_if_training
 from train.trainer import (
     RunAlreadyDone,
     RunInterrupted,
@@ -204,6 +206,7 @@ class EvalCommand:
             raise LcrlError(f"--vector must be auto, sync or async, got {self.vector!r}")
         if self.out:  # outputs that cannot be written fail before the evaluation runs
             check_out_dir(Path(self.out), "the evaluation folder")
+            refuse_if_training(self.out, "--out")
         check_json_path(self.json)
         if self.instructions:
             read_instruction_file(self.instructions)  # bad lines fail before loading
@@ -974,10 +977,20 @@ def _terminated(signum: int, frame: Any) -> None:
 
 
 def main(argv: Sequence[str] | None = None) -> None:
-    """Entry point of the ``lcrl`` console script."""
-    from train.demo import DemoConfig, run_demo
-
+    """Entry point of the ``lcrl`` console script (through :mod:`train.entry`)."""
     stop_on_signals()
+    try:
+        _main(argv)
+    except KeyboardInterrupt as e:  # a signal before a command had anything to save
+        name = e.args[0] if e.args and isinstance(e.args[0], str) else "SIGINT"
+        print(f"lcrl: interrupted by {name}", file=sys.stderr)
+        sys.exit(getattr(e, "exit_status", 130))
+    finally:
+        abandon_locks()  # a run refused before it began leaves no folder behind
+
+
+def _main(argv: Sequence[str] | None) -> None:
+    from train.demo import DemoConfig, run_demo
 
     args = list(sys.argv[1:] if argv is None else argv)
     commands = {
@@ -1032,7 +1045,7 @@ def main(argv: Sequence[str] | None = None) -> None:
             print(f"lcrl: interrupted by {e.args[0]}", file=sys.stderr)
         sys.exit(e.exit_status)
     except KeyboardInterrupt:
-        print("lcrl: interrupted", file=sys.stderr)
+        print("lcrl: interrupted by SIGINT", file=sys.stderr)
         sys.exit(130)
 
 

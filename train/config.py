@@ -643,6 +643,8 @@ class TrainConfig:
             raise LcrlError("updates_per_step must be >= 0")
         if self.buffer.k < 0:
             raise LcrlError("buffer.k must be >= 0")
+        if self.buffer.capacity < 2:
+            raise LcrlError(f"buffer.capacity must be at least 2 slots, got {self.buffer.capacity}")
         if self.buffer.storage not in BUFFER_STORAGE:
             raise LcrlError(
                 f"buffer.storage must be one of {BUFFER_STORAGE}, got {self.buffer.storage!r}"
@@ -961,6 +963,12 @@ def _grounded2d(**fields: Any) -> AgentOptions:
     return agent
 
 
+#: The fastest collection measured on the 2D tabletop: 8 environments stepped at once and
+#: batches of 128 reached 80% seen success on lang2d in 225 s, where one environment at
+#: batch 256 took 542 s (benchmarks/results/time_to_success.md).
+FAST_2D: dict[str, Any] = {"collect": CollectionConfig(envs=8), "batch_size": 128}
+
+
 def _lang2d(**overrides: Any) -> TrainConfig:
     cfg = TrainConfig(
         out="runs/lang2d",
@@ -1029,8 +1037,6 @@ _IMAGE_AGENT = AgentOptions(net=NetConfig(share_cnn=True), augment_pad=4)
 #: displacements: after the gripper's x, y, z and opening, 8 kinds of [x, y, z, present,
 #: 3 positions relative to the gripper, 3 displacements since the reset].
 SLOTS_ROBOSUITE = (4, 8, 10)
-#: Where ``lcrl perception train`` writes the robosuite model in docs/perception.md.
-PERCEPTION_ROBOSUITE = "runs/perception-robosuite"
 
 
 def _robosuite_slots(families: tuple[str, ...] = ("reach",), **env: Any) -> TrainConfig:
@@ -1060,6 +1066,20 @@ def _robosuite_reach() -> TrainConfig:
         grounding=1.0,
     )
     return dataclasses.replace(cfg, agent=agent, sac=dataclasses.replace(cfg.sac, target_clip=1.0))
+
+
+#: The perception model kept in the repository (3,000 episodes, benchmarks/models/README.md):
+#: the camera presets' default, so that they train from a fresh clone.
+PERCEPTION_KEPT = "benchmarks/models/perception-3k/model"
+
+
+def _robosuite_image_reach() -> TrainConfig:
+    """:func:`_robosuite_reach` acting through perception's estimate of the object slots
+    from the agentview camera, with a critic that reads the true state in training."""
+    cfg = _robosuite_reach()
+    env = dataclasses.replace(cfg.env, perception=PERCEPTION_KEPT)
+    agent = dataclasses.replace(cfg.agent, privileged_critic=True)
+    return dataclasses.replace(cfg, out="runs/robosuite-image-reach", env=env, agent=agent)
 
 
 #: The robosuite instruction families in the order the manipulation curriculum opens them.
@@ -1116,24 +1136,26 @@ def _robosuite_family(family: str) -> TrainConfig:
 PRESETS: dict[str, tuple[str, TrainConfig]] = {
     "lang2d": (
         "2D tabletop, language goals (reach, push), SAC + language HER, 20% scripted "
-        "exploration episodes, 100k steps",
-        _lang2d(),
+        "exploration episodes, 8 environments at once, batches of 128, 100k steps",
+        _lang2d(**FAST_2D),
     ),
     "lang2d-noher": (
         "the lang2d run without hindsight relabelling (the baseline it must beat)",
-        _lang2d(out="runs/lang2d-noher", buffer=BufferConfig(k=0)),
+        _lang2d(out="runs/lang2d-noher", buffer=BufferConfig(k=0), **FAST_2D),
     ),
     "lang2d-rl": (
         "the lang2d run without scripted episodes: every training episode is the policy's",
-        _lang2d(out="runs/lang2d-rl", scripted_fraction=0.0),
+        _lang2d(out="runs/lang2d-rl", scripted_fraction=0.0, **FAST_2D),
     ),
     "lang2d-grounded": (
         "lang2d with slots picked through their colour and shape, the grounding loss and "
-        "16 training-only phrasings per instruction: held-out word combinations as seen ones",
+        "16 training-only phrasings per instruction: held-out word combinations as seen "
+        "ones; 8 environments at once, batches of 128",
         _lang2d(
             out="runs/lang2d-grounded",
             env=_env2d(phrasings=16),
             agent=_grounded2d(),
+            **FAST_2D,
         ),
     ),
     "lang2d-quick": (
@@ -1185,7 +1207,7 @@ PRESETS: dict[str, tuple[str, TrainConfig]] = {
     ),
     "robosuite-manip": (
         "robosuite Panda tabletop, all five families (reach, push, lift, put, stack) in one "
-        "policy, privileged state: robosuite-reach's slots plus starts along scripted "
+        "policy, privileged state: object slots picked by position, starts along scripted "
         "demonstrations, chains of instructions and a curriculum over families, 300k steps",
         _robosuite_manip(),
     ),
@@ -1208,16 +1230,12 @@ PRESETS: dict[str, tuple[str, TrainConfig]] = {
         _robosuite_family("stack"),
     ),
     "robosuite-image-reach": (
-        "robosuite-reach acting from the agentview camera and proprioception through a "
-        f"frozen perception model (--env.perception, default {PERCEPTION_ROBOSUITE}); the "
-        "critic reads the true state in training",
-        dataclasses.replace(
-            _robosuite_slots(perception=PERCEPTION_ROBOSUITE),
-            out="runs/robosuite-image-reach",
-            agent=AgentOptions(
-                net=NetConfig(slots=SLOTS_ROBOSUITE, slot_mode="select"), privileged_critic=True
-            ),
-        ),
+        "robosuite-reach (slots picked through their colour and shape, the grounding loss, "
+        "TD targets clipped to the value bound, 20% scripted episodes, 30k steps) acting "
+        "from the agentview camera and proprioception through a frozen perception model "
+        f"(--env.perception, default the kept {PERCEPTION_KEPT}); the critic reads the true "
+        "state in training",
+        _robosuite_image_reach(),
     ),
     "robosuite-state": (
         "robosuite Panda tabletop, state goals (one object moved), SAC + HER",

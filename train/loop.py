@@ -29,6 +29,7 @@ from train.environments import canonical_kind, env_spec
 from train.evaluate import build_agent, build_task
 from train.explore import Explorer
 from train.machine import set_threads
+from train.memory import check_memory
 from train.run_meta import restoring, state_fields
 from train.tasks import (
     ScriptedActor,
@@ -350,16 +351,27 @@ class Trainer(BaseTrainer):
             )
 
     def _new_buffer(self) -> HindsightReplayBuffer:
-        """An empty replay buffer of the run's settings."""
+        """An empty replay buffer of the run's settings, refused before it is allocated
+        where the machine's memory cannot hold it (:func:`train.memory.check_memory`)."""
         cfg, p = self.cfg, self.problem
+        spec = {
+            k: (shape, np.uint8 if len(shape) == 3 else np.float32)
+            for k, shape in p.obs_shapes.items()
+        }
+        action = (() if p.discrete else (p.action_dim,), np.int64 if p.discrete else np.float32)
+        capacity = cfg.buffer.capacity
+        need = HindsightReplayBuffer.estimate_bytes(capacity, spec, *action, self.task.goal_space)
+        per_slot = need // max(capacity, 1)
+        frames = any(len(shape) == 3 for shape, _ in spec.values())
+        what = (
+            f"the replay buffer ({capacity:,} slots of {per_slot:,} bytes"
+            f"{', camera frames included' if frames else ''})"
+        )
+        check_memory(need, what, "--buffer.capacity", per_slot)
         return HindsightReplayBuffer(
-            cfg.buffer.capacity,
-            {
-                k: (shape, np.uint8 if len(shape) == 3 else np.float32)
-                for k, shape in p.obs_shapes.items()
-            },
-            () if p.discrete else (p.action_dim,),
-            np.int64 if p.discrete else np.float32,
+            capacity,
+            spec,
+            *action,
             self.task.goal_space,
             strategy=cfg.buffer.strategy,
             k=cfg.buffer.k,

@@ -60,8 +60,8 @@ class OfflineTrainer(Trainer):
                 "--offline --algo bc (GCBC) clones the rows relabelled in hindsight: it needs "
                 "--buffer.k above 0"
             )
-        if cfg.collect.backend != "local" or cfg.collect.envs != 1:
-            raise LcrlError("--offline steps no environment: leave --collect.* at its defaults")
+        if cfg.collect.backend != "local":
+            raise LcrlError("--offline steps no environment: leave --collect.backend local")
         if cfg.sequential.stages:
             raise LcrlError("--offline and --sequential.stages do not go together")
         if cfg.relabel.learned:

@@ -40,6 +40,7 @@ from lcrl.perception import (
     model_meta,
     perception_loss,
 )
+from train.memory import check_memory
 
 __all__ = [
     "PerceptionEvalCommand",
@@ -140,6 +141,9 @@ def read_dataset(path: str, episodes: np.ndarray | None = None) -> tuple[Frames,
         idx = np.concatenate(
             [np.arange(data.episode_start[e], data.episode_start[e + 1]) for e in eps]
         )
+        frame = int(np.prod(data.frame_shape))
+        what = f"the camera frames of {path} ({len(idx):,} frames of {frame:,} bytes)"
+        check_memory(len(idx) * frame, what, "the dataset (collect fewer --episodes)")
         return (
             Frames(data.read_frames(idx), data.proprio[idx], data.state[idx], data.episode_of(idx)),
             dict(data.meta),

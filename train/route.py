@@ -26,7 +26,7 @@ from typing import Any
 
 import numpy as np
 
-from lcrl.checkpoint import ARRAYS_FILE, META_FILE
+from lcrl.checkpoint import ARRAYS_FILE, META_FILE, seal_checkpoint
 from lcrl.errors import LcrlError
 
 #: The key of a routed checkpoint's ``meta.json`` that lists its experts.
@@ -238,6 +238,7 @@ def write_composite(
         meta = json.loads((tmp / META_FILE).read_text())
         meta[key] = entry
         (tmp / META_FILE).write_text(json.dumps(meta, indent=1))
+        seal_checkpoint(tmp)  # the meta changed, and the copy has no replay buffer
         if out.exists():
             shutil.rmtree(out)
         out.parent.mkdir(parents=True, exist_ok=True)

@@ -444,6 +444,8 @@ class Task:
             privileged=self.privileged,
             perceived=self.perceived,
             perceived_dim=self.perceived_dim,
+            reward_range=self.goal_space.reward_range,
+            success_ends=self.goal_space.terminate_on_success,
         )
 
 
@@ -471,8 +473,13 @@ class StateTask(Task):
 
         probe = np.zeros((1, dim), np.float32)
         success = float(np.asarray(reward_fn(probe, probe)).reshape(-1)[0])
+        # a goal far from what was achieved: the reward of a miss (sparse rewards)
+        miss = float(np.asarray(reward_fn(probe, np.full_like(probe, 1e3))).reshape(-1)[0])
         self.reward_fn, self.success_reward, self.goal_dim = reward_fn, success, dim
-        self.goal_space: StateGoals = StateGoals(dim, reward_fn, success_reward=success)
+        self.reward_range = (min(success, miss), max(success, miss))
+        self.goal_space: StateGoals = StateGoals(
+            dim, reward_fn, success_reward=success, reward_range=self.reward_range
+        )
         self._setup_image_obs(env, image_obs)
 
     def storage_obs(
@@ -517,7 +524,11 @@ class ImageGoalTask(StateTask):
             )
         shape = _image_shape(env)
         self.goal_space = ImageGoals(
-            self.goal_dim, self.reward_fn, shape, success_reward=self.success_reward
+            self.goal_dim,
+            self.reward_fn,
+            shape,
+            success_reward=self.success_reward,
+            reward_range=self.reward_range,
         )
         if not image_obs:
             self.obs_shapes = {**self.obs_shapes, "image": shape}

@@ -12,7 +12,9 @@ sentence it trained on, and a canonical sentence reads as itself.
 
 from __future__ import annotations
 
+import sys
 from collections.abc import Mapping, Sequence
+from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -28,6 +30,7 @@ from captioner.grammar import (
 )
 from captioner.phrasings import training_phrasings
 from envs.scene import COLOURS, SHAPES
+from lcrl.checkpoint import load_checkpoint, save_checkpoint
 from lcrl.errors import LcrlError
 from lcrl.text_reader import ReadingEncoder, fit_ensemble, fit_reader
 
@@ -263,6 +266,59 @@ def reading_encoder(
 
     wrapper = find_language_wrapper(env)
     train = [m for m in wrapper.split.instructions("train") if m.family in wrapper.families]
+    if canonical and ckpt is not None:
+        return cached_canonical_reader(encoder, ckpt.path, train, seed)
     if canonical:
         return CanonicalEncoder(train_reading_encoder(encoder, train, seed, CANONICAL_MEMBERS))
     return train_reading_encoder(encoder, train, seed)
+
+
+#: The folder beside a checkpoint's files where a canonical reader fitted for it is kept.
+READER_CACHE = "canonical-reader"
+
+
+def _reader_key(train: Sequence[Instruction], seed: int, encoder: Any) -> dict[str, Any]:
+    """What a fitted reader depends on: the training meanings, the seed, the encoder and
+    the reader's design."""
+    return {
+        "train": [m.text for m in train],
+        "seed": int(seed),
+        "encoder": str(getattr(encoder, "name", type(encoder).__name__)),
+        "members": CANONICAL_MEMBERS,
+        "steps": READER_STEPS,
+        "phrasings": PHRASINGS,
+    }
+
+
+def cached_canonical_reader(
+    encoder: Any, checkpoint: Any, train: Sequence[Instruction], seed: int
+) -> CanonicalEncoder:
+    """The canonical reader of a checkpoint that holds none (one kept with its weights
+    and configs only, or trained without a reader): fitted from its split's training
+    instructions (what its instruction table was built from) and kept in
+    ``CHECKPOINT/canonical-reader`` so that later commands load it instead of fitting it
+    again. A cache fitted for other instructions, seed or encoder is fitted anew; a
+    checkpoint folder that cannot be written is read from, not written to."""
+    folder = Path(checkpoint) / READER_CACHE
+    key = _reader_key(train, seed, encoder)
+    if (folder / "meta.json").is_file():
+        try:
+            cached = load_checkpoint(folder)
+            if cached.meta.get("reader") == key and cached.has_state(STATE):
+                state = cached.state(STATE)
+                return CanonicalEncoder(ReadingEncoder.from_state(encoder, state), state["seen"])
+        except LcrlError as e:
+            print(f"lcrl: note: the cached reader in {folder} is not used ({e})", file=sys.stderr)
+    print(
+        f"lcrl: fitting a canonical reader for {checkpoint} from its {len(train)} training "
+        "instructions (once; it is kept beside the checkpoint)",
+        file=sys.stderr,
+        flush=True,
+    )
+    reader = CanonicalEncoder(train_reading_encoder(encoder, list(train), seed, CANONICAL_MEMBERS))
+    try:
+        state = {STATE: reader.state_dict()}
+        save_checkpoint(folder, modules={}, states=state, meta={"reader": key})
+    except (LcrlError, OSError) as e:
+        print(f"lcrl: note: the reader could not be kept in {folder} ({e})", file=sys.stderr)
+    return reader

@@ -49,16 +49,20 @@ from pathlib import Path
 from typing import Any
 
 from lcrl.checkpoint import (
+    CheckpointCorruptError,
     CheckpointWriteError,
     find_latest,
-    load_checkpoint,
     remove_stale,
+    save_checkpoint,
+    verify_checkpoint,
+    write_latest,
     write_problem,
 )
 from lcrl.errors import LcrlError
 from train.config import TrainConfig, config_to_dict
 from train.evaluate import evaluate, format_results
 from train.report import write_report
+from train.run_lock import lock_run, unlock_run
 from train.run_meta import run_meta
 
 
@@ -218,16 +222,21 @@ def open_run(cfg: TrainConfig, explore: Mapping[str, Any] | None = None) -> tupl
 
     Raises:
         RunAlreadyDone: ``--resume`` with ``total_steps`` at or below the checkpoint's step.
-        LcrlError: no checkpoint to resume, a run in the way, an unusable ``out``.
+        LcrlError: no checkpoint to resume, a run in the way, an unusable ``out``, or a
+            folder that another live process holds (:mod:`train.run_lock`).
     """
     out = Path(cfg.out)
     check_out_dir(out)
+    note = lock_run(out)  # before anything in the folder is read, removed or written
+    if note:
+        print(f"lcrl: {note}", file=sys.stderr)
     if cfg.resume:
         remove_stale(out)
         latest = find_latest(out)
         if latest is None:
             raise LcrlError(f"--resume: no checkpoint in {out} (no latest.json)")
-        ckpt = load_checkpoint(latest)
+        ckpt = newest_intact(out, latest)
+        latest = ckpt.path
         meta = run_meta(ckpt)
         if cfg.total_steps <= meta.step:
             raise RunAlreadyDone(
@@ -259,6 +268,47 @@ def open_run(cfg: TrainConfig, explore: Mapping[str, Any] | None = None) -> tupl
         for name in ("latest.json", "progress.csv", "eval.csv", "report.md", "curves.png"):
             (out / name).unlink(missing_ok=True)
     return cfg, None
+
+
+#: The suffix a corrupt checkpoint folder is renamed with when a resumed run passes it by:
+#: it is kept, and no longer counted among the run's checkpoints.
+CORRUPT_SUFFIX = ".corrupt"
+
+
+def newest_intact(out: Path, latest: Path) -> Any:
+    """The checkpoint to resume from: ``latest`` with every file verified against its
+    checksum, or, where one is corrupt, the newest other checkpoint of the run that is
+    intact. The corrupt one is never deleted: it is renamed ``<name>.corrupt`` (so that
+    pruning and later saves at its step leave it alone) and ``latest.json`` is pointed at
+    the one resumed; what happened is printed.
+
+    Raises:
+        LcrlError: no intact checkpoint remains (the corrupt file is named).
+    """
+    try:
+        return verify_checkpoint(latest)
+    except CheckpointCorruptError as e:
+        corrupt = e
+    others = sorted(
+        (p for p in (out / "checkpoints").glob("step_*") if p.is_dir() and p != latest),
+        reverse=True,
+    )
+    for candidate in others:
+        try:
+            ckpt = verify_checkpoint(candidate)
+        except LcrlError:
+            continue
+        kept = latest.with_name(latest.name + CORRUPT_SUFFIX)
+        if not kept.exists():
+            latest.rename(kept)
+        write_latest(out, candidate)
+        print(
+            f"lcrl: warning: {corrupt}; resuming from the newest intact checkpoint "
+            f"{candidate} instead (the corrupt one is kept as {kept})",
+            file=sys.stderr,
+        )
+        return ckpt
+    raise LcrlError(f"--resume: {corrupt}; no other intact checkpoint is left in {out}")
 
 
 def check_out_dir(out: Path, what: str = "the run folder") -> None:
@@ -477,7 +527,6 @@ class BaseTrainer(ABC):
         perception model its policy acts through, which the checkpoint carries) saved
         with ``meta``, ``json_files``, ``states`` and ``arrays`` at the current step;
         ``latest.json`` pointed at it; older checkpoints pruned."""
-        from lcrl.checkpoint import save_checkpoint, write_latest
         from train.perception import embedded_meta, find_perception
 
         modules = dict(self.agent.modules())
@@ -507,10 +556,13 @@ class BaseTrainer(ABC):
         return None
 
     def close(self) -> None:
-        """Release what the run holds (TensorBoard, files, environments)."""
+        """Release what the run holds (TensorBoard, files, environments, the folder's
+        lock)."""
         if self.tb is not None:
             self.tb.close()
             self.tb = None
+        if getattr(self, "out", None) is not None:
+            unlock_run(self.out)
 
     # --- hooks with defaults -----------------------------------------------------------
     def begin(self) -> None:

@@ -73,6 +73,10 @@ class Problem:
             (:meth:`Agent.attach_perception`, fine-tuned with the losses) turns into one
             vector, the networks' ``observation`` of width ``perceived_dim``; empty: none.
         perceived_dim: the width of that ``observation``.
+        reward_range: the lowest and highest reward a transition can earn (sparse success
+            rewards: ``(0, 1)``; gymnasium-robotics: ``(-1, 0)``); ``None``: unknown.
+        success_ends: whether earning the highest reward ends the episode (no bootstrap
+            past it), which bounds the return by one such reward.
     """
 
     obs_shapes: dict[str, tuple[int, ...]]
@@ -84,9 +88,18 @@ class Problem:
     privileged: tuple[str, ...] = ()
     perceived: tuple[str, ...] = ()
     perceived_dim: int = 0
+    # what the task's rewards allow, not what the networks read: two problems that differ
+    # only here take the same weights (a checkpoint's saved problem has neither)
+    reward_range: tuple[float, float] | None = field(default=None, compare=False)
+    success_ends: bool = field(default=False, compare=False)
 
     def __post_init__(self) -> None:
         self.privileged = tuple(self.privileged)
+        if self.reward_range is not None:
+            lo, hi = (float(x) for x in self.reward_range)
+            if not (np.isfinite(lo) and np.isfinite(hi) and lo <= hi):
+                raise LcrlError(f"reward_range must be finite (low, high), got {self.reward_range}")
+            self.reward_range = (lo, hi)
         self.perceived = tuple(self.perceived)
         missing = [k for k in self.perceived if k not in self.obs_shapes]
         if missing or (self.perceived and self.perceived_dim <= 0):
@@ -203,6 +216,14 @@ class AgentOptions:
     from camera frames (``--env.perception``) or the frames themselves
     (``--env.image-obs``). Acting and evaluation never need the true state. SAC and
     TD3."""
+    bound_targets: bool = True
+    """Clip TD targets to the bounds of the return that the task's rewards allow
+    (:func:`value_bounds`: ``[0, 1]`` for sparse success rewards that end the episode,
+    ``[-1 / (1 - gamma), 0]`` for -1/0 rewards that do not), in every learner with a TD
+    target (SAC, TD3, DQN). A critic that overestimates then cannot feed on its own
+    estimates beyond what any episode could return, the drift that precedes the collapse
+    of off-policy critics on hindsight goals. Off: targets as computed (SAC's
+    ``target_clip`` still applies)."""
     grounding: float = 0.0
     """Weight of an auxiliary grounding loss (SAC, language goals, networks that read object
     slots): every network's selection of object slots is trained by cross-entropy to pick
@@ -232,6 +253,29 @@ class AgentOptions:
     multitask: MultiTaskOptions = field(default_factory=MultiTaskOptions)
     """Multi-task training over a fixed task set (``env.tasks``): PCGrad, task weights,
     gradient-conflict measurement (SAC) and how training tasks are drawn."""
+
+
+def value_bounds(
+    reward_range: tuple[float, float], gamma: float, success_ends: bool
+) -> tuple[float, float]:
+    """The lowest and highest discounted return of rewards in ``reward_range``.
+
+    Every return is a discounted sum of per-step rewards in ``[lo, hi]``, so it lies in
+    ``[min(lo, 0), max(hi, 0)] / (1 - gamma)``. Where earning ``hi`` ends the episode and
+    every other reward is at most 0 (sparse success rewards), the return is at most
+    ``max(hi, 0)``: the rewards before the success add nothing positive and nothing
+    follows it. Multi-step rows (n-step returns) are such sums too, so the same bounds hold.
+
+    Args:
+        reward_range: ``(lo, hi)``, the lowest and highest per-step reward.
+        gamma: the discount, in ``[0, 1)``.
+        success_ends: whether earning ``hi`` ends the episode.
+    """
+    lo, hi = float(reward_range[0]), float(reward_range[1])
+    horizon = 1.0 / (1.0 - gamma)
+    low = min(lo, 0.0) * horizon
+    high = max(hi, 0.0) if success_ends and lo <= 0.0 else max(hi, 0.0) * horizon
+    return low, high
 
 
 def resolve_device(name: str) -> torch.device:
@@ -420,6 +464,24 @@ class Agent:
             )
         if options.grounding and not options.net.slots:
             raise LcrlError("the grounding loss needs networks that read object slots (net.slots)")
+
+    def value_bounds(self) -> tuple[float, float] | None:
+        """The bounds of the return the learner's TD targets are clipped to
+        (:attr:`AgentOptions.bound_targets`, the rewards as the learner sees them, with
+        ``reward_shift``); ``None`` where the targets are not clipped or the task's rewards
+        are unknown."""
+        p = self.problem
+        gamma = getattr(self.cfg, "gamma", None)
+        if not self.options.bound_targets or p.reward_range is None or gamma is None:
+            return None
+        shift = float(self.options.reward_shift)
+        lo, hi = p.reward_range
+        return value_bounds((lo + shift, hi + shift), float(gamma), p.success_ends)
+
+    def bound_targets(self, y: torch.Tensor) -> torch.Tensor:
+        """TD targets clipped to :meth:`value_bounds` (unchanged where there are none)."""
+        bounds = self.value_bounds()
+        return y if bounds is None else y.clamp(bounds[0], bounds[1])
 
     #: Per goal id, the slots its instruction names (:meth:`set_grounding`).
     grounding_targets: torch.Tensor | None = None

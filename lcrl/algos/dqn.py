@@ -113,7 +113,7 @@ class DQN(Agent):
         with torch.no_grad():
             best = self.q(nobs, goal).argmax(-1, keepdim=True)
             target_q = self.q_target(nobs, goal).gather(-1, best).squeeze(-1)
-            y = rew + boot * target_q
+            y = self.bound_targets(rew + boot * target_q)
         q = self.q(obs, goal).gather(-1, act.reshape(-1, 1)).squeeze(-1)
         loss = F.smooth_l1_loss(q, y)
         self.opt.zero_grad()

@@ -326,7 +326,8 @@ class SAC(Agent):
             "critic_loss": critic_value,
             "actor_loss": actor_value,
             "alpha": float(alpha),
-            "q": torch.cat(qs).mean().item(),
+            "q": (q_all := torch.cat(qs)).mean().item(),
+            "q_max": q_all.max().item(),
             "entropy": -logp.detach().mean().item(),
         }
         if any(x is not None for x in bc_losses):
@@ -450,11 +451,13 @@ class SAC(Agent):
         alpha: torch.Tensor,
     ) -> torch.Tensor:
         """The soft TD target ``r + boot * (min Q_target(s', a') - alpha log pi(a'|s'))``
-        with ``a'`` drawn from the policy, clipped to ``sac.target_clip`` when set."""
+        with ``a'`` drawn from the policy, clipped to the return's bounds
+        (:meth:`Agent.bound_targets`) and to ``sac.target_clip`` when set."""
         with torch.no_grad():
             next_a, next_logp = self._policy(nobs, goal)
             target_q = self.critic_target(nobs, goal, next_a).min(0).values.squeeze(-1)
             y = rew + boot * (target_q - alpha * next_logp)
+            y = self.bound_targets(y)
             clip = self.cfg.target_clip
             return y if clip is None else y.clamp(-clip, clip)
 

@@ -139,7 +139,7 @@ class TD3(Agent):
             noise = (cfg.policy_noise * noise).clamp(-cfg.noise_clip, cfg.noise_clip)
             next_a = (torch.tanh(self.actor_target(nobs, goal)) + noise).clamp(-1.0, 1.0)
             target_q = self.critic_target(nobs, goal, next_a).min(0).values.squeeze(-1)
-            y = rew + boot * target_q
+            y = self.bound_targets(rew + boot * target_q)
         q = self.critic(obs, goal, act).squeeze(-1)
         critic_loss = 0.5 * (q - y).pow(2).mean(-1).sum()
         named = self.grounding_rows(batch.goal)
