@@ -46,3 +46,16 @@ def test_the_kept_push_teacher_acts_on_the_privileged_state(one_thread):
     finally:
         policy.env.close()
     assert "`push-teacher/`" in (MODELS / "README.md").read_text()
+
+
+def test_every_kept_checkpoint_carries_checksums_that_hold():
+    """Each kept checkpoint records the SHA-256 of every file beside its meta.json, and
+    the files match them (a model changed by hand must be sealed again)."""
+    from lcrl.checkpoint import verify_checkpoint
+
+    folders = sorted(p.parent for p in MODELS.rglob("meta.json"))
+    assert len(folders) >= 5
+    for folder in folders:
+        ckpt = verify_checkpoint(folder)
+        files = {p.name for p in folder.iterdir() if p.is_file() and p.name != "meta.json"}
+        assert set(ckpt.checksums) == files, folder

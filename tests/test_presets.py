@@ -130,3 +130,29 @@ def test_every_preset_bounds_its_td_targets(name: str) -> None:
 )
 def test_value_bounds(rewards, gamma, ends, bounds) -> None:
     assert value_bounds(rewards, gamma, ends) == pytest.approx(bounds)
+
+
+def _q_rows(out) -> list[tuple[float, float]]:
+    import csv
+
+    with open(out / "progress.csv", newline="") as f:
+        return [(float(r["q"]), float(r["q_max"])) for r in csv.DictReader(f) if r.get("q")]
+
+
+def test_a_short_runs_critic_stays_within_the_return_bound(tmp_path, one_thread):
+    """Success rewards that end the episode bound every return by 1. A large fixed
+    entropy bonus (alpha 1) makes soft targets climb past it within a few hundred updates;
+    with the bound (the default) the critic's mean Q stays at or below 1, without it the
+    same run leaves the bound, so this check fails when the bound stops holding."""
+    from helpers import TINY_CLI, cli
+
+    args = ["train", "lang2d-quick", *TINY_CLI, "--total-steps", "600"]
+    args += ["--learning-starts", "200", "--eval-episodes", "2", "--eval-every", "0"]
+    args += ["--sac.init-alpha", "1.0", "--sac.no-autotune-alpha", "--torch-threads", "1"]
+    assert cli(*args, "--out", str(tmp_path / "bounded")) == 0
+    bounded = _q_rows(tmp_path / "bounded")
+    assert len(bounded) >= 3
+    assert all(q <= 1.0 + 0.02 and q_max <= 1.25 for q, q_max in bounded), bounded
+    assert cli(*args, "--out", str(tmp_path / "free"), "--agent.no-bound-targets") == 0
+    free = _q_rows(tmp_path / "free")
+    assert free[-1][0] > 1.5, free  # the same run, unbounded, drifts past the bound
