@@ -456,14 +456,17 @@ def parse_train_args(argv: Sequence[str]) -> Any:
     """The :class:`train.config.TrainConfig` of ``lcrl train ARGV`` (a preset, then
     overrides), as the command builds it."""
     from train.config import PRESETS, TrainConfig
+    from train.pipeline import PIPELINES
 
-    check_preset(argv, PRESETS)
+    check_preset(argv, {**PRESETS, **PIPELINES})
     presets = {name: cfg for name, (_, cfg) in PRESETS.items()}
     descriptions = {name: desc for name, (desc, _) in PRESETS.items()}
     cfg = tyro.cli(
         tyro.extras.subcommand_type_from_defaults(presets, descriptions),
         prog="lcrl train",
-        description="Train a policy. Pick a preset, then override any field.",
+        description="Train a policy. Pick a preset, then override any field. "
+        "Policies built in stages (lcrl train NAME --help): "
+        + ", ".join(f"{n} ({f.__doc__ or ''})" for n, f in PIPELINES.items()),
         args=list(argv),
     )
     assert isinstance(cfg, TrainConfig)
@@ -538,6 +541,11 @@ def ignored_on_resume(argv: Sequence[str], cfg: Any) -> list[str]:
 def _train(argv: Sequence[str]) -> None:
     from lcrl.algos import ALGOS
     from train.loop import Trainer
+    from train.pipeline import PIPELINES, pipeline_cli, run_pipeline
+
+    if argv and argv[0] in PIPELINES:  # a policy built by stages (train/pipeline.py)
+        run_pipeline(pipeline_cli(argv[0], argv[1:]))
+        return
 
     cfg = parse_train_args(argv)
     ignored = ignored_on_resume(argv, cfg)
@@ -786,6 +794,10 @@ class DistillCommand:
     """With ``--perception``: hold each object's estimate while the gripper is farther than
     this from it (env units), in place of the model's own ``hold_radius``; saved in the
     student's config, so it acts and is evaluated the same way."""
+    new_perception: str = ""
+    """With ``--resume``: the perception model the student acts through from the next
+    round on (one fine-tuned on the student's own frames, ``lcrl perception train --init
+    ... --extra-data``), in place of the one its checkpoint carries."""
     out: str = "runs/distill"
     """The student's run folder."""
     rounds: int = 10
@@ -883,7 +895,7 @@ class DistillCommand:
                 "--hold-radius holds perception's estimates: give the student a --perception MODEL",
             )
         cfg.resume, cfg.overwrite = self.resume, self.overwrite
-        DistillTrainer(cfg).run()
+        DistillTrainer(cfg, self.new_perception).run()
         print(f"evaluate again with: lcrl eval {cfg.out}")
 
 

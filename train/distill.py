@@ -242,6 +242,9 @@ class DistillTrainer(BaseTrainer):
         cfg: the student's run config (:func:`student_config`). With ``cfg.resume`` the
             latest checkpoint in ``cfg.out`` is loaded, with its config (and
             ``cfg.total_steps``).
+        new_perception: with ``cfg.resume``, a perception model the student acts through
+            from the next round on (one fine-tuned on the student's own frames): the
+            rounds gathered before keep their estimates, new rounds read the new model's.
 
     Raises:
         LcrlError: no teacher, a teacher without language goals or of another environment
@@ -251,7 +254,7 @@ class DistillTrainer(BaseTrainer):
 
     unit = "round"
 
-    def __init__(self, cfg: TrainConfig) -> None:
+    def __init__(self, cfg: TrainConfig, new_perception: str = "") -> None:
         cfg.validate()
         if not cfg.distill.teacher:
             raise LcrlError("distillation needs a teacher: lcrl distill TEACHER_RUN")
@@ -267,7 +270,11 @@ class DistillTrainer(BaseTrainer):
             given = cfg.distill
             self._load_teachers(given)
             self.out = Path(cfg.out)
-            cfg, ckpt = open_run(cfg)
+            if new_perception and not cfg.resume:
+                raise LcrlError(
+                    "--new-perception changes the model a student resumes with: add --resume"
+                )
+            cfg, ckpt = open_run(cfg, perception=new_perception)
             saved = cfg.distill  # a resumed run keeps the teachers it started with
             if (saved.teachers, saved.chain_teacher) != (given.teachers, given.chain_teacher):
                 self._close_envs(teachers_only=True)

@@ -202,7 +202,9 @@ class StopSignals:
             raise RunInterrupted(signum)
 
 
-def open_run(cfg: TrainConfig, explore: Mapping[str, Any] | None = None) -> tuple[TrainConfig, Any]:
+def open_run(
+    cfg: TrainConfig, explore: Mapping[str, Any] | None = None, perception: str = ""
+) -> tuple[TrainConfig, Any]:
     """Prepare ``cfg.out`` for a run: with ``cfg.resume``, load its latest checkpoint and
     the config saved there (keeping ``total_steps``, ``out`` and ``resume`` from ``cfg``),
     remove what a killed process left half-written and cut the logs back to the
@@ -214,6 +216,9 @@ def open_run(cfg: TrainConfig, explore: Mapping[str, Any] | None = None) -> tupl
         explore: ``explore`` fields a resumed run takes from ``cfg`` instead of its saved
             config (those given on the command line): they change where the next
             episodes start, not what the run has learned.
+        perception: with ``cfg.resume``, a perception model the resumed run acts through
+            from now on instead of the one its checkpoint carries (a model fine-tuned on
+            the run's own frames); empty: the checkpoint's.
 
     Returns:
         The config to run with and the checkpoint to resume from (None for a new run).
@@ -244,7 +249,10 @@ def open_run(cfg: TrainConfig, explore: Mapping[str, Any] | None = None) -> tupl
                 f"do for --total-steps {cfg.total_steps}; pass a larger --total-steps to train on"
             )
         saved = meta.config
-        if "perception" in ckpt.meta:  # the copy of the model the policy acts through
+        if perception:  # a new model from here on (its shapes are checked as any)
+            print(f"lcrl: the resumed run acts through {perception} from now on")
+            saved.env.perception = perception
+        elif "perception" in ckpt.meta:  # the copy of the model the policy acts through
             saved.env.perception = str(keep_perception(latest, out))
         saved.total_steps = cfg.total_steps
         saved.resume = True
