@@ -42,7 +42,7 @@ def _one_thread():
 # --- helpers -----------------------------------------------------------------------------
 TEXT_TABLE = torch.randn(10, 16, generator=torch.Generator().manual_seed(1234))
 KEYS = {
-    "sac": {"critic_loss", "actor_loss", "alpha", "q", "entropy"},
+    "sac": {"critic_loss", "actor_loss", "alpha", "q", "q_max", "entropy"},
     "td3": {"critic_loss", "actor_loss", "q"},
     "dqn": {"loss", "q", "epsilon"},
 }

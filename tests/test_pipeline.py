@@ -59,6 +59,10 @@ def test_the_2d_camera_pipeline_builds_a_kept_student_stage_by_stage(tmp_path, c
     assert policy.act(obs, "reach the red cube").shape == (2,)
     evaluated = json.loads((out / "eval" / "eval.json").read_text())
     assert "train" in evaluated["sets"]
+    # the same policy on the true state: the cost of perception, side by side
+    doc = tmp_path / "true.json"
+    assert cli("eval", str(kept), "--true-state", "--episodes", "2", "--json", str(doc)) == 0
+    assert json.loads(doc.read_text())["settings"]["true_state"] is True
     capsys.readouterr()
     # run again: every stage is kept, nothing is rebuilt
     assert cli("train", "lang2d-camera", "--out", str(out), *SMALL) == 0

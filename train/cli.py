@@ -170,6 +170,10 @@ class EvalCommand:
     reads. A checkpoint trained with one uses its own; for one without, a reader is fitted
     first on the run's training instructions and their training-only phrasings (about a
     minute), the same way training fits it."""
+    true_state: bool = False
+    """A policy that acts through a perception model acts on the simulator's true object
+    slots instead (its camera estimate replaced by what it estimates): the cost of
+    perception, side by side with the camera figures."""
     hold_radius: float | None = None
     """A policy acting through perception: hold each object's estimated position while the
     gripper is farther than this from it (metres; ``--env.perception-hold-radius``; 0:
@@ -231,6 +235,15 @@ class EvalCommand:
                 "--hold-radius holds perception's estimates; this checkpoint acts on the "
                 "simulator's state, through no perception model",
             )
+        if self.true_state:
+            if not saved.perception:
+                raise LcrlError(
+                    "--true-state replaces perception's estimate by the true state; this "
+                    "checkpoint acts on the true state already"
+                )
+            if self.hold_radius is not None:
+                raise LcrlError("--true-state reads no estimate: --hold-radius does not apply")
+            overrides["perception"] = ""
         policy = load_policy(self.checkpoint, overrides or None, self.device)
         extra = self.episodes % len(tasks) if tasks else 0
         if extra and (not self.sets or "train" in self.sets):
@@ -276,6 +289,7 @@ class EvalCommand:
             "num_envs": num_envs,
             "canonical_reader": bool(policy.cfg.env.canonical_reader),
             "hold_radius": self.hold_radius,
+            "true_state": self.true_state,
             "command": self._command(),
         }
         doc = evaluation_document(policy.checkpoint.path, step, policy.cfg, results, settings)
@@ -307,6 +321,8 @@ class EvalCommand:
             parts.append("--canonical-reader")
         if self.hold_radius is not None:
             parts.append(f"--hold-radius {self.hold_radius:g}")
+        if self.true_state:
+            parts.append("--true-state")
         return " ".join(parts)
 
 
@@ -794,6 +810,12 @@ class DistillCommand:
     """With ``--perception``: hold each object's estimate while the gripper is farther than
     this from it (env units), in place of the model's own ``hold_radius``; saved in the
     student's config, so it acts and is evaluated the same way."""
+    families: tuple[str, ...] = ()
+    """The student's instruction families (default: the teacher's env's): a student of
+    several family teachers (``--teacher-for``) follows all of theirs."""
+    max_episode_steps: int = 0
+    """The student's episode length (default: the teacher's env's; manipulation needs
+    100)."""
     new_perception: str = ""
     """With ``--resume``: the perception model the student acts through from the next
     round on (one fine-tuned on the student's own frames, ``lcrl perception train --init
@@ -878,6 +900,12 @@ class DistillCommand:
             tensorboard=self.tensorboard,
         )
         cfg.bc = BCConfig(lr=self.lr, loss="mse", hindsight=False, ema=self.ema)
+        if self.families:
+            cfg.env.families = tuple(self.families)
+        if self.max_episode_steps:
+            if self.max_episode_steps < 1:
+                raise LcrlError("--max-episode-steps must be positive")
+            cfg.env.max_episode_steps = self.max_episode_steps
         if self.hidden:
             if min(self.hidden) <= 0:
                 raise LcrlError(f"--hidden sizes must be positive, got {self.hidden}")

@@ -100,7 +100,7 @@ class CameraPipeline:
     student_frames: int = 400
     """Episodes of the student collected for ``perception-ft``."""
     max_episode_steps: int = 100
-    """Steps of each episode of ``student-frames``."""
+    """The student's episode length (and that of the episodes of ``student-frames``)."""
     perception_ft_steps: int = 4000
     """Training steps of ``perception-ft``."""
     rounds_ft: int = 10
@@ -115,6 +115,8 @@ class CameraPipeline:
     """Torch threads of each stage (0: automatic)."""
     teacher_steps: int = 0
     """Environment steps of every teacher (0: each recipe's own)."""
+    dry_run: bool = False
+    """Print the stages, whether each is done, and their commands; run nothing."""
     reader: bool = True
     """Free text through the canonical reader: the evaluation reads instructions through
     it, and the kept policy has it on by default, fitted and kept beside it."""
@@ -238,6 +240,7 @@ def stages(p: CameraPipeline) -> list[Stage]:
             "--updates-per-round", str(p.updates_per_round),
             "--hidden", *map(str, p.student_hidden), "--slot-mode", "attributes",
             "--grounding", "1.0", "--seed", str(p.seed), "--overwrite",
+            "--families", *p.families, "--max-episode-steps", str(p.max_episode_steps),
             *(["--teacher-for", *(f"{t.family}={_teacher_dir(p, t.family)}" for t in others)]
               if others else []),
             *(["--chain", str(p.chain)] if p.chain else []),
@@ -437,6 +440,14 @@ def run_pipeline(p: CameraPipeline) -> dict[str, Any]:
     if unknown:
         raise LcrlError(f"--stages {' '.join(unknown)}: the stages are {' '.join(names)}")
     out = Path(p.out)
+    if p.dry_run:
+        for i, stage in enumerate(every, 1):
+            done = finished(p, stage.name)
+            state = f"done ({done['seconds']:.0f} s)" if done else "to run"
+            print(f"[{i}/{len(every)}] {stage.name}: {stage.what} -- {state}")
+            for args in stage.commands:
+                print(f"  $ lcrl {shlex.join(args)}")
+        return {s.name: finished(p, s.name) for s in every}
     if not p.resume and _record(p).is_dir() and any(_record(p).iterdir()):
         raise LcrlError(f"{out} holds a pipeline already: leave out --no-resume to continue it")
     # one pipeline per folder: its stage records are locked (the stages lock their own
