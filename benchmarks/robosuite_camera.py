@@ -104,11 +104,11 @@ def main() -> None:
     p.add_argument("--eval-seed", type=int, default=7, help="the test seed (no choice used it)")
     p.add_argument("--episodes", type=int, default=100)
     p.add_argument("--analyse", action="store_true", help="evaluate the kept model only")
-    p.add_argument("pipeline", nargs="*", help="more options of lcrl train robosuite-camera")
-    args = p.parse_args()
+    # any other option is passed on to lcrl train robosuite-camera (--threads 1 ...)
+    args, pipeline = p.parse_known_args()
     work = Path(args.work)
     if not args.analyse:
-        lcrl("train", "robosuite-camera", "--out", str(work), "--keep", args.model, *args.pipeline)
+        lcrl("train", "robosuite-camera", "--out", str(work), "--keep", args.model, *pipeline)
     stages = {f.stem: json.loads(f.read_text()) for f in sorted((work / "stages").glob("*.json"))}
     ev = evaluate(args.model, args.eval_seed, args.episodes, work)
     summary = summarise(ev)
