@@ -43,7 +43,7 @@ bench: $(STAMP)
 	$(BIN)/python benchmarks/speed_vs_sb3.py --rounds 5
 	$(BIN)/python benchmarks/learning_curves.py fetch-reach
 	$(BIN)/python benchmarks/learning_curves.py lang2d --parallel
-	$(BIN)/python benchmarks/captioner.py
+	$(BIN)/python benchmarks/captioning.py
 
 lint: $(STAMP)
 	$(BIN)/ruff check .

@@ -19,11 +19,7 @@ from __future__ import annotations
 import argparse
 import shutil
 import statistics
-import sys
 import time
-from pathlib import Path
-
-sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
 from benchmarks.common import command, machine, save_figure, save_json, save_markdown
 from benchmarks.loop_bound import trainer

@@ -47,8 +47,6 @@ import time
 from pathlib import Path
 from typing import Any
 
-sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
-
 import benchmarks.common as common
 from benchmarks.common import (
     command,

@@ -32,7 +32,6 @@ Writes ``benchmarks/results/critic_probe.{json,md,png}``.
 from __future__ import annotations
 
 import argparse
-import sys
 import time
 from pathlib import Path
 from typing import Any
@@ -44,8 +43,6 @@ import matplotlib.pyplot as plt
 import numpy as np
 import torch
 import torch.nn.functional as F
-
-sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
 from benchmarks.common import caption, machine, save_json, save_markdown
 from captioner.grammar import Instruction

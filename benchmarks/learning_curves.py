@@ -30,7 +30,7 @@ combinations and unseen phrasings are reported too. ``lang2d-rl`` is the relabel
 with every training episode the policy's.
 
 ``lang2d-learned``: the ``lang2d`` runs relabelled by the learned models of
-``python benchmarks/captioner.py`` (from 64x64 camera frames, no privileged state):
+``python benchmarks/captioning.py`` (from 64x64 camera frames, no privileged state):
 ``learned`` (learned captioner proposes the goals, learned reward model gives the
 rewards), ``learned-captions`` (the learned captions are the rewards too, as in HIGhER),
 next to the rule captioner's ``her`` and ``no-her``, same seed, 50,000 steps; target: the
@@ -38,7 +38,7 @@ learned run at 60% on seen instructions, about twice the run without relabelling
 ``--reuse`` reads ``her`` and ``no-her`` from the ``lang2d`` suite's runs when their config
 is the same (cut at 50,000 steps) instead of training them again::
 
-    python benchmarks/captioner.py
+    python benchmarks/captioning.py
     python benchmarks/learning_curves.py lang2d-learned --parallel --reuse
 
 Each run writes ``benchmarks/results/<suite>.{json,md,png}``; the training runs themselves
@@ -53,7 +53,6 @@ import dataclasses
 import json
 import multiprocessing
 import shutil
-import sys
 import time
 from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
@@ -64,14 +63,12 @@ import matplotlib
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt
 
-sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
-
 from benchmarks.common import caption, die_with_parent, machine, save_json, save_markdown
 from train.config import PRESETS, BufferConfig, RelabelConfig, TrainConfig
 from train.loop import Trainer
 from train.tasks import EnvConfig
 
-#: The learned captioner and reward model of ``python benchmarks/captioner.py``.
+#: The learned captioner and reward model of ``python benchmarks/captioning.py``.
 LEARNED_CHECKPOINT = "runs/bench/captioner-lang2d"
 
 SUITES: dict[str, dict[str, Any]] = {
@@ -371,7 +368,7 @@ def main(argv: list[str] | None = None) -> int:
     if needs and not args.report_only and not (Path(needs) / "meta.json").exists():
         raise SystemExit(
             f"the {args.suite} suite needs the learned models in {needs}: run "
-            "python benchmarks/captioner.py first"
+            "python benchmarks/captioning.py first"
         )
     if args.eval_episodes:
         suite["eval_episodes"] = args.eval_episodes

@@ -22,12 +22,9 @@ import copy
 import dataclasses
 import shutil
 import statistics
-import sys
 import tempfile
 import time
 from pathlib import Path
-
-sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
 from benchmarks.common import command, machine, save_figure, save_json, save_markdown
 

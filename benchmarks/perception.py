@@ -31,8 +31,6 @@ import sys
 import time
 from pathlib import Path
 
-sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
-
 from benchmarks.common import command, machine, save_figure, save_json, save_markdown
 from lcrl.perception import PerceptionConfig
 

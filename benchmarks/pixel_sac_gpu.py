@@ -43,10 +43,9 @@ import time
 from pathlib import Path
 from typing import Any
 
-ROOT = Path(__file__).resolve().parent.parent
-sys.path.insert(0, str(ROOT))
+from benchmarks import common
 
-from benchmarks import common  # noqa: E402
+ROOT = Path(__file__).resolve().parent.parent
 
 NAME = "pixel-sac-gpu"
 PRESET = "robosuite-image"

@@ -20,8 +20,6 @@ import time
 from pathlib import Path
 from typing import Any
 
-sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
-
 from benchmarks.common import RESULTS_DIR, machine, save_figure, save_json, save_markdown
 
 #: name -> (run folder, what it is)

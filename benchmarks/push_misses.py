@@ -34,8 +34,6 @@ from pathlib import Path
 
 import numpy as np
 
-sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
-
 BINS = ("untouched", "short", "drift")
 UNTOUCHED = 0.1  # fraction of the push distance under which the object did not move
 OTHER_MOVED = 0.02  # metres: another object was disturbed

@@ -28,8 +28,6 @@ from pathlib import Path
 
 import numpy as np
 
-sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
-
 THRESHOLDS = (0.5, 0.7, 0.9)
 #: Bands of the pusher's distance to the object's edge (metres).
 BANDS = ((-1.0, 0.02), (0.02, 0.03), (0.03, 0.04), (0.04, 0.05), (0.05, 10.0))

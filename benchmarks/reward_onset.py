@@ -22,8 +22,6 @@ from pathlib import Path
 
 import numpy as np
 
-sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
-
 
 def first_steps(labels: Sequence[Sequence[int]], keep: Sequence[bool]) -> dict[int, int]:
     """The first step at which each kept instruction id appears among ``labels``."""

@@ -48,7 +48,6 @@ import gc
 import multiprocessing as mp
 import statistics
 import subprocess
-import sys
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -57,8 +56,6 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-
-sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
 from envs.robosuite_tabletop import RobosuiteTabletopEnv, _quiet_robosuite
 

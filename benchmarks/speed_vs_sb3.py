@@ -30,7 +30,6 @@ import argparse
 import dataclasses
 import shutil
 import statistics
-import sys
 import tempfile
 import time
 from pathlib import Path
@@ -40,8 +39,6 @@ import torch
 
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt
-
-sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
 from benchmarks.common import command, machine, save_figure, save_json, save_markdown
 from lcrl.nets import NetConfig

@@ -283,7 +283,7 @@ def test_push_misses_follow_a_checkpoint_on_its_push_instructions(tmp_path, one_
 
 
 def test_captioner_benchmark_trains_its_models_apart_with_one_progress_bar():
-    from benchmarks.captioner import side_by_side_parts
+    from benchmarks.captioning import side_by_side_parts
     from captioner.learned import CaptionTrainConfig
 
     cfg = CaptionTrainConfig(data="d.h5", out="ckpt", models=("captioner", "reward"), threads=2)

@@ -83,3 +83,18 @@ def test_the_documented_exception_is_lcrl_load_only():
     source = (ROOT / "lcrl" / "__init__.py").read_text()
     upward = [m for _, m in imports_of(source, "lcrl") if m.startswith("train")]
     assert upward and set(upward) == {"train.policy"}
+
+
+def test_the_benchmarks_are_a_package_that_edits_no_import_path():
+    """``benchmarks`` is installed with the other packages, so its scripts import
+    ``benchmarks.common`` as they are: none of them edits ``sys.path``."""
+    assert (ROOT / "benchmarks" / "__init__.py").is_file()
+    scripts = sorted((ROOT / "benchmarks").rglob("*.py"))
+    assert len(scripts) > 20  # the walk found the scripts
+    bad = [
+        f"{path.relative_to(ROOT).as_posix()}:{number}"
+        for path in scripts
+        for number, line in enumerate(path.read_text().splitlines(), 1)
+        if "sys.path" in line
+    ]
+    assert not bad, "\n".join(bad)

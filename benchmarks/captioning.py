@@ -7,11 +7,11 @@ relation, reference object), BLEU-4, the reward model's precision / recall / ROC
 the same on observations that achieved a held-out word combination (never a training
 target). Run from the repository root::
 
-    python benchmarks/captioner.py                      # 2D tabletop, 64x64 frames
-    python benchmarks/captioner.py --episodes 300 --steps 500   # a quick look
-    python benchmarks/captioner.py --encoder flatten --augment-pad 0   # the plain CNN
-    python benchmarks/captioner.py --env robosuite --episodes 400 --steps 3000
-    python benchmarks/captioner.py --env robosuite --encoder perception \
+    python benchmarks/captioning.py                      # 2D tabletop, 64x64 frames
+    python benchmarks/captioning.py --episodes 300 --steps 500   # a quick look
+    python benchmarks/captioning.py --encoder flatten --augment-pad 0   # the plain CNN
+    python benchmarks/captioning.py --env robosuite --episodes 400 --steps 3000
+    python benchmarks/captioning.py --env robosuite --encoder perception \
         --perception data/bench-perception-3k/model --data data/bench-perception-3k/train.h5
 
 With ``--encoder perception`` both models read the object slots a frozen perception model
@@ -34,7 +34,6 @@ import dataclasses
 import json
 import multiprocessing
 import shutil
-import sys
 import time
 from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
@@ -44,8 +43,6 @@ import matplotlib
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt
 import numpy as np
-
-sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
 from benchmarks.common import (
     RESULTS_DIR,
@@ -331,7 +328,7 @@ def _table(p: dict) -> str:
     lines.append("")
     if p["settings"].get("eval_only"):
         lines.append(
-            "- The models were trained by an earlier `python benchmarks/captioner.py` run "
+            "- The models were trained by an earlier `python benchmarks/captioning.py` run "
             "with these settings; this pass evaluated them again."
         )
     for decoding, res in p["results"].items():
