@@ -76,6 +76,18 @@ def test_default_threads_never_oversubscribe(monkeypatch, omp, processes, cores,
     monkeypatch.setenv("OMP_NUM_THREADS", omp)
     monkeypatch.setenv("LCRL_PROCESSES", processes)
     monkeypatch.setattr("train.machine.available_cores", lambda: cores)
+    monkeypatch.setattr("train.machine.busy_cores", lambda: 0)
+    assert default_threads() == expected
+
+
+@pytest.mark.parametrize(("busy", "expected"), [(0, 2), (1, 1), (2, 1), (5, 1)])
+def test_default_threads_leave_the_cores_other_processes_keep_busy(monkeypatch, busy, expected):
+    """Two threads beside another busy process on two cores collapse several times: a
+    run started on a busy machine takes the cores left."""
+    monkeypatch.delenv("OMP_NUM_THREADS", raising=False)
+    monkeypatch.delenv("LCRL_PROCESSES", raising=False)
+    monkeypatch.setattr("train.machine.available_cores", lambda: 2)
+    monkeypatch.setattr("train.machine.busy_cores", lambda: busy)
     assert default_threads() == expected
 
 
@@ -83,5 +95,6 @@ def test_local_ray_workers_take_their_share_of_the_cores(monkeypatch):
     monkeypatch.delenv("OMP_NUM_THREADS", raising=False)
     monkeypatch.delenv("LCRL_PROCESSES", raising=False)
     monkeypatch.setattr("train.machine.available_cores", lambda: 8)
+    monkeypatch.setattr("train.machine.busy_cores", lambda: 0)
     assert default_threads(helpers=2) == 2
     assert default_threads(helpers=7) == 1

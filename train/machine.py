@@ -5,6 +5,7 @@ from __future__ import annotations
 import datetime as dt
 import os
 import platform
+import sys
 from typing import Any
 
 import torch
@@ -28,22 +29,47 @@ def default_threads(helpers: int = 0) -> int:
     """Torch threads for a training process that does not say: ``OMP_NUM_THREADS`` where it
     is set, otherwise the available cores divided among the ``LCRL_PROCESSES`` training
     processes running at once and the ``helpers`` processes this one starts on the same
-    machine (local Ray workers), at least 1: never more busy threads than cores, since two
-    2-thread processes on two cores run several times slower than two 1-thread ones."""
+    machine (local Ray workers), at least 1, and no more than the cores other busy
+    processes leave (:func:`busy_cores`): never more busy threads than cores, since a
+    2-thread run beside another busy process on two cores runs several times slower than
+    a 1-thread one."""
     omp = os.environ.get("OMP_NUM_THREADS", "").strip()
     if omp.isdigit() and int(omp) > 0:
         return int(omp)
+    raw = os.environ.get(PROCESSES_VARIABLE, "")
     try:
-        processes = max(1, int(os.environ.get(PROCESSES_VARIABLE, "1")))
+        processes = max(1, int(raw or "1"))
     except ValueError:
         processes = 1
-    return max(1, available_cores() // (processes + max(0, helpers)))
+    share = max(1, available_cores() // (processes + max(0, helpers)))
+    if raw:  # a runner said how many run at once: their load is already counted
+        return share
+    # other busy processes (another training run, a test suite): the cores they leave
+    return max(1, min(share, available_cores() - busy_cores()))
+
+
+def busy_cores() -> int:
+    """Cores other processes keep busy now: the 1-minute load average, rounded (0 where
+    the platform has none). Read when a process starts, before it is busy itself."""
+    try:
+        return round(os.getloadavg()[0])
+    except (AttributeError, OSError):
+        return 0
 
 
 def set_threads(threads: int = 0, helpers: int = 0) -> int:
-    """Set torch's intra-op threads: ``threads``, or :func:`default_threads` for 0.
+    """Set torch's intra-op threads: ``threads``, or :func:`default_threads` for 0 (with
+    a note where other busy processes leave fewer cores than this process's share).
     Returns the number set."""
     n = threads if threads > 0 else default_threads(helpers)
+    if threads <= 0 and not os.environ.get("OMP_NUM_THREADS", "").strip():
+        full = max(1, available_cores() // (1 + max(0, helpers)))
+        if n < full and not os.environ.get(PROCESSES_VARIABLE):
+            print(
+                f"lcrl: note: other processes keep {busy_cores()} of {available_cores()} cores "
+                f"busy: {n} torch thread{'s' if n > 1 else ''} (--torch-threads sets it)",
+                file=sys.stderr,
+            )
     if torch.get_num_threads() != n:
         torch.set_num_threads(n)
     return n
