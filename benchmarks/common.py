@@ -122,8 +122,16 @@ def final_eval(out: Path, episodes: int, sets: Sequence[str]) -> dict[str, Any]:
 
 
 def command() -> str:
-    """The command line that ran this benchmark."""
-    return "python " + " ".join(shlex.quote(a) for a in sys.argv)
+    """The command line that ran this benchmark, as typed from the repository root:
+    ``python -m benchmarks.NAME ...`` for a module run, else the script's relative path."""
+    spec = getattr(sys.modules.get("__main__"), "__spec__", None)
+    args = [shlex.quote(a) for a in sys.argv[1:]]
+    if spec is not None and spec.name:
+        return " ".join(["python", "-m", spec.name.removesuffix(".__main__"), *args])
+    script = Path(sys.argv[0]).resolve()
+    root = RESULTS_DIR.parent.parent
+    shown = script.relative_to(root) if script.is_relative_to(root) else Path(sys.argv[0])
+    return " ".join(["python", shlex.quote(str(shown)), *args])
 
 
 def save_json(name: str, payload: dict[str, Any]) -> Path:

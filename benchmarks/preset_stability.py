@@ -10,10 +10,14 @@ budget on the seeds :data:`SEEDS`, two runs at a time on one torch thread each. 
 success fell by more than :data:`DROP` below its best earlier evaluation.
 
 Runs are resumable: a finished run is read, not retrained; a stopped one goes on with
-``--resume``. ``--analyse`` only reads the runs there are.
+``--resume``. The result file keeps every finished run (its verdict, curves and the commit
+that trained it), so the runs of one machine add to those of another and a run recorded
+there is not trained again (``--rerun`` trains it anew). ``--analyse`` only reads the runs
+there are.
 
 Writes ``benchmarks/results/preset-stability.{json,md,png}``; the headline holds ``runs``,
-``diverged`` and ``min_seen`` (per preset, the lowest final seen success of its seeds).
+``diverged``, ``min_seen`` (per preset, the lowest final seen success of its seeds),
+``planned`` (presets times seeds) and ``complete``.
 """
 
 from __future__ import annotations
@@ -22,11 +26,20 @@ import argparse
 import csv
 import json
 import os
+import subprocess
 import sys
 from pathlib import Path
 from typing import Any
 
-from benchmarks.common import command, machine, run_jobs, save_figure, save_json, save_markdown
+from benchmarks.common import (
+    RESULTS_DIR,
+    command,
+    machine,
+    run_jobs,
+    save_figure,
+    save_json,
+    save_markdown,
+)
 
 NAME = "preset-stability"
 PRESETS = ("lang2d", "lang2d-grounded", "robosuite-reach", "robosuite-image-reach")
@@ -38,6 +51,30 @@ Q_SLACK = 0.05
 #: A fall of seen success below the run's best earlier evaluation that counts as divergence.
 DROP = 0.2
 WORK = Path("runs/stability")
+#: Curves kept per run in the result file (every n-th logged row, so that the figure can be
+#: drawn again from the file alone).
+KEPT_POINTS = 200
+
+
+def recorded() -> dict[tuple[str, int], dict[str, Any]]:
+    """The finished runs the result file holds, by (preset, seed)."""
+    path = RESULTS_DIR / f"{NAME}.json"
+    if not path.is_file():
+        return {}
+    runs = json.loads(path.read_text()).get("runs", [])
+    return {(r["preset"], int(r["seed"])): r for r in runs if "curves" in r}
+
+
+def commit() -> str:
+    """The commit of the code that trained a run (with ``+changes`` for a dirty tree)."""
+    try:
+        head = subprocess.run(
+            ["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True, check=True
+        ).stdout.strip()
+        dirty = subprocess.run(["git", "diff", "--quiet", "HEAD"], check=False).returncode
+    except (OSError, subprocess.CalledProcessError):
+        return "unknown"
+    return head + ("+changes" if dirty else "")
 
 
 def run_folder(preset: str, seed: int) -> Path:
@@ -71,6 +108,19 @@ def job(preset: str, seed: int, total: int) -> tuple[str, list[str], Path] | Non
     return f"{preset} seed {seed}", argv, WORK / "logs" / f"{preset}-s{seed}.log"
 
 
+def pending(
+    presets: list[str],
+    seeds: list[int],
+    totals: dict[str, int],
+    kept: dict[tuple[str, int], Any],
+) -> list[tuple[str, list[str], Path]]:
+    """The runs still to train, seed by seed, the longest first (so that two short ones
+    finish beside a long one): none the result file holds, none finished here."""
+    order = sorted(presets, key=lambda n: -totals[n])
+    jobs = [job(n, s, totals[n]) for s in seeds for n in order if (n, s) not in kept]
+    return [j for j in jobs if j is not None]
+
+
 def bounds(preset: str) -> tuple[float, float]:
     """The return's bounds the preset's critic must stay within."""
     from lcrl.algos.base import value_bounds
@@ -98,12 +148,16 @@ def analyse(preset: str, seed: int) -> dict[str, Any]:
     for _, value in seen:
         fall = max(fall, best - value)
         best = max(best, value)
+    every = max(1, len(steps) // KEPT_POINTS)
     return {
         "preset": preset,
         "seed": seed,
-        "steps": steps,
-        "q": q,
-        "q_max": q_max,
+        "commit": commit(),
+        "curves": {
+            "step": steps[::every],
+            "q": [round(v, 4) for v in q[::every]],
+            "q_max": [round(v, 4) for v in q_max[::every]],
+        },
         "seen": seen,
         "final_seen": seen[-1][1] if seen else float("nan"),
         "final_heldout": heldout[-1] if heldout else float("nan"),
@@ -122,23 +176,23 @@ def main() -> None:
     p.add_argument("--seeds", nargs="+", type=int, default=list(SEEDS))
     p.add_argument("--parallel", type=int, default=2, help="runs at a time (1 thread each)")
     p.add_argument("--analyse", action="store_true", help="only read the runs there are")
+    p.add_argument("--rerun", action="store_true", help="train runs the result file holds")
     args = p.parse_args()
     from train.config import PRESETS as ALL
 
     info = machine()
     totals = {name: ALL[name][1].total_steps for name in args.presets}
+    kept = {} if args.rerun else recorded()
     if not args.analyse:
         os.environ.setdefault("MUJOCO_GL", "egl")  # robosuite renders without a display
-        # the longest runs first, so that two short ones finish beside a long one
-        order = sorted(args.presets, key=lambda n: -totals[n])
-        jobs = [job(n, s, totals[n]) for s in args.seeds for n in order]
-        run_jobs([j for j in jobs if j is not None], parallel=args.parallel)
-    runs = [
-        analyse(n, s)
-        for n in args.presets
-        for s in args.seeds
-        if finished(run_folder(n, s), totals[n])
-    ]
+        run_jobs(pending(args.presets, args.seeds, totals, kept), parallel=args.parallel)
+    runs = []
+    for n in args.presets:
+        for s in args.seeds:
+            if finished(run_folder(n, s), totals[n]):
+                runs.append(analyse(n, s))
+            elif (n, s) in kept:
+                runs.append(kept[(n, s)])
     write(runs, args, info)
 
 
@@ -146,8 +200,15 @@ def write(runs: list[dict[str, Any]], args: argparse.Namespace, info: dict[str, 
     presets = list(dict.fromkeys(r["preset"] for r in runs))
     min_seen = {n: min(r["final_seen"] for r in runs if r["preset"] == n) for n in presets}
     diverged = [f"{r['preset']} seed {r['seed']}" for r in runs if r["diverged"]]
+    planned = len(args.presets) * len(args.seeds)
     payload = {
-        "headline": {"runs": len(runs), "diverged": len(diverged), "min_seen": min_seen},
+        "headline": {
+            "runs": len(runs),
+            "diverged": len(diverged),
+            "min_seen": min_seen,
+            "planned": planned,
+            "complete": len(runs) == planned,
+        },
         "command": command(),
         "machine": info,
         "seeds": list(args.seeds),
@@ -163,7 +224,7 @@ def write(runs: list[dict[str, Any]], args: argparse.Namespace, info: dict[str, 
             "each preset exactly as shipped (lcrl train PRESET --seed S --agent.seed S), "
             f"seeds {list(args.seeds)} picked before any run; nothing was chosen among runs"
         ],
-        "runs": [{k: v for k, v in r.items() if k not in ("steps", "q", "q_max")} for r in runs],
+        "runs": runs,
     }
     save_json(NAME, payload)
     lines = [
@@ -171,23 +232,29 @@ def write(runs: list[dict[str, Any]], args: argparse.Namespace, info: dict[str, 
         "any run. A run diverged when its mean Q left the return's bounds by more than "
         f"{Q_SLACK}, or its seen success fell more than {DROP} below its best.",
         "",
-        f"**{len(runs)} runs, {len(diverged)} diverged**"
+        f"**{len(runs)} of {planned} planned runs finished, {len(diverged)} diverged**"
         + (f": {', '.join(diverged)}" if diverged else "."),
         "",
         "| preset | seed | final seen | final held-out | best seen | largest fall | "
-        "peak mean Q | bounds | diverged |",
-        "|---|---:|---:|---:|---:|---:|---:|---|---|",
+        "peak mean Q | bounds | diverged | commit |",
+        "|---|---:|---:|---:|---:|---:|---:|---|---|---|",
     ]
     for r in runs:
         lines.append(
             f"| {r['preset']} | {r['seed']} | {r['final_seen']:.2f} | {r['final_heldout']:.2f} "
             f"| {r['best_seen']:.2f} | {r['largest_fall']:.2f} | {r['q_peak']:.3f} | "
-            f"[{r['bounds'][0]:g}, {r['bounds'][1]:g}] | {'yes' if r['diverged'] else 'no'} |"
+            f"[{r['bounds'][0]:g}, {r['bounds'][1]:g}] | {'yes' if r['diverged'] else 'no'} | "
+            f"{r['commit']} |"
         )
+    done = {(r["preset"], r["seed"]) for r in runs}
+    missing = [f"{n} seed {s}" for n in args.presets for s in args.seeds if (n, s) not in done]
+    if missing:
+        lines += ["", f"Not yet trained to the full budget: {', '.join(missing)}."]
     lines += ["", "Lowest final seen success per preset: "]
     lines += [f"- {n}: {v:.2f}" for n, v in min_seen.items()]
     save_markdown(NAME, "Shipped presets on new seeds", "\n".join(lines), info)
-    figure(runs, presets, info)
+    if presets:
+        figure(runs, presets, info)
     print(json.dumps(payload["headline"], indent=1))
 
 
@@ -200,7 +267,8 @@ def figure(runs: list[dict[str, Any]], presets: list[str], info: dict[str, Any])
         for r in (r for r in runs if r["preset"] == name):
             steps, seen = zip(*r["seen"], strict=True) if r["seen"] else ((), ())
             top.plot(steps, seen, marker="o", ms=3, label=f"seed {r['seed']}")
-            bottom.plot(r["steps"], r["q"], lw=1, label=f"seed {r['seed']}")
+            curves = r["curves"]
+            bottom.plot(curves["step"], curves["q"], lw=1, label=f"seed {r['seed']}")
             bottom.axhline(r["bounds"][1], c="k", ls="--", lw=0.8)
         top.set(title=name, ylim=(0, 1.02), ylabel="seen success", xlabel="step")
         bottom.set(ylabel="mean Q (dashed: bound)", xlabel="step")

@@ -123,11 +123,13 @@ def test_discrete_actions_are_whole_numbers():
 
 
 def test_a_mistyped_preset_is_named_first(capsys):
+    from train.pipeline import PIPELINES  # policies built in stages count as presets
+
     assert cli("train", "lang2dd", "--total-steps", "10", "--buffer.k", "2") == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert err == [
         "lcrl: error: unknown preset 'lang2dd': did you mean lang2d, lang2d-td3, "
-        f"lang2d-dqn? lcrl train --help lists all {len(PRESETS)} presets"
+        f"lang2d-dqn? lcrl train --help lists all {len(PRESETS) + len(PIPELINES)} presets"
     ]
     assert cli("train", "nothing-like-it") == 2
     assert "did you mean" not in capsys.readouterr().err

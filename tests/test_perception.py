@@ -11,6 +11,7 @@ import pytest
 import torch
 from helpers import cli, error_line
 
+from lcrl.checkpoint import seal_checkpoint
 from lcrl.errors import LcrlError
 from lcrl.perception import Perception, SlotLayout, fit_stats
 from train.perception import evaluate, load_model, read_dataset
@@ -647,6 +648,7 @@ def test_models_saved_before_object_permanence_hold_nothing(trained, tmp_path):
     meta = json.loads(meta_path.read_text())
     del meta["model"]["hold_radius"]
     meta_path.write_text(json.dumps(meta))
+    seal_checkpoint(old / "model")  # as such a model was saved: its own sums
     assert load_model(old)[0].cfg.hold_radius == 0.0
     assert load_model(trained)[0].cfg.hold_radius == 0.06
 

@@ -1,0 +1,73 @@
+"""benchmarks/preset_stability.py: its verdicts on written curves, and the result file that
+keeps finished runs so that another machine adds to them instead of training them again."""
+
+from __future__ import annotations
+
+import argparse
+import json
+
+import pytest
+
+from benchmarks import common, preset_stability
+
+
+def write_run(folder, q, seen):
+    folder.mkdir(parents=True)
+    rows = ["step,success,q,q_max"] + [
+        f"{100 * (i + 1)},0.5,{v},{v + 0.1}" for i, v in enumerate(q)
+    ]
+    (folder / "progress.csv").write_text("\n".join(rows) + "\n")
+    evals = ["step,train/success,heldout/success"]
+    evals += [f"{100 * (i + 1)},{v},{v / 2}" for i, v in enumerate(seen)]
+    (folder / "eval.csv").write_text("\n".join(evals) + "\n")
+
+
+@pytest.fixture
+def work(tmp_path, monkeypatch):
+    monkeypatch.setattr(preset_stability, "WORK", tmp_path / "runs")
+    monkeypatch.setattr(preset_stability, "RESULTS_DIR", tmp_path / "results")
+    monkeypatch.setattr(common, "RESULTS_DIR", tmp_path / "results")
+    return tmp_path
+
+
+def test_a_run_diverges_when_q_leaves_the_bound_or_success_falls(work):
+    folder = preset_stability.run_folder
+    write_run(folder("lang2d", 21), q=[0.5, 0.8, 0.9], seen=[0.5, 0.9, 0.95])
+    write_run(folder("lang2d", 22), q=[0.5, 1.2, 3.0], seen=[0.5, 0.9, 0.95])
+    write_run(folder("lang2d", 23), q=[0.5, 0.8, 0.9], seen=[0.5, 0.9, 0.6])
+    calm, high, fallen = (preset_stability.analyse("lang2d", s) for s in (21, 22, 23))
+    assert preset_stability.bounds("lang2d")[1] == pytest.approx(1.0)
+    assert not calm["diverged"] and calm["final_seen"] == 0.95 and calm["final_heldout"] == 0.475
+    assert high["diverged"] and high["q_left_bound_at"] == [200, 300]
+    assert fallen["diverged"] and fallen["largest_fall"] == pytest.approx(0.3)
+    assert calm["curves"]["q"] == [0.5, 0.8, 0.9] and calm["curves"]["step"] == [100, 200, 300]
+
+
+def test_the_result_file_keeps_finished_runs_for_the_next_machine(work):
+    write_run(preset_stability.run_folder("lang2d", 21), q=[0.5, 0.8], seen=[0.5, 0.9])
+    args = argparse.Namespace(presets=["lang2d", "robosuite-reach"], seeds=[21, 22])
+    preset_stability.write([preset_stability.analyse("lang2d", 21)], args, common.machine())
+    saved = json.loads((work / "results" / "preset-stability.json").read_text())
+    assert saved["headline"] == {
+        "runs": 1,
+        "diverged": 0,
+        "min_seen": {"lang2d": 0.9},
+        "planned": 4,
+        "complete": False,
+    }
+    markdown = (work / "results" / "preset-stability.md").read_text()
+    assert "1 of 4 planned runs finished" in markdown
+    assert "robosuite-reach seed 22" in markdown  # what is still to train, named
+    kept = preset_stability.recorded()
+    assert set(kept) == {("lang2d", 21)}
+    # the run folder gone (another machine), the run is still counted, and not trained again
+    import shutil
+
+    shutil.rmtree(work / "runs")
+    assert kept[("lang2d", 21)]["final_seen"] == 0.9
+    totals = {"lang2d": 400, "robosuite-reach": 300}
+    names = [name for name, _, _ in preset_stability.pending(args.presets, [21, 22], totals, kept)]
+    assert names == ["robosuite-reach seed 21", "lang2d seed 22", "robosuite-reach seed 22"]
+    _, argv, _ = preset_stability.pending(["lang2d"], [22], totals, kept)[0]
+    assert argv[-6:] == ["--seed", "22", "--agent.seed", "22", "--overwrite", "--no-progress"]
+    assert (work / "results" / "preset-stability.png").is_file()
