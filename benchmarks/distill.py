@@ -91,7 +91,8 @@ def teacher_on_estimates(
     from envs.features import slot_layout
     from train.distill import student_config
     from train.eval_suite import rate_stats
-    from train.evaluate import load_policy, resolve_checkpoint
+    from train.evaluate import resolve_checkpoint
+    from train.loading import load_policy
     from train.tasks import make_env
 
     policy = load_policy(resolve_checkpoint(str(teacher)))

@@ -140,7 +140,7 @@ def run_pushes(
     from captioner.rule import DIRECTION_VECTORS
     from lcrl.errors import LcrlError
     from train.eval_suite import episode_seed
-    from train.evaluate import load_policy
+    from train.loading import load_policy
     from train.tasks import find_language_wrapper, reset_feasible
 
     models = None

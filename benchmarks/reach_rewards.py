@@ -86,7 +86,7 @@ def run_episodes(
     from captioner.learned import LearnedCaptioner
     from lcrl.errors import LcrlError
     from train.eval_suite import episode_seed
-    from train.evaluate import load_policy
+    from train.loading import load_policy
     from train.tasks import find_language_wrapper, reset_feasible, slot_layout_start
 
     models = LearnedCaptioner.load(captioner)

@@ -31,7 +31,8 @@ from lcrl.nets import NetConfig
 from train.bc import BCTrainer
 from train.config import PRESETS, TrainConfig
 from train.demos import RecordConfig, record, relabel
-from train.evaluate import evaluate, load_policy, run_episode
+from train.evaluate import evaluate, run_episode
+from train.loading import load_policy
 
 SETS = ("train", "heldout", "paraphrase")
 OBS_DIM = 58  # the lang2d preset's observation: pusher x, y + 8 slots of 7 values

@@ -18,7 +18,8 @@ import pytest
 from helpers import cli
 
 from train.config import config_from_dict
-from train.evaluate import load_policy, run_episode
+from train.evaluate import run_episode
+from train.loading import load_policy
 from train.loop import Trainer
 
 FIXTURES = Path(__file__).resolve().parent / "fixtures" / "v0"

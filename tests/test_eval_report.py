@@ -38,7 +38,7 @@ from train.eval_suite import (
     summarise,
     wilson_interval,
 )
-from train.evaluate import load_policy
+from train.loading import load_policy
 from train.loop import Trainer
 from train.report import compare_runs, load_evaluation, write_report
 from train.tasks import make_env

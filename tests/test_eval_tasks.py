@@ -29,7 +29,8 @@ from lcrl.errors import LcrlError
 from train.act import ActSession
 from train.config import PRESETS, TASKS_2D, config_to_dict
 from train.eval_suite import episode_seed, run_evaluation
-from train.evaluate import evaluate, load_policy, run_episode
+from train.evaluate import evaluate, run_episode
+from train.loading import load_policy
 from train.loop import Trainer
 from train.policy import Policy
 from train.report import learning_summary, write_report

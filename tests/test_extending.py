@@ -25,7 +25,8 @@ from lcrl.goals import StateGoals
 from lcrl.nets import NetConfig
 from train.config import BufferConfig, TrainConfig
 from train.environments import ENVS, EnvConfig, EnvSpec
-from train.evaluate import load_policy, run_episode
+from train.evaluate import run_episode
+from train.loading import load_policy
 from train.loop import Trainer
 from train.tasks import GOALS, GoalModality, Task
 

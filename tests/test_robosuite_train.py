@@ -17,7 +17,8 @@ from lcrl.errors import LcrlError
 from lcrl.goals import ImageGoals, LabelGoals, StateGoals
 from lcrl.nets import NetConfig
 from train.config import PRESETS, BufferConfig, TrainConfig
-from train.evaluate import load_policy, run_episode
+from train.evaluate import run_episode
+from train.loading import load_policy
 from train.loop import Trainer
 from train.tasks import (
     EnvConfig,

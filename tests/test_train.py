@@ -22,7 +22,8 @@ from helpers import cli, error_line, tiny
 from lcrl.checkpoint import find_latest, load_checkpoint
 from lcrl.errors import LcrlError
 from train.config import PRESETS
-from train.evaluate import evaluate, load_policy, run_episode
+from train.evaluate import evaluate, run_episode
+from train.loading import load_policy
 from train.loop import Trainer
 
 EPISODE = 50  # state2d's max_episode_steps; goal="pusher" episodes never terminate early

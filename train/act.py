@@ -279,7 +279,7 @@ class ActSession:
         result = InstructionResult(text, meaning.text if meaning else None, [])
         result.nearest = self.policy.nearest(text, 3)
         self._print(line)
-        reader = getattr(self.policy.task, "encoder", None)
+        reader = self.policy.task.encoder
         if hasattr(reader, "canonical"):  # --canonical-reader: the sentence the policy reads
             self._print(f"the reader reads it as {reader.canonical([text])[0]!r}")
         self._print("nearest training instructions (cosine similarity):")

@@ -118,7 +118,7 @@ class BCTrainer(BaseTrainer):
         cfg, data = self.cfg, self.data
         self.env = make_env(cfg.env, "train", training=True)
         task = build_task(cfg, self.env, ckpt)
-        if getattr(task, "table", None) is None:
+        if task.table is None:
             raise LcrlError(
                 "behavioural cloning learns instruction-following from demonstrations: it "
                 f"needs language goals (lang2d, or robosuite with goal_type language), not a "
@@ -378,8 +378,8 @@ def match_instructions(
     from captioner.grammar import try_parse
 
     extras, leaked, other, unknown = [], [], [], []
-    families = tuple(getattr(task, "families", ()))
-    split = getattr(task, "split", None)
+    families = tuple(task.families)
+    split = task.split
     for text in texts:
         i = task.ids.get(text)
         if i is not None:
@@ -415,7 +415,7 @@ def match_instructions(
             f"and the grammar cannot parse them, e.g. {_few(unknown)}: train on instructions "
             "the grammar knows (lcrl parse TEXT shows how it reads one)"
         )
-    if extras and (not allow_new or not getattr(task, "text_goals", True)):
+    if extras and (not allow_new or not task.text_goals):
         raise LcrlError(
             f"{path} holds {len(extras)} instructions outside this run's task set, e.g. "
             f"{_few(extras)}: add them to --env.tasks or train on a dataset of those tasks"
@@ -494,7 +494,7 @@ def _few(texts: Sequence[str], n: int = 3) -> str:
 
 
 def _split_seed(task: Any) -> Any:
-    split = getattr(task, "split", None)
+    split = task.split
     return getattr(split, "seed", "?")
 
 

@@ -20,7 +20,8 @@ from captioner.dataset import CaptionDatasetWriter, CaptionSimulator, CollectCon
 from captioner.dataset import collect as collect_dataset
 from lcrl.errors import LcrlError
 from train.environments import ENVS, EnvConfig, canonical_kind
-from train.evaluate import LoadedPolicy, load_policy
+from train.evaluate import LoadedPolicy
+from train.loading import load_policy
 from train.tasks import find_language_wrapper
 
 

@@ -42,13 +42,8 @@ from typing import Any
 import tyro
 
 from lcrl.errors import LcrlError
-from train.run_lock import abandon_locks, refuse_if_training
-from train.trainer import (
-    RunAlreadyDone,
-    RunInterrupted,
-    check_out_dir,
-    check_output_file,
-)
+from train.run_lock import abandon_locks, check_output_file, refuse_if_training
+from train.trainer import RunAlreadyDone, RunInterrupted, check_out_dir
 
 
 @dataclass
@@ -196,7 +191,8 @@ class EvalCommand:
             read_instruction_file,
             run_evaluation,
         )
-        from train.evaluate import load_policy, resolve_checkpoint
+        from train.evaluate import resolve_checkpoint
+        from train.loading import load_policy
         from train.run_meta import run_meta
         from train.tasks import goal_modality
 

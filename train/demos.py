@@ -121,7 +121,7 @@ def check_dataset(data: DemoDataset, path: str, problem: Any, task: Any, env: An
             f"{path} has {'discrete' if data.discrete else 'continuous'} actions of shape "
             f"{data.action_shape}; this run acts with {want or 'discrete'} actions"
         )
-    if getattr(task, "table", None) is None and task.goal_kind != "vector":
+    if task.table is None and task.goal_kind != "vector":
         raise LcrlError(
             f"{path}: offline runs relabel instructions (from the stored scene) or state "
             f"goals (from stored achieved_goal), not {task.goal_kind} goals"
@@ -179,7 +179,7 @@ def buffer_episode(data: DemoDataset, e: int, path: str, task: Any, env: Any) ->
             "record the file with this run's preset (lcrl demos record --preset ...)"
         ) from None
     obs = {k: np.stack([s[k] for s in stored]) for k in stored[0]}
-    if getattr(task, "table", None) is not None:  # language: the captioner on the scene
+    if task.table is not None:  # language: the captioner on the scene
         text = ep["instruction"]
         goal = task.ids[text] if text is not None and text in task.ids else 0
         records: list[Any] = scenes_from_arrays(ep["scene"])
@@ -952,7 +952,7 @@ class RelabelCommand:
         if not self.out:
             raise LcrlError("pass --out DST (the relabelled dataset; SRC itself to replace it)")
         if self.json:  # before the work: a --json that cannot be written fails now
-            from train.trainer import check_output_file
+            from train.run_lock import check_output_file
 
             check_output_file(self.json, "--json")
         counts = relabel(

@@ -51,7 +51,8 @@ import torch
 from lcrl.buffer import Batch
 from lcrl.errors import LcrlError
 from train.config import BCConfig, ExploreConfig, FinetuneConfig, TrainConfig, family_teachers
-from train.evaluate import LoadedPolicy, build_agent, build_task, load_policy, resolve_checkpoint
+from train.evaluate import LoadedPolicy, build_agent, build_task, resolve_checkpoint
+from train.loading import load_policy
 from train.loop import attach_grounding, checkpoint_meta
 from train.tasks import ScriptedActor, find_language_wrapper, make_env, switch_in_place
 from train.trainer import BaseTrainer, open_run

@@ -24,6 +24,8 @@ import numpy as np
 
 from lcrl.checkpoint import META_FILE
 from lcrl.errors import LcrlError
+from train.composite import check_same_inputs, write_composite
+from train.evaluate import load_single, resolve_checkpoint
 
 #: The key of an ensemble checkpoint's ``meta.json`` that lists its other members.
 ENSEMBLE = "ensemble"
@@ -87,8 +89,6 @@ def check_plain(member: Any, where: str) -> None:
 
 def check_member(first: Any, member: Any, where: str) -> None:
     """Refuse a member that cannot act beside ``first``, naming both."""
-    from train.route import check_same_inputs
-
     here = str(first.checkpoint.path)
     check_plain(member, where)
     check_same_inputs(member, f"the member {where}", first, here, "members")
@@ -127,9 +127,6 @@ def write_ensemble(out: str | Path, runs: Sequence[str], overwrite: bool = False
         LcrlError: fewer than two members, ``out`` exists (without ``overwrite``) or holds
             a member, or a member that cannot act beside the first (:func:`check_member`).
     """
-    from train.evaluate import load_policy, resolve_checkpoint
-    from train.route import write_composite
-
     out = Path(out)
     if len(runs) < 2:
         raise LcrlError(f"name at least two runs to average, got {len(runs)}")
@@ -138,7 +135,7 @@ def write_ensemble(out: str | Path, runs: Sequence[str], overwrite: bool = False
     paths = [resolve_checkpoint(r) for r in runs]
     if len({Path(p).resolve() for p in paths}) < len(paths):
         raise LcrlError("a run is named twice: its mean with itself is itself")
-    policies = [load_policy(p) for p in paths]
+    policies = [load_single(p) for p in paths]
     try:
         check_plain(policies[0], str(paths[0]))
         for path, member in zip(paths[1:], policies[1:], strict=True):
@@ -157,15 +154,13 @@ def write_ensemble(out: str | Path, runs: Sequence[str], overwrite: bool = False
 def ensembled(loaded: Any, device: str | None = None) -> Any:
     """``loaded`` (a LoadedPolicy of an ensemble folder's first member) acting as the mean
     of all its members."""
-    from train.evaluate import load_policy
-
     entry: Mapping[str, Any] = loaded.checkpoint.meta[ENSEMBLE]
     agents = [loaded.agent]
     for rel in entry.get("members", []):
         path = Path(loaded.checkpoint.path) / rel
         if not (path / META_FILE).is_file():
             raise LcrlError(f"the ensemble checkpoint {loaded.checkpoint.path} lacks {path}")
-        member = load_policy(path, device=device)
+        member = load_single(path, device=device)
         member.env.close()
         agents.append(member.agent)
     loaded.agent = EnsembleAgent(agents)

@@ -44,7 +44,7 @@ __all__ = [
     "evaluate",
     "evaluate_tasks",
     "format_results",
-    "load_policy",
+    "load_single",
     "resolve_checkpoint",
     "run_episode",
 ]
@@ -94,7 +94,7 @@ def build_task(
         elif table is not None:
             kwargs = {"table": list(table[0]), "num_train": int(table[1])}
         task = make_task(cfg.env, env, encoder.encode, **kwargs)
-        task.encoder = encoder  # type: ignore[attr-defined]
+        task.encoder = encoder
     if cfg.agent.perception_lr > 0:
         task.use_perception_frames(env)
     if cfg.agent.privileged_critic:
@@ -305,13 +305,15 @@ def resolve_checkpoint(path: str | Path) -> Path:
     return latest
 
 
-def load_policy(
+def load_single(
     path: str | Path,
     env_overrides: dict[str, Any] | None = None,
     device: str | None = None,
     render: bool = False,
 ) -> LoadedPolicy:
-    """Load a checkpoint and rebuild its env, task and agent.
+    """Load one run's checkpoint and rebuild its env, task and agent: a folder made of
+    others (an ensemble, a router) as its first member or base alone;
+    :func:`train.loading.load_policy` loads any.
 
     Args:
         path: a checkpoint folder or a run folder.
@@ -351,16 +353,7 @@ def load_policy(
     agent = build_agent(meta.algo, problem, cfg, task.goal_space.embed, env)
     for name, module in agent.modules().items():
         ckpt.load_module(name, module)
-    loaded = LoadedPolicy(cfg, agent, task, env, ckpt)
-    if "router" in ckpt.meta:  # experts routed by instruction family (lcrl route)
-        from train.route import routed
-
-        loaded = routed(loaded, device)
-    if "ensemble" in ckpt.meta:  # the mean of policies trained apart (lcrl ensemble)
-        from train.ensemble import ensembled
-
-        loaded = ensembled(loaded, device)
-    return loaded
+    return LoadedPolicy(cfg, agent, task, env, ckpt)
 
 
 def describe_problem(p: Problem) -> str:

@@ -26,6 +26,7 @@ from lcrl.errors import LcrlError
 from lcrl.multitask import CONFLICT_KEYS, TaskSampler
 from train.config import TrainConfig, config_to_dict, family_thresholds
 from train.environments import canonical_kind, env_spec
+from train.episodes import Episode, begin_episode, episode_record, start_episode, step_episode
 from train.evaluate import build_agent, build_task
 from train.explore import Explorer
 from train.machine import set_threads
@@ -36,7 +37,6 @@ from train.tasks import (
     find_language_wrapper,
     is_language,
     make_env,
-    reset_feasible,
     switch_in_place,
     task_texts,
 )
@@ -48,7 +48,7 @@ __all__ = ["Trainer", "checkpoint_meta", "eval_row", "open_run"]
 def attach_phrasings(agent: Any, task: Any) -> None:
     """Give the agent the training-only phrasings of the instructions
     (``cfg.env.phrasings``), when the task embedded some."""
-    found = task.phrasing_embeddings() if hasattr(task, "phrasing_embeddings") else None
+    found = task.phrasing_embeddings()
     if found is not None:
         agent.set_phrasings(*found)
 
@@ -57,7 +57,7 @@ def text_goal_sample(task: Any) -> np.ndarray:
     """The goal vectors the text-goal normaliser's statistics come from: the training
     instructions' embeddings and, with ``cfg.env.phrasings``, their other phrasings."""
     vectors = task.embeddings[: task.num_train]
-    found = task.phrasing_embeddings() if hasattr(task, "phrasing_embeddings") else None
+    found = task.phrasing_embeddings()
     if found is None:
         return vectors
     variants, counts = found
@@ -69,8 +69,9 @@ def attach_grounding(agent: Any, task: Any, cfg: TrainConfig) -> None:
     """Give the agent the slots each instruction names when ``cfg.agent.grounding`` is on
     and the task has instructions; other goals (state, image, task ids) name no object, so
     a preset's grounding loss stays off when its goal type is changed."""
-    if cfg.agent.grounding and hasattr(task, "grounding_targets"):
-        agent.set_grounding(task.grounding_targets())
+    targets = task.grounding_targets() if cfg.agent.grounding else None
+    if targets is not None:
+        agent.set_grounding(targets)
 
 
 def checkpoint_meta(
@@ -100,7 +101,7 @@ def checkpoint_meta(
         },
     }
     json_files: dict[str, Any] = {}
-    table = getattr(task, "table", None)
+    table = task.table
     if table is not None:
         json_files["instructions"] = {"texts": table, "num_train": task.num_train}
         json_files["split"] = task.split.to_dict()
@@ -109,139 +110,6 @@ def checkpoint_meta(
             "dim": int(task.embeddings.shape[1]),
         }
     return meta, json_files
-
-
-@dataclasses.dataclass
-class _Episode:
-    """An episode being collected in one of the training environments."""
-
-    env: Any
-    slot: int
-    #: Random actions are drawn from ``rng``, the scripted controller's noise from
-    #: ``scripted_rng``.
-    rng: np.random.Generator
-    scripted_rng: np.random.Generator
-    first: dict[str, Any]
-    goal: Any
-    stored: list[dict[str, np.ndarray]]
-    records: list[Any]
-    task_id: int | None
-    scripted: bool
-    info: dict[str, Any]
-    actions: list[Any] = dataclasses.field(default_factory=list)
-    rewards: list[float] = dataclasses.field(default_factory=list)
-    terms: list[bool] = dataclasses.field(default_factory=list)
-    #: Per step: whether the scripted controller acted it (a demonstration step).
-    demo: list[bool] = dataclasses.field(default_factory=list)
-    succeeded: bool = False  # at any step (episodes may go on after success)
-    done: bool = False
-    t: int = 0
-    action: Any = None
-    random_action: Any = None
-    #: The last observation the env returned (where a chained episode goes on).
-    obs: Any = None
-    #: Steps the scripted controller acts before the policy takes over (0: none).
-    handover: int = 0
-    #: Position in a chain of instructions in one scene (0: began at a reset).
-    chain_index: int = 0
-    #: The family of its instruction (language goals), for a curriculum.
-    family: str = ""
-    #: It began where the scripted teacher's prelude left the scene (``explore.prelude``).
-    prelude: bool = False
-    #: The learned reward model ended it at its instruction's success (``relabel.end``).
-    learned_end: bool = False
-
-    @property
-    def scripted_now(self) -> bool:
-        """Whether the scripted controller acts the next step."""
-        return self.scripted or self.t < self.handover
-
-
-def begin_episode(
-    cfg: TrainConfig,
-    task: Any,
-    env: Any,
-    index: int,
-    scripted: ScriptedActor | None,
-    task_id: int | None = None,
-    rng: np.random.Generator | None = None,
-    scripted_rng: np.random.Generator | None = None,
-) -> _Episode:
-    """Reset ``env`` for the training episode of number ``index`` (its reset seed follows
-    from ``cfg.seed`` and ``index``); ``task_id`` picks a task of the run's task set (reset
-    in a layout where it is feasible). Random actions are drawn from ``rng`` and the
-    scripted controller's choice and noise from ``scripted_rng`` (the trainer's streams);
-    without them, from a generator of the episode's index alone (a rollout worker's)."""
-    seed = int(cfg.seed * 1_000_003 + index)
-    if rng is None:
-        rng = np.random.default_rng([cfg.seed, 7, index])
-    scripted_rng = rng if scripted_rng is None else scripted_rng
-    if task_id is not None:
-        obs, info = reset_feasible(env, seed, task_texts(cfg.env)[task_id])
-    else:
-        obs, info = env.reset(seed=seed)
-    return start_episode(cfg, task, env, obs, info, scripted, rng, scripted_rng, task_id)
-
-
-def start_episode(
-    cfg: TrainConfig,
-    task: Any,
-    env: Any,
-    obs: Any,
-    info: dict[str, Any],
-    scripted: ScriptedActor | None,
-    rng: np.random.Generator,
-    scripted_rng: np.random.Generator,
-    task_id: int | None = None,
-) -> _Episode:
-    """An episode that starts from ``obs`` (after a reset, or where a chained one ended);
-    whether the scripted controller acts it is drawn from ``scripted_rng``."""
-    acted = scripted is not None and scripted_rng.random() < cfg.scripted_fraction
-    if acted:
-        scripted.reset()
-    return _Episode(
-        env=env,
-        slot=0,
-        rng=rng,
-        scripted_rng=scripted_rng,
-        first=obs,
-        goal=task.goal(obs, env),
-        stored=[task.training_obs(obs, obs)],
-        records=[task.step_record(obs, env)],
-        task_id=task_id,
-        scripted=acted,
-        info=info,
-        obs=obs,
-    )
-
-
-def step_episode(task: Any, ep: _Episode) -> None:
-    """Step an episode's env with its action (``ep.action``) and record what happened."""
-    ep.demo.append(ep.scripted_now)
-    obs, reward, terminated, truncated, info = ep.env.step(task.scale_action(ep.action))
-    ep.t += 1
-    ep.obs = obs
-    ep.stored.append(task.training_obs(obs, ep.first))
-    ep.records.append(task.step_record(obs, ep.env))
-    ep.actions.append(ep.action)
-    ep.rewards.append(reward)
-    ep.terms.append(terminated)
-    ep.succeeded = ep.succeeded or bool(info.get("is_success", False))
-    ep.info = info
-    ep.done = bool(terminated or truncated)
-
-
-def episode_record(task: Any, ep: _Episode) -> dict[str, Any]:
-    """A finished episode as the buffer stores it, labelled by the task (captions,
-    achieved goals)."""
-    return {
-        "obs": {k: np.stack([s[k] for s in ep.stored]) for k in ep.stored[0]},
-        "action": np.asarray(ep.actions),
-        "reward": np.asarray(ep.rewards, np.float32),
-        "terminated": np.asarray(ep.terms, bool),
-        "demo": np.asarray(ep.demo, bool),
-        **task.episode_fields(ep.records, ep.goal, ep.env),
-    }
 
 
 class Trainer(BaseTrainer):
@@ -392,7 +260,7 @@ class Trainer(BaseTrainer):
     def _stage_labels(self) -> None:
         """Hindsight relabelling names the current stage's instructions only."""
         task = self.task
-        if not hasattr(task, "train_ids"):
+        if task.train_ids is None:
             raise LcrlError("sequential.stages need instructions (language goals or task ids)")
         families = set(self.stages[self.stage])
         parse = task.captioner.parse
@@ -642,8 +510,8 @@ class Trainer(BaseTrainer):
         precedence over those Ray installs)."""
         from train.ray_collect import RayCollector
 
-        table = getattr(self.task, "table", None)
-        embeddings = getattr(self.task, "embeddings", None) if table is not None else None
+        table = self.task.table
+        embeddings = self.task.embeddings if table is not None else None
         table = (list(table), self.task.num_train) if table is not None else None
         self.remote = RayCollector(self.cfg, table, self._weights(), embeddings)
         self._issued = self.episodes
@@ -731,7 +599,7 @@ class Trainer(BaseTrainer):
                     self._explored(ep)
             self._start = None
 
-    def _begin(self, slot: int, env: Any) -> _Episode:
+    def _begin(self, slot: int, env: Any) -> Episode:
         """Reset ``env`` for the next episode (index ``self.episodes + slot``), with the
         task the sampler draws when the run has a task set; with ``explore``, go on in
         the scene of a chained episode instead, and draw a hand-over."""
@@ -812,7 +680,7 @@ class Trainer(BaseTrainer):
             return obs
         return after
 
-    def _explored(self, ep: _Episode) -> None:
+    def _explored(self, ep: Episode) -> None:
         """After storing ``ep``: chain its environment's next episode, move the
         curriculum."""
         complete = ep.done
@@ -823,10 +691,10 @@ class Trainer(BaseTrainer):
         else:
             self.explorer.reweigh(self.envs)
 
-    def _step(self, ep: _Episode) -> None:
+    def _step(self, ep: Episode) -> None:
         step_episode(self.task, ep)
 
-    def _end_learned(self, episodes: list[_Episode]) -> None:
+    def _end_learned(self, episodes: list[Episode]) -> None:
         """With ``relabel.end=learned``: end the episodes whose own instruction the learned
         reward model judges achieved at the frame just stepped to (scored in one batch)."""
         if self.cfg.relabel.end != "learned":
@@ -851,7 +719,7 @@ class Trainer(BaseTrainer):
             if h:
                 ep.terms[-1] = ep.done = ep.learned_end = True
 
-    def _store(self, ep: _Episode) -> None:
+    def _store(self, ep: Episode) -> None:
         """Label a finished episode and add it to the buffer."""
         episode = episode_record(self.task, ep)
         if ep.learned_end and ep.goal not in episode["achieved"][-1]:
@@ -983,7 +851,7 @@ class Trainer(BaseTrainer):
         if self.cfg.collect.backend == "ray":
             # this process's Ray worker restarts (each dropped the episode in hand)
             row["worker_restarts"] = self.remote.restarts if self.remote is not None else 0
-        labeller = getattr(self.task, "labeller", None)
+        labeller = self.task.labeller
         if labeller is not None:  # learned relabelling, against the rule captioner
             row.update(labeller.agreement())
         n = max(self._metric_count, 1)

@@ -504,7 +504,7 @@ class PerceptionEvalCommand:
         if self.hold_radius is not None and not self.hold_radius >= 0:
             raise LcrlError(f"--hold-radius must be >= 0, got {self.hold_radius}")
         if self.json:  # before the work: a --json that cannot be written fails now
-            from train.trainer import check_output_file
+            from train.run_lock import check_output_file
 
             check_output_file(self.json, "--json")
         model, meta = load_model(self.model)

@@ -278,7 +278,7 @@ class Policy:
                 f"this policy was not trained with language goals ({describe_env(self.cfg)}): "
                 "it takes no instruction"
             )
-        return self.task.encoder  # type: ignore[attr-defined]
+        return self.task.encoder
 
     # --- acting -------------------------------------------------------------------------
     def reset(self) -> None:
@@ -638,7 +638,7 @@ def load(
     Raises:
         LcrlError: no checkpoint at ``path``, or it does not match its environment.
     """
-    from train.evaluate import load_policy
+    from train.loading import load_policy
 
     loaded = load_policy(path, dict(env_overrides or {}), device)
     return Policy(loaded.cfg, loaded.agent, loaded.task, loaded.env, loaded.checkpoint)

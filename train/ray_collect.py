@@ -109,7 +109,7 @@ class RolloutWorker:
             ``task_id``, ``sim_error``, ``index``, ``version`` (the weights it acted with)
             and ``seconds``.
         """
-        from train.loop import begin_episode, episode_record, step_episode
+        from train.episodes import begin_episode, episode_record, step_episode
 
         t0 = time.perf_counter()
         cfg, task = self.cfg, self.task

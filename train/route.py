@@ -17,17 +17,17 @@ features, goal embeddings and actions as the base (checked when the folder is wr
 
 from __future__ import annotations
 
-import json
-import shutil
-import uuid
 from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
-from lcrl.checkpoint import ARRAYS_FILE, META_FILE, seal_checkpoint
+from lcrl.checkpoint import META_FILE
 from lcrl.errors import LcrlError
+from train.composite import check_same_inputs, write_composite
+from train.ensemble import ENSEMBLE, ensembled
+from train.evaluate import load_single, resolve_checkpoint
 
 #: The key of a routed checkpoint's ``meta.json`` that lists its experts.
 ROUTER = "router"
@@ -141,38 +141,6 @@ def check_expert(base: Any, family: str, expert: Any, where: str) -> None:
     )
 
 
-def check_same_inputs(other: Any, who: str, ref: Any, ref_name: str, plural: str) -> None:
-    """Refuse a policy ``other`` that cannot stand beside ``ref``: another env kind, other
-    observation features, goals or actions, or another text encoder; one line naming both
-    (``who``, ``ref_name``)."""
-    from train.evaluate import describe_problem
-
-    if other.cfg.env.kind != ref.cfg.env.kind:
-        raise LcrlError(
-            f"{who} was trained on the {other.cfg.env.kind} env, {ref_name} on the "
-            f"{ref.cfg.env.kind} env"
-        )
-    if other.task.problem() != ref.task.problem():
-        raise LcrlError(
-            f"{who} reads {describe_problem(other.task.problem())}; {ref_name} reads "
-            f"{describe_problem(ref.task.problem())}: {plural} must read the same observation "
-            "features"
-        )
-    if other.cfg.text_encoder.model != ref.cfg.text_encoder.model:
-        raise LcrlError(
-            f"{who} embeds instructions with {other.cfg.text_encoder.model}, {ref_name} with "
-            f"{ref.cfg.text_encoder.model}"
-        )
-
-
-def _copy_checkpoint(src: Path, dst: Path) -> None:
-    """A checkpoint folder without its replay buffer."""
-    dst.mkdir(parents=True)
-    for p in sorted(src.iterdir()):
-        if p.is_file() and p.name != ARRAYS_FILE:
-            shutil.copy2(p, dst / p.name)
-
-
 def write_router(
     out: str | Path, base_run: str, experts: Mapping[str, str], overwrite: bool = False
 ) -> Path:
@@ -183,15 +151,13 @@ def write_router(
             env lacks, or an expert that cannot stand in for the base
             (:func:`check_expert`).
     """
-    from train.evaluate import load_policy, resolve_checkpoint
-
     out = Path(out)
     if not experts:
         raise LcrlError("name at least one expert: --expert FAMILY=RUN")
     if out.exists() and not overwrite:
         raise LcrlError(f"{out} already exists: choose another folder or pass --overwrite")
     base_path = resolve_checkpoint(base_run)
-    base = load_policy(base_path)
+    base = load_member(base_path)
     _check_language(base, f"the base {base_path}")
     paths: dict[str, Path] = {}
     for family, run in experts.items():
@@ -201,7 +167,7 @@ def write_router(
                 f"{', '.join(base.cfg.env.families)}, not {family}"
             )
         paths[family] = resolve_checkpoint(run)
-        expert = load_policy(paths[family])
+        expert = load_member(paths[family])
         check_expert(base, family, expert, str(paths[family]))
         expert.env.close()
     base.env.close()
@@ -214,52 +180,21 @@ def write_router(
     return write_composite(out, base_path, parts, ROUTER, meta)
 
 
-def write_composite(
-    out: Path, first: str | Path, parts: Mapping[str, str | Path], key: str, entry: Any
-) -> Path:
-    """Write a checkpoint folder made of others: a copy of ``first`` (without its replay
-    buffer) with each of ``parts`` (``{folder inside it: checkpoint}``) copied under it and
-    ``entry`` under ``key`` in its ``meta.json``; written to a temporary folder beside
-    ``out`` and renamed, so an interrupted write leaves nothing.
-
-    Raises:
-        LcrlError: ``out`` is or holds a checkpoint it is made from.
-    """
-    target = Path(out).resolve()
-    for path in (first, *parts.values()):
-        source = Path(path).resolve()
-        if source == target or target in source.parents:
-            raise LcrlError(f"{out} holds {path}, which it is made from: choose another folder")
-    tmp = out.parent / f".{out.name}.tmp-{uuid.uuid4().hex[:8]}"
-    try:
-        _copy_checkpoint(Path(first), tmp)
-        for rel, path in parts.items():
-            _copy_checkpoint(Path(path), tmp / rel)
-        meta = json.loads((tmp / META_FILE).read_text())
-        meta[key] = entry
-        (tmp / META_FILE).write_text(json.dumps(meta, indent=1))
-        seal_checkpoint(tmp)  # the meta changed, and the copy has no replay buffer
-        if out.exists():
-            shutil.rmtree(out)
-        out.parent.mkdir(parents=True, exist_ok=True)
-        tmp.rename(out)
-    finally:
-        if tmp.exists():
-            shutil.rmtree(tmp, ignore_errors=True)
-    return out
-
-
 def routed(loaded: Any, device: str | None = None) -> Any:
     """``loaded`` (a LoadedPolicy of a routed folder's base) acting through its experts."""
-    from train.evaluate import load_policy
-
     entry = loaded.checkpoint.meta[ROUTER]
     experts = {}
     for family, rel in dict(entry.get("experts", {})).items():
         path = Path(loaded.checkpoint.path) / rel
         if not (path / META_FILE).is_file():
             raise LcrlError(f"the routed checkpoint {loaded.checkpoint.path} lacks {path}")
-        experts[family] = load_policy(path, device=device)
+        experts[family] = load_member(path, device=device)
     saved = loaded.checkpoint.meta.get("config", {}).get("env", {}).get("families")
     loaded.agent = RoutedAgent(loaded, experts, saved)
     return loaded
+
+
+def load_member(path: str | Path, device: str | None = None) -> Any:
+    """The base or an expert of a router: one run's policy, or an ensemble's mean."""
+    loaded = load_single(path, device=device)
+    return ensembled(loaded, device) if ENSEMBLE in loaded.checkpoint.meta else loaded

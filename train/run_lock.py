@@ -8,6 +8,8 @@ crashes included: the next run finds the file, sees that nobody holds it, takes 
 and says whose it was. ``lcrl eval --out`` refuses to write inside a folder held by a
 training run.
 
+:func:`check_output_file` refuses, before any work, a file a command could not write.
+
 Where ``fcntl`` is missing (Windows), the holder's process id stands in for the file
 lock: a folder is held while the process it names is alive.
 """
@@ -199,3 +201,24 @@ def refuse_if_training(path: str | Path, option: str) -> None:
                 f"{option} {path} is inside {folder}, which {who.describe()} is writing: "
                 "write elsewhere, or wait for it to end"
             )
+
+
+def check_output_file(path: str | Path, option: str) -> None:
+    """Refuse an output file that cannot be written, before any work is done: a folder, a
+    path below a file, or a path in a folder that cannot be written. Creates nothing.
+
+    Args:
+        path: the file the command will write.
+        option: the option that names it (``--json``), for the message.
+
+    Raises:
+        LcrlError: naming the option, the path and the problem.
+    """
+    p = Path(path)
+    if p.is_dir():
+        raise LcrlError(f"{option} {p} is a folder: name a file, e.g. {p / 'eval.json'}")
+    folder = next(q for q in (*p.parents, Path(".")) if q.exists())
+    if not folder.is_dir():
+        raise LcrlError(f"{option} {p} cannot be written: {folder} is a file, not a folder")
+    if not os.access(folder, os.W_OK):
+        raise LcrlError(f"{option} {p} cannot be written: the folder {folder} is not writable")

@@ -103,10 +103,8 @@ def make_env(cfg: EnvConfig, split_set: str = "train", training: bool = False) -
         split_set: the instruction set an instruction-following env draws from.
         training: apply the training-only options (``train_until_success``).
     """
-    env_spec(cfg.kind)  # an unknown simulator first: its goal type cannot be resolved
-    modality = goal_modality(cfg.goal_type)
-    spec = check_env_config(cfg)
-    check_tasks(cfg)
+    check_tasks(cfg)  # the config as a whole, once
+    modality, spec = goal_modality(cfg.goal_type), env_spec(cfg.kind)
     env = spec.make(cfg)
     if modality.instructed:
         env = _language_wrapper(env, cfg, spec, split_set, training)
@@ -151,12 +149,19 @@ def task_texts(cfg: EnvConfig) -> tuple[str, ...]:
 
 
 def check_tasks(cfg: EnvConfig) -> None:
-    """Refuse a task set that cannot run: task ids on an env without instructions, an
+    """Refuse an env config that cannot be built (:func:`train.environments.check_env_config`),
+    the instruction reader over goals without text, or a task set that cannot run: task ids
+    on an env without instructions, an
     empty task set with task ids, an instruction that does not parse, that is outside the
     env's families, or that repeats another (in any phrasing)."""
     env_spec(cfg.kind)  # an unknown simulator first: its goal type cannot be resolved
     modality = goal_modality(cfg.goal_type)
     spec = check_env_config(cfg)
+    if (cfg.text_reader or cfg.canonical_reader) and not modality.text:
+        raise LcrlError(
+            f"the instruction reader reads language goals; goal type {cfg.goal_type!r} "
+            "has none: drop --env.text-reader / --env.canonical-reader"
+        )
     tasks = task_texts(cfg)
     if not tasks:
         if modality.needs_tasks:
@@ -278,6 +283,37 @@ class Task:
     query = "goal"
     #: The observation entry that holds the goal when none is given (``query="goal"``).
     goal_key: str | None = "desired_goal"
+
+    # What instructions add (language goals; task ids over instructions in part). A task
+    # without them keeps these defaults, so no caller has to probe for them.
+    #: The instruction table (the training instructions first), or None: no instructions.
+    table: list[str] | None = None
+    #: How many of :attr:`table`'s instructions are trained on (the rest are held out).
+    num_train: int = 0
+    #: The frozen text encoder's embedding of every :attr:`table` row, or None.
+    embeddings: np.ndarray | None = None
+    #: Training instruction -> its row of :attr:`table` (what hindsight labels name), or
+    #: None: nothing is relabelled by instruction.
+    train_ids: dict[str, int] | None = None
+    #: The compositional split the instructions come from (``captioner.splits``), or None.
+    split: Any = None
+    #: The instruction families its episodes follow (none: goals without instructions).
+    families: tuple[str, ...] = ()
+    #: What reads the instructions (the frozen encoder, or a reader over it), or None.
+    encoder: Any = None
+    #: A learned captioner / reward model that labels stored episodes, or None (the rule
+    #: captioner does, where there are instructions).
+    labeller: Any = None
+
+    def phrasing_embeddings(self) -> tuple[np.ndarray, np.ndarray] | None:
+        """Training-only phrasings of the training instructions and how many each has
+        (:meth:`LanguageTask.phrasing_embeddings`); None: none."""
+        return None
+
+    def grounding_targets(self) -> np.ndarray | None:
+        """The object slots each instruction names, for the grounding loss
+        (:meth:`LanguageTask.grounding_targets`); None: the goals name no object."""
+        return None
 
     @classmethod
     def from_config(cls, cfg: EnvConfig, env: gym.Env, embed: Any = None, **kwargs: Any) -> Task:
@@ -751,9 +787,9 @@ class LanguageTask(Task):
             raise LcrlError(f"instruction {text!r} is not in the instruction table")
         return self.ids[text]
 
-    #: Learned captioner / reward model (:class:`captioner.learned.LearnedLabeller`) that
-    #: labels stored episodes from camera frames; None: the rule captioner does.
-    labeller: Any = None
+    # labeller (Task): a learned captioner / reward model
+    # (:class:`captioner.learned.LearnedLabeller`) that labels stored episodes from camera
+    # frames; None: the rule captioner does.
 
     def step_record(self, obs: Mapping[str, Any], env: gym.Env) -> Any:
         """The scene after each step (captioned at the end of the episode), with the

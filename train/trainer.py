@@ -346,27 +346,6 @@ def check_out_dir(out: Path, what: str = "the run folder") -> None:
                 p.rmdir()
 
 
-def check_output_file(path: str | Path, option: str) -> None:
-    """Refuse an output file that cannot be written, before any work is done: a folder, a
-    path below a file, or a path in a folder that cannot be written. Creates nothing.
-
-    Args:
-        path: the file the command will write.
-        option: the option that names it (``--json``), for the message.
-
-    Raises:
-        LcrlError: naming the option, the path and the problem.
-    """
-    p = Path(path)
-    if p.is_dir():
-        raise LcrlError(f"{option} {p} is a folder: name a file, e.g. {p / 'eval.json'}")
-    folder = next(q for q in (*p.parents, Path(".")) if q.exists())
-    if not folder.is_dir():
-        raise LcrlError(f"{option} {p} cannot be written: {folder} is a file, not a folder")
-    if not os.access(folder, os.W_OK):
-        raise LcrlError(f"{option} {p} cannot be written: the folder {folder} is not writable")
-
-
 def truncate_log(path: Path, step: int) -> int:
     """Drop the rows of a CSV log whose ``step`` is past ``step`` (what a killed run wrote
     after its last checkpoint); returns how many were dropped."""
@@ -398,7 +377,7 @@ def eval_row(results: Mapping[str, Any], task: Any, step: int, episodes: int) ->
     """The eval.csv row of an evaluation: step, episodes, success per set and per family
     (every family of the task gets a column, even one that no episode of this round drew)."""
     row: dict[str, Any] = {"step": step, "episodes": episodes}
-    families = tuple(getattr(task, "families", ()))
+    families = tuple(task.families)
     for name, res in results.items():
         row[f"{name}/success"] = res["success"]
         for fam in dict.fromkeys((*families, *res["families"])):
@@ -605,7 +584,7 @@ class BaseTrainer(ABC):
         """Train to ``total_steps``; returns the final evaluation. Ctrl-C checkpoints the
         run (continue it with ``--resume``) and raises ``KeyboardInterrupt`` again."""
         cfg = self.cfg
-        known = tuple(getattr(self.task, "sets", ()))
+        known = tuple(self.task.sets)
         unknown = [name for name in cfg.eval_sets if name not in known]
         if unknown:
             self.close()

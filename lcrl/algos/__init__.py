@@ -26,6 +26,8 @@ from typing import Any
 from lcrl.algos import bc, crl, dqn, sac, td3
 from lcrl.algos.base import (
     ACTION_KINDS,
+    ALGOS,
+    AUTO_ALGOS,
     DATA_SOURCES,
     GOAL_NORMALISERS,
     TEXT_GOAL_NORMS,
@@ -35,8 +37,12 @@ from lcrl.algos.base import (
     AlgoSpec,
     GoalEmbedder,
     Problem,
+    algo_choices,
+    check_algo,
     check_fields,
+    check_multitask,
     flat_target,
+    resolve_algo,
     resolve_device,
 )
 from lcrl.algos.bc import ACTION_CLIP, BC, BC_LOSSES, BCConfig, tanh_gaussian_log_prob
@@ -45,19 +51,10 @@ from lcrl.algos.dqn import DQN, DQNConfig
 from lcrl.algos.sac import SAC, SACConfig
 from lcrl.algos.td3 import TD3, TD3Config
 from lcrl.errors import LcrlError
-from lcrl.multitask import MultiTaskOptions
 
-#: Every algorithm, by name: the single list of them.
-ALGOS: dict[str, AlgoSpec] = {
-    "sac": sac.SPEC,
-    "td3": td3.SPEC,
-    "crl": crl.SPEC,
-    "dqn": dqn.SPEC,
-    "bc": bc.SPEC,
-}
-
-#: What ``auto`` stands for, by action space.
-AUTO_ALGOS = {"continuous": "sac", "discrete": "dqn"}
+# Every algorithm, by name: the single list of them. The dict itself lives in
+# lcrl.algos.base (so that an agent checks itself against it without importing upward).
+ALGOS.update(sac=sac.SPEC, td3=td3.SPEC, crl=crl.SPEC, dqn=dqn.SPEC, bc=bc.SPEC)
 
 __all__ = [
     "ACTION_CLIP",
@@ -94,82 +91,6 @@ __all__ = [
     "resolve_device",
     "tanh_gaussian_log_prob",
 ]
-
-
-def _one_of(names: list[str] | tuple[str, ...], word: str = "or") -> str:
-    """``a, b or c``."""
-    return names[0] if len(names) == 1 else f"{', '.join(names[:-1])} {word} {names[-1]}"
-
-
-def algo_choices() -> tuple[str, ...]:
-    """The values ``--algo`` takes: ``auto`` and every name in :data:`ALGOS`."""
-    return ("auto", *ALGOS)
-
-
-def resolve_algo(name: str, discrete: bool) -> str:
-    """The algorithm ``name`` stands for: ``auto`` is DQN for discrete actions and SAC for
-    continuous ones (:data:`AUTO_ALGOS`), any other name itself.
-
-    Args:
-        name: ``auto`` or a name in :data:`ALGOS` (not checked here: see
-            :func:`check_algo`).
-        discrete: whether the environment's actions are discrete.
-    """
-    if name == "auto":
-        return AUTO_ALGOS["discrete" if discrete else "continuous"]
-    return name
-
-
-def check_algo(name: str, discrete: bool | None = None) -> None:
-    """Refuse an unknown algorithm, or one that does not take the environment's actions.
-
-    Args:
-        name: ``auto`` or a name in :data:`ALGOS`.
-        discrete: whether the environment's actions are discrete; ``None`` (not known
-            yet) checks the name only.
-
-    Raises:
-        LcrlError: an unknown name (the message lists :func:`algo_choices`), or an
-            algorithm for the other kind of actions (the message names one that fits).
-    """
-    choices = algo_choices()
-    if name not in choices:
-        raise LcrlError(f"unknown algo {name!r}; choose {_one_of(choices)}")
-    if discrete is None:
-        return
-    spec = ALGOS[resolve_algo(name, discrete)]
-    if not spec.takes(discrete):
-        have, need = ("discrete", "continuous") if discrete else ("continuous", "discrete")
-        raise LcrlError(
-            f"{spec.name} needs {need} actions; this env has {have} actions: use "
-            f"{resolve_algo('auto', discrete)}"
-        )
-
-
-def check_multitask(name: str, options: MultiTaskOptions) -> None:
-    """Refuse active multi-task options (PCGrad, task weights, conflict measurement) for an
-    algorithm whose spec does not implement them.
-
-    Args:
-        name: the algorithm (``auto`` is not resolved: it passes).
-        options: the multi-task options.
-
-    Raises:
-        LcrlError: the options are active and ``name`` is not a multi-task algorithm.
-    """
-    if not options.active or name == "auto":
-        return
-    spec = ALGOS.get(name)
-    if spec is not None and spec.multitask:
-        return
-    able = [n for n, s in ALGOS.items() if s.multitask]
-    what = "PCGrad, task weights and gradient-conflict measurement"
-    if not able:
-        raise LcrlError(f"{what} are not implemented by any algorithm: turn them off")
-    raise LcrlError(
-        f"{what} are implemented for {_one_of([n.upper() for n in able], 'and')}, not {name}: "
-        f"use --algo {_one_of(able)} or turn the multitask options off"
-    )
 
 
 def build_agent(

@@ -443,18 +443,15 @@ class Agent:
         self.updates = 0
         self.acts = 0
         options.multitask.validate(problem.num_tasks)
-        # The registry imports this module, so it is imported when an agent is built.
-        from lcrl import algos
-
-        if self.name in algos.ALGOS:
-            algos.check_algo(self.name, problem.discrete)
-            if problem.privileged and not algos.ALGOS[self.name].privileged_critic:
-                able = [n for n, spec in algos.ALGOS.items() if spec.privileged_critic]
+        if self.name in ALGOS:
+            check_algo(self.name, problem.discrete)
+            if problem.privileged and not ALGOS[self.name].privileged_critic:
+                able = [n for n, spec in ALGOS.items() if spec.privileged_critic]
                 raise LcrlError(
                     f"{self.name} has no critic that could read privileged state apart from "
                     f"its actor: the asymmetric actor-critic needs one of {able}"
                 )
-        algos.check_multitask(self.name, options.multitask)
+        check_multitask(self.name, options.multitask)
         if options.grounding < 0:
             raise LcrlError(f"grounding must be 0 (off) or positive, got {options.grounding}")
         if options.grounding and self.name not in GROUNDED_ALGOS:
@@ -909,3 +906,88 @@ class AlgoSpec:
     def takes(self, discrete: bool) -> bool:
         """Whether the algorithm takes discrete (or continuous) actions."""
         return self.actions in ("any", "discrete" if discrete else "continuous")
+
+
+#: Every algorithm, by name (:data:`lcrl.algos.ALGOS`, the same dict): filled by
+#: :mod:`lcrl.algos`, the one place an algorithm is listed, when the package is imported,
+#: which happens before any of its modules (so before any agent is built).
+ALGOS: dict[str, AlgoSpec] = {}
+
+#: What ``auto`` stands for, by action space.
+AUTO_ALGOS = {"continuous": "sac", "discrete": "dqn"}
+
+
+def _one_of(names: list[str] | tuple[str, ...], word: str = "or") -> str:
+    """``a, b or c``."""
+    return names[0] if len(names) == 1 else f"{', '.join(names[:-1])} {word} {names[-1]}"
+
+
+def algo_choices() -> tuple[str, ...]:
+    """The values ``--algo`` takes: ``auto`` and every name in :data:`ALGOS`."""
+    return ("auto", *ALGOS)
+
+
+def resolve_algo(name: str, discrete: bool) -> str:
+    """The algorithm ``name`` stands for: ``auto`` is DQN for discrete actions and SAC for
+    continuous ones (:data:`AUTO_ALGOS`), any other name itself.
+
+    Args:
+        name: ``auto`` or a name in :data:`ALGOS` (not checked here: see
+            :func:`check_algo`).
+        discrete: whether the environment's actions are discrete.
+    """
+    if name == "auto":
+        return AUTO_ALGOS["discrete" if discrete else "continuous"]
+    return name
+
+
+def check_algo(name: str, discrete: bool | None = None) -> None:
+    """Refuse an unknown algorithm, or one that does not take the environment's actions.
+
+    Args:
+        name: ``auto`` or a name in :data:`ALGOS`.
+        discrete: whether the environment's actions are discrete; ``None`` (not known
+            yet) checks the name only.
+
+    Raises:
+        LcrlError: an unknown name (the message lists :func:`algo_choices`), or an
+            algorithm for the other kind of actions (the message names one that fits).
+    """
+    choices = algo_choices()
+    if name not in choices:
+        raise LcrlError(f"unknown algo {name!r}; choose {_one_of(choices)}")
+    if discrete is None:
+        return
+    spec = ALGOS[resolve_algo(name, discrete)]
+    if not spec.takes(discrete):
+        have, need = ("discrete", "continuous") if discrete else ("continuous", "discrete")
+        raise LcrlError(
+            f"{spec.name} needs {need} actions; this env has {have} actions: use "
+            f"{resolve_algo('auto', discrete)}"
+        )
+
+
+def check_multitask(name: str, options: MultiTaskOptions) -> None:
+    """Refuse active multi-task options (PCGrad, task weights, conflict measurement) for an
+    algorithm whose spec does not implement them.
+
+    Args:
+        name: the algorithm (``auto`` is not resolved: it passes).
+        options: the multi-task options.
+
+    Raises:
+        LcrlError: the options are active and ``name`` is not a multi-task algorithm.
+    """
+    if not options.active or name == "auto":
+        return
+    spec = ALGOS.get(name)
+    if spec is not None and spec.multitask:
+        return
+    able = [n for n, s in ALGOS.items() if s.multitask]
+    what = "PCGrad, task weights and gradient-conflict measurement"
+    if not able:
+        raise LcrlError(f"{what} are not implemented by any algorithm: turn them off")
+    raise LcrlError(
+        f"{what} are implemented for {_one_of([n.upper() for n in able], 'and')}, not {name}: "
+        f"use --algo {_one_of(able)} or turn the multitask options off"
+    )
