@@ -55,7 +55,7 @@ LABELS = {"train": "seen", "heldout": "held-out combinations", "paraphrase": "pa
 def lcrl(*args: str, log: Path | None = None) -> None:
     """Run ``lcrl ARGS`` in a subprocess with one torch thread (two run side by side)."""
     env = side_by_side_env(2)
-    cmd = [sys.executable, "-m", "train.cli", *args]
+    cmd = [sys.executable, "-m", "train.commands.cli", *args]
     print("== lcrl " + " ".join(args), flush=True)
     with open(log or os.devnull, "w") as f:
         done = subprocess.run(

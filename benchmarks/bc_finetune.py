@@ -39,10 +39,10 @@ from benchmarks.common import (
     save_markdown,
 )
 from lcrl.demos import DemoDataset
-from train.report import spread
+from train.evaluation.report import spread
 
 NAME = "bc_finetune"
-LCRL = [sys.executable, "-m", "train.cli"]
+LCRL = [sys.executable, "-m", "train.commands.cli"]
 ARMS = ("bc", "rl", "finetuned")
 SETS = ("train", "heldout", "paraphrase")
 COMMON = ["--env.families", "push", "--eval-every", "0", "--checkpoint-every", "0"]

@@ -61,7 +61,7 @@ from captioner.learned import (
     format_results,
     train_models,
 )
-from train.captions import collect
+from train.commands.captions import collect
 
 
 def main(argv: list[str] | None = None) -> int:

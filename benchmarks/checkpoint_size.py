@@ -114,8 +114,8 @@ def main(argv: list[str] | None = None) -> int:
     import torch
 
     torch.set_num_threads(1)
-    from train.config import PRESETS
-    from train.loop import Trainer
+    from train.configs.presets import PRESETS
+    from train.training.loop import Trainer
 
     cfg = copy.deepcopy(PRESETS["lang2d"][1])
     work = Path(tempfile.mkdtemp(prefix="lcrl-ckpt-"))

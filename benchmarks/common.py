@@ -14,7 +14,7 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
-from train.machine import PROCESSES_VARIABLE, available_cores, machine, machine_line
+from train.runtime.machine import PROCESSES_VARIABLE, available_cores, machine, machine_line
 
 __all__ = [
     "RESULTS_DIR",
@@ -54,7 +54,7 @@ def die_with_parent() -> None:
 def side_by_side_env(processes: int = 2, **extra: str) -> dict[str, str]:
     """The environment of a child lcrl process that trains beside ``processes - 1`` others:
     ``LCRL_PROCESSES`` (so each takes its share of the cores as torch threads, see
-    :func:`train.machine.default_threads`) and the same share for OpenMP and MKL, so that
+    :func:`train.runtime.machine.default_threads`) and the same share for OpenMP and MKL, so that
     no more threads are busy than there are cores; plus ``extra`` variables."""
     threads = str(max(1, available_cores() // max(1, processes)))
     env = dict(os.environ)
@@ -104,7 +104,7 @@ def run_jobs(jobs: Sequence[tuple[str, list[str], Path]], parallel: int = 2) -> 
 def final_eval(out: Path, episodes: int, sets: Sequence[str]) -> dict[str, Any]:
     """The last evaluation in a run's eval.csv (``episodes`` per set): success per set
     with its 95% Wilson interval and per family."""
-    from train.eval_suite import wilson_interval
+    from train.evaluation.eval_suite import wilson_interval
 
     with (out / "eval.csv").open() as f:
         row = list(csv.DictReader(f))[-1]

@@ -57,7 +57,7 @@ from benchmarks.common import (
     save_markdown,
 )
 from benchmarks.image_policy import LCRL, child_env
-from train.report import spread
+from train.evaluation.report import spread
 
 PRESETS = {"lang2d": "lang2d", "robosuite": "robosuite-reach"}
 TARGETS = {
@@ -72,7 +72,7 @@ READ = "-canonical"
 
 def arm_args(arm: str, grounding: float, phrasings: int = 16) -> list[str]:
     """The ``lcrl train`` options of an arm."""
-    from train.config import SLOT_ATTRIBUTES
+    from train.configs.presets import SLOT_ATTRIBUTES
 
     # only the clipped arm clips its TD targets, whatever the preset does
     attributes = ["--agent.net.slot-mode", "attributes", "--agent.net.slot-attributes"]

@@ -49,7 +49,7 @@ from captioner.grammar import Instruction
 from envs.features import RelativePositions
 from lcrl.nets import GoalConditionedNet, NetConfig, RunningNorm
 from lcrl.text_encoder import FrozenTextEncoder
-from train.tasks import EnvConfig, make_env, make_task
+from train.environments.tasks import EnvConfig, make_env, make_task
 
 NETWORKS: dict[str, tuple[bool, dict[str, Any]]] = {
     "concat": (False, {}),

@@ -89,11 +89,11 @@ def teacher_on_estimates(
     import numpy as np
 
     from envs.features import slot_layout
-    from train.distill import student_config
-    from train.eval_suite import rate_stats
-    from train.evaluate import resolve_checkpoint
-    from train.loading import load_policy
-    from train.tasks import make_env
+    from train.environments.tasks import make_env
+    from train.evaluation.eval_suite import rate_stats
+    from train.evaluation.evaluate import resolve_checkpoint
+    from train.policies.loading import load_policy
+    from train.training.distill import student_config
 
     policy = load_policy(resolve_checkpoint(str(teacher)))
     env_cfg = student_config(policy.cfg, perception=perception).env

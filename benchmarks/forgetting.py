@@ -35,11 +35,11 @@ from benchmarks.common import (
     save_json,
     save_markdown,
 )
-from train.report import spread
+from train.evaluation.report import spread
 
 NAME = "forgetting"
 ARMS = ("naive", "replay", "ewc", "ewc-loss")
-LCRL = [sys.executable, "-m", "train.cli"]
+LCRL = [sys.executable, "-m", "train.commands.cli"]
 
 
 def arm_args(arm: str, args: argparse.Namespace) -> list[str]:

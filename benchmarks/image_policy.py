@@ -44,7 +44,7 @@ from benchmarks.common import (
 NAME = "robosuite-image-reach"
 TARGETS = {"seen": 0.80, "wall_clock_s": 5400.0}
 GOAL_WALL_CLOCK_S = 3600.0
-LCRL = [sys.executable, "-m", "train.cli"]
+LCRL = [sys.executable, "-m", "train.commands.cli"]
 
 
 def child_env() -> dict[str, str]:

@@ -78,7 +78,7 @@ def reuse(run: Path, into: Path, args: argparse.Namespace, name: str = "rule") -
     import shutil
 
     from benchmarks.learning_curves import same_config
-    from train.cli import parse_train_args
+    from train.commands.cli import parse_train_args
 
     if not (run / "report.md").is_file():
         raise SystemExit(f"{run}: not a finished run (no report.md)")
@@ -441,7 +441,7 @@ def by_family(result: dict) -> dict:
 def pool(results: list[dict]) -> dict:
     """Sets of several seeds' evaluations as one: successes over episodes with a 95% Wilson
     interval, overall and per family."""
-    from train.eval_suite import wilson_interval
+    from train.evaluation.eval_suite import wilson_interval
 
     def one(rows: list[dict]) -> dict:
         n = sum(int(r["episodes"]) for r in rows)

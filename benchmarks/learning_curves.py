@@ -64,9 +64,10 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt
 
 from benchmarks.common import caption, die_with_parent, machine, save_json, save_markdown
-from train.config import PRESETS, BufferConfig, RelabelConfig, TrainConfig
-from train.loop import Trainer
-from train.tasks import EnvConfig
+from train.configs.config import BufferConfig, RelabelConfig, TrainConfig
+from train.configs.presets import PRESETS
+from train.environments.tasks import EnvConfig
+from train.training.loop import Trainer
 
 #: The learned captioner and reward model of ``python benchmarks/captioning.py``.
 LEARNED_CHECKPOINT = "runs/bench/captioner-lang2d"

@@ -34,8 +34,9 @@ TARGET = 0.95
 
 def trainer(envs: int, steps: int, warmup: int, seed: int) -> object:
     """A ``lang2d`` trainer with a filled buffer, at ``learning_starts``."""
-    from train.config import PRESETS, CollectionConfig
-    from train.loop import Trainer
+    from train.configs.config import CollectionConfig
+    from train.configs.presets import PRESETS
+    from train.training.loop import Trainer
 
     cfg = copy.deepcopy(PRESETS["lang2d"][1])
     out = Path(tempfile.mkdtemp(prefix="lcrl-bound-"))

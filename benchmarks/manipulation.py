@@ -63,11 +63,11 @@ from benchmarks.common import (
     save_markdown,
     side_by_side_env,
 )
-from train.config import MANIPULATION_FAMILIES
+from train.configs.presets import MANIPULATION_FAMILIES
 
 NAME = "robosuite-manipulation"
 PRESET = "robosuite-manip"
-LCRL = [sys.executable, "-m", "train.cli"]
+LCRL = [sys.executable, "-m", "train.commands.cli"]
 SETS = ("train", "heldout", "paraphrase")
 #: Seen-instruction success per family, and two instructions in a row.
 TARGETS = {"reach": 0.90, "push": 0.80, "lift": 0.70, "put": 0.50, "stack": 0.30, "chain2": 0.60}
@@ -301,7 +301,7 @@ def family_runs(pairs: list[str]) -> dict[str, str]:
 def scripted(args: argparse.Namespace) -> dict[str, float]:
     """The scripted controller's success per family, same limit and number of episodes."""
     from captioner.scripted3d import evaluate as run_scripted
-    from train.config import PRESETS
+    from train.configs.presets import PRESETS
 
     cfg = PRESETS[args.preset][1].env
     steps = run_scripted(
@@ -399,7 +399,7 @@ def seen_instruction(run: str, family: str) -> str:
     """A seen (training) instruction of ``family`` that the run's training env draws on
     its first layout (seed 0), so ``lcrl act`` finds it feasible there."""
     import lcrl
-    from train.tasks import find_language_wrapper
+    from train.environments.tasks import find_language_wrapper
 
     env = lcrl.load(run).make_env("train")
     try:

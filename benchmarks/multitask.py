@@ -7,7 +7,7 @@ Run from the repository root::
     python benchmarks/multitask.py --steps 1000 --eval-episodes 16   # a quick check
     python benchmarks/multitask.py --report-only   # rebuild the results from runs/bench/
 
-The same 8 tasks (``train.config.TASKS_2D``: 4 reach and 4 push instructions of the 2D
+The same 8 tasks (``train.configs.presets.TASKS_2D``: 4 reach and 4 push instructions of the 2D
 split's training set) are learned four ways, same seed and budget:
 
 ``ids``
@@ -75,10 +75,11 @@ from benchmarks.common import (
     save_markdown,
 )
 from benchmarks.learning_curves import resumable, reusable
-from train.config import PRESETS, TrainConfig
-from train.eval_suite import wilson_interval
-from train.loop import Trainer
-from train.tasks import task_texts
+from train.configs.config import TrainConfig
+from train.configs.presets import PRESETS
+from train.environments.tasks import task_texts
+from train.evaluation.eval_suite import wilson_interval
+from train.training.loop import Trainer
 
 NAME = "multitask"
 TITLE = "Multi-task RL on the 2D tabletop: 8 tasks as task ids or language goals, PCGrad"
@@ -367,7 +368,7 @@ def balancing_headline(results: dict[str, Any]) -> dict[str, Any]:
     """``uniform_mean``, ``pcgrad_mean`` and ``gradnorm_mean``: the final mean success of
     the task-id runs of each balancing, averaged over the seeds that ran (with its
     spread)."""
-    from train.report import spread
+    from train.evaluation.report import spread
 
     out: dict[str, Any] = {}
     for key, run in BALANCING.items():
@@ -477,7 +478,7 @@ def main(argv: list[str] | None = None) -> int:
 
 
 if __name__ == "__main__":
-    from train.trainer import RunInterrupted
+    from train.training.trainer import RunInterrupted
 
     try:
         raise SystemExit(main())

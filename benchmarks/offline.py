@@ -38,10 +38,10 @@ from benchmarks.common import (
     save_json,
     save_markdown,
 )
-from train.report import spread
+from train.evaluation.report import spread
 
 NAME = "offline-lang2d"
-LCRL = [sys.executable, "-m", "train.cli"]
+LCRL = [sys.executable, "-m", "train.commands.cli"]
 #: Each arm's ``lcrl train`` options.
 ARMS: dict[str, list[str]] = {
     "her": ["--algo", "td3"],

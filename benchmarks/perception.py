@@ -93,8 +93,8 @@ def main(argv: list[str] | None = None) -> int:
 
     torch.set_num_threads(args.threads)
     from captioner.dataset import CollectConfig
-    from train.captions import collect
-    from train.perception import (
+    from train.commands.captions import collect
+    from train.environments.perception import (
         PerceptionEvalCommand,
         PerceptionTrainConfig,
         train,

@@ -53,8 +53,9 @@ PRESET = "robosuite-image"
 
 def _trainer(args: argparse.Namespace) -> Any:
     """A ``robosuite-image`` reach trainer with ``--warmup`` random steps in its buffer."""
-    from train.config import PRESETS, CollectionConfig
-    from train.loop import Trainer
+    from train.configs.config import CollectionConfig
+    from train.configs.presets import PRESETS
+    from train.training.loop import Trainer
 
     cfg = copy.deepcopy(PRESETS[PRESET][1])
     cfg = dataclasses.replace(
@@ -139,7 +140,7 @@ def train(args: argparse.Namespace) -> dict[str, Any]:
     cmd = [
         sys.executable,
         "-m",
-        "train.cli",
+        "train.commands.cli",
         "train",
         PRESET,
         "--out",
@@ -212,7 +213,7 @@ def evaluate(args: argparse.Namespace) -> dict[str, Any]:
     cmd = [
         sys.executable,
         "-m",
-        "train.cli",
+        "train.commands.cli",
         "eval",
         args.work,
         "--episodes",

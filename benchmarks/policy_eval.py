@@ -46,7 +46,7 @@ def main(argv: list[str] | None = None) -> int:
         help="evaluate nothing: rebuild the summary from the eval.json files already written",
     )
     args = parser.parse_args(argv)
-    from train.cli import main as lcrl
+    from train.commands.cli import main as lcrl
 
     info = machine()
     missing = [RUNS[n][0] for n in args.runs if not (Path(RUNS[n][0]) / "latest.json").exists()]

@@ -99,7 +99,7 @@ def job(preset: str, seed: int, total: int) -> tuple[str, list[str], Path] | Non
     out = run_folder(preset, seed)
     if finished(out, total):
         return None
-    argv = [sys.executable, "-m", "train.entry", "train", preset, "--out", str(out)]
+    argv = [sys.executable, "-m", "train.commands.entry", "train", preset, "--out", str(out)]
     if (out / "latest.json").is_file():
         argv += ["--resume", "--total-steps", str(total)]
     else:
@@ -124,7 +124,7 @@ def pending(
 def bounds(preset: str) -> tuple[float, float]:
     """The return's bounds the preset's critic must stay within."""
     from lcrl.algos.base import value_bounds
-    from train.config import PRESETS as ALL
+    from train.configs.presets import PRESETS as ALL
 
     cfg = ALL[preset][1]
     # language goals: 0/1 success rewards that end the episode (LabelGoals)
@@ -178,7 +178,7 @@ def main() -> None:
     p.add_argument("--analyse", action="store_true", help="only read the runs there are")
     p.add_argument("--rerun", action="store_true", help="train runs the result file holds")
     args = p.parse_args()
-    from train.config import PRESETS as ALL
+    from train.configs.presets import PRESETS as ALL
 
     info = machine()
     totals = {name: ALL[name][1].total_steps for name in args.presets}

@@ -139,15 +139,15 @@ def run_pushes(
     ``captioner``, each episode's ``steps``: the rule's and the reward model's verdict)."""
     from captioner.rule import DIRECTION_VECTORS
     from lcrl.errors import LcrlError
-    from train.eval_suite import episode_seed
-    from train.loading import load_policy
-    from train.tasks import find_language_wrapper, reset_feasible
+    from train.environments.tasks import find_language_wrapper, reset_feasible
+    from train.evaluation.eval_suite import episode_seed
+    from train.policies.loading import load_policy
 
     models = None
     overrides = None
     if captioner is not None:
         from captioner.learned import LearnedCaptioner
-        from train.tasks import slot_layout_start
+        from train.environments.tasks import slot_layout_start
 
         models = LearnedCaptioner.load(captioner)
         overrides = {"extra": {"image": True, "image_size": int(models.frame_shape[0])}}

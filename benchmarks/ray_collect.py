@@ -38,7 +38,7 @@ from benchmarks.common import (
 )
 
 NAME = "ray_collect"
-LCRL = [sys.executable, "-m", "train.cli"]
+LCRL = [sys.executable, "-m", "train.commands.cli"]
 SETS = ("train", "heldout", "paraphrase")
 
 
@@ -62,9 +62,10 @@ def evaluate(run: Path, episodes: int) -> dict:
 def collection_rates(workers: int, seconds: float, seed: int) -> dict[str, float]:
     """Steps/s of collection alone: one local environment, then ``workers`` Ray workers
     kept busy (the policy acts; nothing is stored or updated)."""
-    from train.config import PRESETS, CollectionConfig
-    from train.loop import Trainer
-    from train.ray_collect import RayCollector
+    from train.configs.config import CollectionConfig
+    from train.configs.presets import PRESETS
+    from train.training.loop import Trainer
+    from train.training.ray_collect import RayCollector
 
     cfg = copy.deepcopy(PRESETS["lang2d"][1])
     cfg = dataclasses.replace(

@@ -85,9 +85,9 @@ def run_episodes(
     from benchmarks.push_misses import episode_probs
     from captioner.learned import LearnedCaptioner
     from lcrl.errors import LcrlError
-    from train.eval_suite import episode_seed
-    from train.loading import load_policy
-    from train.tasks import find_language_wrapper, reset_feasible, slot_layout_start
+    from train.environments.tasks import find_language_wrapper, reset_feasible, slot_layout_start
+    from train.evaluation.eval_suite import episode_seed
+    from train.policies.loading import load_policy
 
     models = LearnedCaptioner.load(captioner)
     if models.reward is None:

@@ -4,7 +4,7 @@ Run from the repository root::
 
     python benchmarks/reader.py   # lang2d, seeds 0 1 2: both designs, dropout 0 and 0.5
 
-The canonical reader (``--env.canonical-reader``, :mod:`train.text_reading`) is fitted,
+The canonical reader (``--env.canonical-reader``, :mod:`train.environments.text_reading`) is fitted,
 as a run fits it, on the training instructions of the env's split and their
 training-only phrasings (words the grammar does not know). It is then scored without any
 policy, on:
@@ -83,9 +83,9 @@ def score(
 ) -> dict[str, Any]:
     """Per arm and seed: the fraction read right in each set, and misread words."""
     from lcrl.text_encoder import FrozenTextEncoder
-    from train.config import PRESETS
-    from train.tasks import find_language_wrapper, make_env
-    from train.text_reading import (
+    from train.configs.presets import PRESETS
+    from train.environments.tasks import find_language_wrapper, make_env
+    from train.environments.text_reading import (
         CANONICAL_DESIGN,
         CANONICAL_MEMBERS,
         FAMILY_WEIGHT,
@@ -162,7 +162,7 @@ def main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv)
     if any(not 0.0 <= d < 1.0 for d in args.dropout):
         parser.error("--dropout values must be in [0, 1)")
-    from train.text_reading import CANONICAL_DROPOUT, FAMILY_WEIGHT
+    from train.environments.text_reading import CANONICAL_DROPOUT, FAMILY_WEIGHT
 
     if CANONICAL_DROPOUT not in args.dropout or set(args.designs) != set(DESIGNS):
         parser.error(

@@ -42,7 +42,7 @@ WALL_AIM_S = 8 * 3600
 
 def lcrl(*args: str) -> None:
     """Run ``lcrl ARGS`` as a user would; stop the benchmark if it fails."""
-    done = subprocess.run([sys.executable, "-m", "train.entry", *args])
+    done = subprocess.run([sys.executable, "-m", "train.commands.entry", *args])
     if done.returncode != 0:
         raise SystemExit(f"lcrl {' '.join(args)} failed ({done.returncode})")
 
@@ -135,7 +135,9 @@ def main() -> None:
         },
         "validation": "the pipeline's eval stage (lcrl eval ... --seed 1) is the validation "
         f"evaluation; seed {args.eval_seed} was evaluated once, for this file",
-        "tried": ["the robosuite-camera pipeline as shipped (train/pipeline.py), one build"],
+        "tried": [
+            "the robosuite-camera pipeline as shipped (train/commands/pipeline.py), one build"
+        ],
     }
     save_json(NAME, payload)
     pf = summary["per_family"]

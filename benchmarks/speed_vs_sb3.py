@@ -42,8 +42,8 @@ import matplotlib.pyplot as plt
 
 from benchmarks.common import command, machine, save_figure, save_json, save_markdown
 from lcrl.nets import NetConfig
-from train.config import PRESETS
-from train.loop import Trainer
+from train.configs.presets import PRESETS
+from train.training.loop import Trainer
 
 WARMUP = 1_000
 BATCH = 256

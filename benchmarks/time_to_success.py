@@ -55,7 +55,7 @@ NEW_OPTIONS = ["--collect.envs", "8", "--batch-size", "128"]
 BF16_OPTIONS = [*NEW_OPTIONS, "--agent.precision", "bf16"]
 OPTIONS = {"old": OLD_OPTIONS, "new": NEW_OPTIONS, "bf16": BF16_OPTIONS}
 TARGET_S = 480.0
-LCRL = [sys.executable, "-m", "train.cli"]
+LCRL = [sys.executable, "-m", "train.commands.cli"]
 
 
 def run_args(args: argparse.Namespace, arm: str) -> list[str]:

@@ -4,7 +4,7 @@ A learned captioner reads (first frame, current frame) and writes the instructio
 change between them achieved; a learned reward model scores (instruction, first frame,
 current frame). Both learn from episodes labelled by the rule captioner, which
 :func:`collect` gathers on a simulator the caller gives (a :class:`CaptionSimulator`;
-``lcrl caption collect`` passes an entry of :data:`train.environments.ENVS`): random
+``lcrl caption collect`` passes an entry of :data:`train.environments.simulators.ENVS`): random
 episodes (held random actions), scripted episodes (the scripted controller following an
 instruction feasible in the layout, train or held-out, with action noise) and, given a
 checkpoint, policy episodes.
@@ -383,7 +383,7 @@ class CollectConfig:
     out: str = "data/captions-lang2d.h5"
     """The HDF5 file to write."""
     env: str = "lang2d"
-    """The simulator: a kind of :data:`train.environments.ENVS` with instructions,
+    """The simulator: a kind of :data:`train.environments.simulators.ENVS` with instructions,
     ``lang2d`` or ``tabletop2d`` (the 2D tabletop, top-down frames) or ``robosuite`` (the
     Panda tabletop's agentview camera)."""
     episodes: int = 200
@@ -480,7 +480,7 @@ def _scene(env: Any) -> SceneState:
 class CaptionSimulator:
     """The simulator a caption dataset is collected on, given by the caller of
     :func:`collect` (``lcrl caption collect`` builds it from an entry of
-    :data:`train.environments.ENVS`, so any simulator registered there with instruction
+    :data:`train.environments.simulators.ENVS`, so any simulator registered there with instruction
     families and a scene reader can collect).
 
     Attributes:
@@ -552,7 +552,7 @@ def _choose(
 
 class EpisodeSource(Protocol):
     """Something that acts whole labelled episodes (a trained policy: see
-    :class:`train.captions.PolicyEpisodes`)."""
+    :class:`train.commands.captions.PolicyEpisodes`)."""
 
     def episode(self, cfg: CollectConfig, seed: int, writer: CaptionDatasetWriter) -> dict:
         """One episode from reset seed ``seed``: ``frames``, ``proprio``, ``labels`` (ids
@@ -568,10 +568,10 @@ def collect(
     Args:
         cfg: what to collect.
         simulator: where (``lcrl caption collect`` passes the entry of
-            :data:`train.environments.ENVS` that ``cfg.env`` names:
-            :func:`train.captions.collect`).
+            :data:`train.environments.simulators.ENVS` that ``cfg.env`` names:
+            :func:`train.commands.captions.collect`).
         policy: acts the ``policy`` episodes (``lcrl caption collect`` loads
-            ``cfg.policy`` with :func:`train.captions.collect`).
+            ``cfg.policy`` with :func:`train.commands.captions.collect`).
 
     Ctrl-C stops collecting and keeps the episodes finished so far (the file is
     completed before the interrupt is raised again).
@@ -580,7 +580,7 @@ def collect(
     if "policy" in cfg.sources and policy is None:
         raise LcrlError(
             "policy episodes need a trained policy to act them: collect them with "
-            "lcrl caption collect --policy CHECKPOINT (train.captions.collect)"
+            "lcrl caption collect --policy CHECKPOINT (train.commands.captions.collect)"
         )
     from tqdm import tqdm
 

@@ -13,7 +13,7 @@ The network: the frame with two coordinate channels goes through a small convolu
 stack; each channel of the last map gives its maximum and its spatial-softmax keypoint
 (expected image coordinates), which with the normalised proprioception feed an MLP that
 outputs, per slot, the normalised position and a presence logit. It is trained by
-regression on frames the simulator labels for free (``train/perception.py``).
+regression on frames the simulator labels for free (``train/environments/perception.py``).
 """
 
 from __future__ import annotations
@@ -338,7 +338,8 @@ class PerceivedSlots(nn.Module):
         """``(B, out_dim)`` observations of frames ``(B, H, W, 3)``, proprioception
         ``(B, start)`` and first-frame slot positions ``(B, count * d)``. The presence
         flags are the first frame's (an object absent there has the origin 0, as the
-        envs write it), as :class:`train.perception.PerceptionObservation` gives them."""
+        envs write it), as :class:`train.environments.perception.PerceptionObservation` gives
+        them."""
         lay = self.perception.layout
         d = lay.position_dims
         present = (origin.view(-1, lay.count, d) != 0).any(-1)

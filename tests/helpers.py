@@ -10,8 +10,9 @@ import sys
 from pathlib import Path
 
 from lcrl.nets import NetConfig
-from train.cli import main
-from train.config import PRESETS, TrainConfig
+from train.commands.cli import main
+from train.configs.config import TrainConfig
+from train.configs.presets import PRESETS
 
 #: Options that shrink an ``lcrl train`` command line to a few seconds.
 TINY_CLI = [
@@ -85,7 +86,7 @@ def untrained_perception(out: Path, seed: int = 0) -> Path:
     import torch
 
     from lcrl.perception import Perception, SlotLayout
-    from train.perception import PerceptionTrainConfig, save_model
+    from train.environments.perception import PerceptionTrainConfig, save_model
 
     torch.manual_seed(seed)
     layout = SlotLayout(2, 8, 3, 2)
@@ -104,7 +105,7 @@ def untrained_perception(out: Path, seed: int = 0) -> Path:
 def train_tiny(out: Path, preset: str, seed: int = 0, steps: int = 200, **env) -> Path:
     """A tiny run of ``preset`` trained for ``steps`` (half of them before learning), with
     ``env`` options replaced; its run folder."""
-    from train.loop import Trainer
+    from train.training.loop import Trainer
 
     cfg = tiny(preset, out, total_steps=steps, learning_starts=steps // 2, seed=seed)
     if env:
@@ -116,7 +117,7 @@ def train_tiny(out: Path, preset: str, seed: int = 0, steps: int = 200, **env) -
 #: Holds a run folder's lock until its standard input closes: ``python -c HOLD FOLDER``.
 HOLD = """
 import sys
-from train.run_lock import lock_run
+from train.runtime.run_lock import lock_run
 print(lock_run(sys.argv[1]) or "held", flush=True)
 sys.stdin.read()
 """

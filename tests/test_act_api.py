@@ -22,10 +22,10 @@ from helpers import cli, tiny
 
 import lcrl
 from lcrl.errors import LcrlError
-from train.act import annotate_episode, upscale
-from train.evaluate import run_episode
-from train.loop import Trainer
-from train.policy import Policy
+from train.commands.act import annotate_episode, upscale
+from train.evaluation.evaluate import run_episode
+from train.policies.policy import Policy
+from train.training.loop import Trainer
 
 ROOT = Path(__file__).resolve().parents[1]
 EXAMPLE = ROOT / "examples" / "query_policy.py"
@@ -343,7 +343,7 @@ def test_cli_interactive_over_a_pipe(lang_ckpt, tmp_path):
     lines = ["reach the red cube", "dance a jig", "y" * 250, "quit", "reach the blue cube"]
     command = ["act", str(lang_ckpt), "--interactive", "--episodes", "2", "--video", str(video)]
     proc = subprocess.run(
-        [sys.executable, "-m", "train.cli", *command],
+        [sys.executable, "-m", "train.commands.cli", *command],
         input="\n".join(lines) + "\n",
         capture_output=True,
         text=True,

@@ -14,7 +14,7 @@ import pytest
 import torch
 from helpers import cli, error_line
 
-import train.evaluate
+import train.evaluation.evaluate
 from lcrl import algos
 from lcrl.algos import (
     ALGOS,
@@ -41,7 +41,8 @@ from lcrl.algos import (
 from lcrl.errors import LcrlError
 from lcrl.multitask import MultiTaskOptions
 from lcrl.nets import NetConfig
-from train.config import PRESETS, TrainConfig, config_from_dict, config_to_dict, nested_configs
+from train.configs.config import TrainConfig, config_from_dict, config_to_dict, nested_configs
+from train.configs.presets import PRESETS
 
 CONTINUOUS = Problem({"state": (3,)}, "vector", (2,), 2)
 DISCRETE = Problem({"state": (3,)}, "vector", (2,), 4, discrete=True)
@@ -199,12 +200,12 @@ def test_build_agent_through_the_specs():
 
 def test_train_build_agent_takes_the_config_field_named_after_the_algorithm():
     cfg = TrainConfig(agent=small(), td3=TD3Config(policy_delay=5), dqn=DQNConfig(lr=0.5))
-    agent = train.evaluate.build_agent("td3", CONTINUOUS, cfg, embed)
+    agent = train.evaluation.evaluate.build_agent("td3", CONTINUOUS, cfg, embed)
     assert isinstance(agent, TD3) and agent.cfg.policy_delay == 5
-    agent = train.evaluate.build_agent("auto", DISCRETE, cfg, embed)
+    agent = train.evaluation.evaluate.build_agent("auto", DISCRETE, cfg, embed)
     assert isinstance(agent, DQN) and agent.cfg.lr == 0.5
     with pytest.raises(LcrlError, match="dqn needs discrete actions"):
-        train.evaluate.build_agent("dqn", CONTINUOUS, cfg, embed)
+        train.evaluation.evaluate.build_agent("dqn", CONTINUOUS, cfg, embed)
 
 
 def test_agents_check_their_spec_when_built_directly():
@@ -378,7 +379,7 @@ def test_config_from_dict_rebuilds_nested_configs():
 
 
 def test_config_from_dict_checks_every_value_against_its_field():
-    from train.config import ConfigFieldError
+    from train.configs.config import ConfigFieldError
 
     saved = config_to_dict(PRESETS["lang2d"][1])
     saved["sac"]["gamma"] = 1  # an integer where a number goes

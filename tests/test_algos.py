@@ -849,7 +849,7 @@ def test_slot_attributes_score_colours_and_shapes_and_compose() -> None:
     kind on 6 of 8 colour x shape kinds, the attribute selector picks the 2 kinds never
     named, where position-wise selection cannot."""
     from lcrl.nets import GoalConditionedNet, SlotAttributes, SlotSelect, grounding_loss
-    from train.config import SLOT_ATTRIBUTES
+    from train.configs.presets import SLOT_ATTRIBUTES
 
     cfg = NetConfig(hidden=(16,), slots=(2, 8, 3), slot_heads=1, slot_mode="attributes",
                     slot_attributes=SLOT_ATTRIBUTES, text_dim=8)  # fmt: skip
@@ -1299,7 +1299,7 @@ def test_sac_target_clip_bounds_the_td_targets(tmp_path, clip):
     from helpers import tiny
 
     from lcrl.buffer import batch_rows
-    from train.loop import Trainer
+    from train.training.loop import Trainer
 
     cfg = tiny("lang2d", tmp_path / "run", learning_starts=50)
     cfg.sac = dataclasses.replace(cfg.sac, target_clip=clip)

@@ -348,12 +348,12 @@ def test_a_full_disk_under_the_progress_log_names_it(tmp_path, capsys):
 
 
 def test_json_below_a_file_fails_before_the_evaluation(state_run, tmp_path, capsys, monkeypatch):
-    import train.eval_suite
+    import train.evaluation.eval_suite
 
     def never(*args, **kwargs):
         raise AssertionError("the evaluation ran")
 
-    monkeypatch.setattr(train.eval_suite, "run_evaluation", never)
+    monkeypatch.setattr(train.evaluation.eval_suite, "run_evaluation", never)
     file = tmp_path / "a-file"
     file.write_text("x")
     target = file / "x.json"

@@ -16,9 +16,9 @@ from helpers import cli, error_line, tiny
 import envs
 import lcrl
 from lcrl.errors import LcrlError
-from train.config import PRESETS
-from train.loop import Trainer
-from train.policy import check_instruction
+from train.configs.presets import PRESETS
+from train.policies.policy import check_instruction
+from train.training.loop import Trainer
 
 ROOT = Path(__file__).resolve().parent.parent
 
@@ -88,7 +88,7 @@ def test_non_utf8_argument_on_the_command_line(lang_run):
         [
             sys.executable,
             "-m",
-            "train.cli",
+            "train.commands.cli",
             "act",
             str(lang_run),
             "--instruction",
@@ -123,7 +123,7 @@ def test_discrete_actions_are_whole_numbers():
 
 
 def test_a_mistyped_preset_is_named_first(capsys):
-    from train.pipeline import PIPELINES  # policies built in stages count as presets
+    from train.commands.pipeline import PIPELINES  # policies built in stages count as presets
 
     assert cli("train", "lang2dd", "--total-steps", "10", "--buffer.k", "2") == 2
     err = capsys.readouterr().err.strip().splitlines()

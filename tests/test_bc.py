@@ -28,11 +28,12 @@ from lcrl.checkpoint import find_latest, load_checkpoint
 from lcrl.demos import DemoDataset, DemoWriter
 from lcrl.errors import LcrlError
 from lcrl.nets import NetConfig
-from train.bc import BCTrainer
-from train.config import PRESETS, TrainConfig
-from train.demos import RecordConfig, record, relabel
-from train.evaluate import evaluate, run_episode
-from train.loading import load_policy
+from train.configs.config import TrainConfig
+from train.configs.presets import PRESETS
+from train.evaluation.evaluate import evaluate, run_episode
+from train.policies.loading import load_policy
+from train.training.bc import BCTrainer
+from train.training.demos import RecordConfig, record, relabel
 
 SETS = ("train", "heldout", "paraphrase")
 OBS_DIM = 58  # the lang2d preset's observation: pusher x, y + 8 slots of 7 values
@@ -123,7 +124,7 @@ def write_demos(path: Path, obs_dim: int, actions: np.ndarray, texts: list[str],
 
 def preset_split():
     """The instruction split of the lang2d-bc preset's env (and its families)."""
-    from train.tasks import find_language_wrapper, make_env
+    from train.environments.tasks import find_language_wrapper, make_env
 
     cfg = PRESETS["lang2d-bc"][1].env
     env = make_env(cfg)

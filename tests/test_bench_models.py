@@ -31,8 +31,8 @@ def test_a_kept_perception_model_reads_robosuite_frames(name):
 
 def test_the_kept_push_teacher_acts_on_the_privileged_state(one_thread):
     pytest.importorskip("robosuite")
-    from train.evaluate import resolve_checkpoint
-    from train.loading import load_policy
+    from train.evaluation.evaluate import resolve_checkpoint
+    from train.policies.loading import load_policy
 
     policy = load_policy(resolve_checkpoint(str(MODELS / "push-teacher")))
     try:

@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 from benchmarks.learning_curves import SUITES, reusable, run_config
-from train.config import BufferConfig
+from train.configs.config import BufferConfig
 
 
 @pytest.fixture
@@ -64,7 +64,7 @@ def test_runs_started_one_by_one_are_taken_only_with_their_own_config(tmp_path):
     import argparse
 
     from benchmarks.learned_her import reuse, run_args
-    from train.cli import parse_train_args
+    from train.commands.cli import parse_train_args
 
     def _config_of(cmd):
         cfg = parse_train_args(cmd[cmd.index("train") + 1 :])
@@ -267,7 +267,7 @@ def test_push_misses_follow_a_checkpoint_on_its_push_instructions(tmp_path, one_
 
     from benchmarks.push_misses import run_pushes
     from lcrl.errors import LcrlError
-    from train.loop import Trainer
+    from train.training.loop import Trainer
 
     out = tmp_path / "run"
     Trainer(tiny("lang2d", out, total_steps=120, learning_starts=100)).run()

@@ -12,8 +12,8 @@ from captioner.dataset import CaptionDataset, CaptionDatasetWriter, CollectConfi
 from captioner.grammar import FAMILIES_2D, parse
 from captioner.rule import RuleCaptioner
 from lcrl.errors import LcrlError
-from train.captions import caption_simulator, collect
-from train.cli import main
+from train.commands.captions import caption_simulator, collect
+from train.commands.cli import main
 
 
 @pytest.fixture(scope="module")
@@ -223,11 +223,11 @@ def test_robosuite_collection(tmp_path):
 
 
 def test_a_registered_simulator_collects_through_its_registry_entry(tmp_path, monkeypatch):
-    """A simulator added to train.environments.ENVS collects caption datasets: the
+    """A simulator added to train.environments.simulators.ENVS collects caption datasets: the
     collector takes it from the caller, and the file records the entry's name."""
     import dataclasses
 
-    from train.environments import ENVS
+    from train.environments.simulators import ENVS
 
     calls = []
 
@@ -258,7 +258,7 @@ def test_a_registered_simulator_collects_through_its_registry_entry(tmp_path, mo
 def test_old_dataset_files_still_load(small):
     """Files name their simulator as they always did (lang2d, robosuite): such a file is
     read, and its name maps to the registered simulator."""
-    from train.environments import canonical_kind
+    from train.environments.simulators import canonical_kind
 
     with CaptionDataset(small) as data:
         assert data.meta["env"] == "lang2d"

@@ -6,12 +6,15 @@ import sys
 
 import pytest
 
-from train.cli import main
+from train.commands.cli import main
 
 
 def run(*args):
     return subprocess.run(
-        [sys.executable, "-m", "train.cli", *args], capture_output=True, text=True, timeout=300
+        [sys.executable, "-m", "train.commands.cli", *args],
+        capture_output=True,
+        text=True,
+        timeout=300,
     )
 
 
@@ -73,7 +76,7 @@ def test_resume_warns_of_options_the_saved_config_overrides(tmp_path, capsys):
     import dataclasses
     import json
 
-    from train.cli import ignored_on_resume, main, parse_train_args
+    from train.commands.cli import ignored_on_resume, main, parse_train_args
 
     out = tmp_path / "run"
     out.mkdir()

@@ -6,9 +6,9 @@ import numpy as np
 import pytest
 from helpers import cli, error_line, tiny
 
-from train.config import CollectionConfig
-from train.loop import Trainer
-from train.machine import default_threads
+from train.configs.config import CollectionConfig
+from train.runtime.machine import default_threads
+from train.training.loop import Trainer
 
 
 def _buffer_after(tmp_path, envs: int, episodes: int, **overrides) -> dict[str, np.ndarray]:
@@ -75,8 +75,8 @@ def test_bad_collect_settings_are_one_line_errors(tmp_path, capsys):
 def test_default_threads_never_oversubscribe(monkeypatch, omp, processes, cores, expected):
     monkeypatch.setenv("OMP_NUM_THREADS", omp)
     monkeypatch.setenv("LCRL_PROCESSES", processes)
-    monkeypatch.setattr("train.machine.available_cores", lambda: cores)
-    monkeypatch.setattr("train.machine.busy_cores", lambda: 0)
+    monkeypatch.setattr("train.runtime.machine.available_cores", lambda: cores)
+    monkeypatch.setattr("train.runtime.machine.busy_cores", lambda: 0)
     assert default_threads() == expected
 
 
@@ -86,15 +86,15 @@ def test_default_threads_leave_the_cores_other_processes_keep_busy(monkeypatch, 
     run started on a busy machine takes the cores left."""
     monkeypatch.delenv("OMP_NUM_THREADS", raising=False)
     monkeypatch.delenv("LCRL_PROCESSES", raising=False)
-    monkeypatch.setattr("train.machine.available_cores", lambda: 2)
-    monkeypatch.setattr("train.machine.busy_cores", lambda: busy)
+    monkeypatch.setattr("train.runtime.machine.available_cores", lambda: 2)
+    monkeypatch.setattr("train.runtime.machine.busy_cores", lambda: busy)
     assert default_threads() == expected
 
 
 def test_local_ray_workers_take_their_share_of_the_cores(monkeypatch):
     monkeypatch.delenv("OMP_NUM_THREADS", raising=False)
     monkeypatch.delenv("LCRL_PROCESSES", raising=False)
-    monkeypatch.setattr("train.machine.available_cores", lambda: 8)
-    monkeypatch.setattr("train.machine.busy_cores", lambda: 0)
+    monkeypatch.setattr("train.runtime.machine.available_cores", lambda: 8)
+    monkeypatch.setattr("train.runtime.machine.busy_cores", lambda: 0)
     assert default_threads(helpers=2) == 2
     assert default_threads(helpers=7) == 1

@@ -17,10 +17,10 @@ from pathlib import Path
 import pytest
 from helpers import cli
 
-from train.config import config_from_dict
-from train.evaluate import run_episode
-from train.loading import load_policy
-from train.loop import Trainer
+from train.configs.config import config_from_dict
+from train.evaluation.evaluate import run_episode
+from train.policies.loading import load_policy
+from train.training.loop import Trainer
 
 FIXTURES = Path(__file__).resolve().parent / "fixtures" / "v0"
 
@@ -99,11 +99,13 @@ def test_old_kind_names_work_on_the_command_line(tmp_path):
 
 
 def test_removed_registry_names_give_the_new_spelling():
-    import train.tasks
+    import train.environments.tasks
     from lcrl.errors import LcrlError
 
     with pytest.raises(ImportError, match=r"ENV_KINDS was replaced by train\.environments\.ENVS"):
-        from train.tasks import ENV_KINDS  # noqa: F401
+        from train.environments.tasks import ENV_KINDS  # noqa: F401
     with pytest.raises(LcrlError, match=r"GOAL_TYPES was replaced by train\.tasks\.GOALS"):
-        _ = train.tasks.GOAL_TYPES
-    assert not hasattr(train.tasks, "NO_SUCH_NAME")  # other names: a plain AttributeError
+        _ = train.environments.tasks.GOAL_TYPES
+    assert not hasattr(
+        train.environments.tasks, "NO_SUCH_NAME"
+    )  # other names: a plain AttributeError

@@ -6,7 +6,7 @@ import pytest
 import torch
 from helpers import tiny
 
-from train.loop import Trainer
+from train.training.loop import Trainer
 
 
 @pytest.mark.slow  # compiling takes a minute or more on a CPU

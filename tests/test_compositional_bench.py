@@ -123,8 +123,8 @@ def test_slot_selection_of_a_trained_run(tmp_path):
 
     import lcrl
     from benchmarks.compositional import selection_table, slot_selection
-    from train.config import PRESETS
-    from train.loop import Trainer
+    from train.configs.presets import PRESETS
+    from train.training.loop import Trainer
 
     out = tmp_path / "run"
     cfg = tiny("lang2d-quick", out, total_steps=120, learning_starts=100)
@@ -157,7 +157,7 @@ def test_every_arm_parses_as_train_options():
     import dataclasses
 
     from benchmarks.compositional import ARMS, arm_args
-    from train.cli import parse_train_args
+    from train.commands.cli import parse_train_args
 
     configs = {arm: parse_train_args(["robosuite-reach", *arm_args(arm, 1.0)]) for arm in ARMS}
     assert configs["clipped"].sac.target_clip == 1.0

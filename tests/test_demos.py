@@ -26,8 +26,8 @@ from lcrl.demos import (
     import_robomimic,
 )
 from lcrl.errors import LcrlError
-from train.config import PRESETS
-from train.demos import (
+from train.configs.presets import PRESETS
+from train.training.demos import (
     EPISODE_SCENE,
     RecordConfig,
     record,
@@ -715,7 +715,7 @@ def test_cli_import_robomimic(tmp_path, capsys):
 
 def test_ctrl_c_keeps_the_finished_episodes(tmp_path, monkeypatch, capsys):
     """Interrupting a recording completes the file with the episodes finished so far."""
-    import train.demos as demos
+    import train.training.demos as demos
 
     real = demos._record_episode
     calls = {"n": 0}

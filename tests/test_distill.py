@@ -16,7 +16,7 @@ import torch
 from helpers import cli, error_line, hold, tiny, untrained_perception
 
 from lcrl.perception import Perception, SlotLayout
-from train.perception import PerceptionTrainConfig, save_model
+from train.environments.perception import PerceptionTrainConfig, save_model
 
 
 @pytest.fixture(scope="module", autouse=True)
@@ -28,7 +28,7 @@ def _single_thread(one_thread):
 def teacher(tmp_path_factory) -> Path:
     """A privileged-state lang2d-quick policy (a few hundred steps: DAgger clones whatever
     it does)."""
-    from train.loop import Trainer
+    from train.training.loop import Trainer
 
     out = tmp_path_factory.mktemp("distill") / "teacher"
     Trainer(tiny("lang2d-quick", out, total_steps=400, learning_starts=100)).run()
@@ -83,7 +83,7 @@ def test_a_resumed_distillation_continues_exactly(teacher, perception, tmp_path)
     assert cli("distill", str(teacher), "--out", str(whole), "--rounds", "3", *common) == 0
     assert cli("distill", str(teacher), "--out", str(parts), "--rounds", "2", *common) == 0
     from lcrl.checkpoint import load_checkpoint
-    from train.evaluate import resolve_checkpoint
+    from train.evaluation.evaluate import resolve_checkpoint
 
     before = load_checkpoint(resolve_checkpoint(parts)).state("trainer")["train_s"]
     args = ["distill", str(teacher), "--out", str(parts), "--rounds", "3", "--resume", *common]
@@ -193,10 +193,10 @@ def test_a_student_started_from_the_teacher_acts_as_the_teacher(teacher, percept
     deterministic one on the same state, also for a student with more and wider hidden
     layers (the teacher's grown to them); a student from nothing acts otherwise."""
     from lcrl.checkpoint import load_checkpoint
-    from train.config import DistillConfig
-    from train.distill import DistillTrainer, student_config
-    from train.evaluate import resolve_checkpoint
-    from train.run_meta import run_meta
+    from train.configs.config import DistillConfig
+    from train.configs.run_meta import run_meta
+    from train.evaluation.evaluate import resolve_checkpoint
+    from train.training.distill import DistillTrainer, student_config
 
     teacher_cfg = run_meta(load_checkpoint(resolve_checkpoint(teacher))).config
     had = tuple(teacher_cfg.agent.net.hidden)
@@ -237,7 +237,7 @@ def test_an_averaged_student_is_checkpointed_and_acts_through_load(teacher, perc
     policy ``lcrl.load`` gives acts with the average; ``--ema 1`` is refused in one line."""
     import lcrl
     from lcrl.checkpoint import load_checkpoint
-    from train.evaluate import resolve_checkpoint
+    from train.evaluation.evaluate import resolve_checkpoint
 
     out = tmp_path / "averaged"
     args = ["distill", str(teacher), "--perception", str(perception), "--ema", "0.9"]
@@ -262,7 +262,7 @@ def test_grown_layers_compute_the_same_function_and_learn_apart():
     """Net2Net growth: deeper and wider ReLU layers give the same outputs, copied units
     get different outgoing weights, and a narrower or shallower target is refused."""
     from lcrl.errors import LcrlError
-    from train.distill import grown_layers
+    from train.training.distill import grown_layers
 
     gen = torch.Generator().manual_seed(0)
     layers = [
@@ -302,7 +302,7 @@ def test_init_from_teacher_over_perception_and_its_refusals(teacher, perception,
     args = ["distill", str(teacher), "--perception", str(perception), "--init-from-teacher"]
     assert cli(*args, "--out", str(out), *common) == 0
     from lcrl.checkpoint import load_checkpoint
-    from train.evaluate import resolve_checkpoint
+    from train.evaluation.evaluate import resolve_checkpoint
 
     assert load_checkpoint(resolve_checkpoint(out)).meta["distill"]["init_from_teacher"] is True
     first = {}
@@ -323,8 +323,8 @@ def test_the_student_does_not_inherit_how_the_teacher_explored(tmp_path):
     chains are not available through perception."""
     import dataclasses
 
-    from train.config import ExploreConfig, FinetuneConfig
-    from train.distill import student_config
+    from train.configs.config import ExploreConfig, FinetuneConfig
+    from train.training.distill import student_config
 
     base = tiny("lang2d-quick", tmp_path / "teacher")
     teacher_cfg = dataclasses.replace(
@@ -342,7 +342,7 @@ def test_the_student_does_not_inherit_how_the_teacher_explored(tmp_path):
 @pytest.fixture(scope="module")
 def two_families(tmp_path_factory) -> Path:
     """A privileged-state lang2d policy over reach and push (a few hundred steps)."""
-    from train.loop import Trainer
+    from train.training.loop import Trainer
 
     out = tmp_path_factory.mktemp("distill") / "two"
     Trainer(tiny("lang2d", out, total_steps=300, learning_starts=100)).run()
@@ -400,10 +400,10 @@ def test_family_teachers_merge_into_one_state_student_over_chains(two_families, 
 
     # a family's teacher run: the instruction's id is looked up in that teacher's table
     from lcrl.checkpoint import load_checkpoint
-    from train.config import DistillConfig
-    from train.distill import DistillTrainer, student_config
-    from train.evaluate import resolve_checkpoint
-    from train.run_meta import run_meta
+    from train.configs.config import DistillConfig
+    from train.configs.run_meta import run_meta
+    from train.evaluation.evaluate import resolve_checkpoint
+    from train.training.distill import DistillTrainer, student_config
 
     base = run_meta(load_checkpoint(resolve_checkpoint(two_families))).config
     cfg = student_config(

@@ -10,7 +10,7 @@ with ``...``) and the pages of :data:`PYTHON_EXCERPTS`.
 How each command runs, in the order of its page, in a fresh folder per page (so a page's
 commands build on each other as they would for a reader):
 
-* ``lcrl ...`` runs in-process (``train.cli.main``) with tiny-size options appended (later
+* ``lcrl ...`` runs in-process (``train.commands.cli.main``) with tiny-size options appended (later
   options win): ``lcrl train`` gets :data:`TINY_TRAIN`, ``lcrl eval`` 2 episodes, ``lcrl
   act`` 1 episode, ``lcrl demos record`` 4 episodes, ``lcrl caption`` 2 gradient steps of
   small networks, and so on (:func:`shrink`). Nothing gets ``--overwrite``: a page that

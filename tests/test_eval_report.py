@@ -28,7 +28,8 @@ from envs.features import SlotFeatures, slot_layout
 from envs.scene import OBJECT_KINDS
 from envs.tabletop2d import MAX_STEP, Tabletop2DEnv
 from lcrl.errors import LcrlError
-from train.eval_suite import (
+from train.environments.tasks import make_env
+from train.evaluation.eval_suite import (
     EpisodeResult,
     EpisodeSpec,
     EvalEpisodes,
@@ -38,10 +39,9 @@ from train.eval_suite import (
     summarise,
     wilson_interval,
 )
-from train.loading import load_policy
-from train.loop import Trainer
-from train.report import compare_runs, load_evaluation, write_report
-from train.tasks import make_env
+from train.evaluation.report import compare_runs, load_evaluation, write_report
+from train.policies.loading import load_policy
+from train.training.loop import Trainer
 
 
 # --- fixtures ------------------------------------------------------------------------------
@@ -168,7 +168,7 @@ def test_summary_breaks_down_by_family_and_slot_value():
 
 
 def test_combination_tables_list_failing_combinations_worst_first():
-    from train.report import _combinations_table, combinations
+    from train.evaluation.report import _combinations_table, combinations
 
     seen = summarise(
         [
@@ -293,7 +293,7 @@ class MeaningOracle(ReachOracle):
 
 
 def test_free_text_is_read_and_the_canonical_part_judged(policy, tmp_path):
-    from train.eval_suite import goal_vectors
+    from train.evaluation.eval_suite import goal_vectors
 
     path = tmp_path / "mine.txt"
     path.write_text(
@@ -322,7 +322,7 @@ def test_free_text_is_read_and_the_canonical_part_judged(policy, tmp_path):
     assert firsts[1]["slots"]["object"] == "blue cube"
     assert "canonical" not in firsts[2]
     # the report's per-line table says what each line was judged as
-    from train.report import _breakdown
+    from train.evaluation.report import _breakdown
 
     md = "\n".join(_breakdown("custom", res))
     assert "| line | instruction | judged as | success |" in md
@@ -707,7 +707,7 @@ def _seed_copy(run: Path, dest: Path, seed: int, train: float, heldout: float) -
 
 
 def test_compare_runs_shows_the_mean_and_spread_over_seeds(lang_run, state_run, tmp_path):
-    from train.report import seed_groups, spread
+    from train.evaluation.report import seed_groups, spread
 
     seeds = [
         _seed_copy(lang_run, tmp_path / f"seed{k}", k, train, heldout)

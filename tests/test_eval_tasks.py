@@ -26,14 +26,15 @@ from captioner.grammar import parse
 from envs.features import slot_layout
 from envs.scene import OBJECT_KINDS
 from lcrl.errors import LcrlError
-from train.act import ActSession
-from train.config import PRESETS, TASKS_2D, config_to_dict
-from train.eval_suite import episode_seed, run_evaluation
-from train.evaluate import evaluate, run_episode
-from train.loading import load_policy
-from train.loop import Trainer
-from train.policy import Policy
-from train.report import learning_summary, write_report
+from train.commands.act import ActSession
+from train.configs.config import config_to_dict
+from train.configs.presets import PRESETS, TASKS_2D
+from train.evaluation.eval_suite import episode_seed, run_evaluation
+from train.evaluation.evaluate import evaluate, run_episode
+from train.evaluation.report import learning_summary, write_report
+from train.policies.loading import load_policy
+from train.policies.policy import Policy
+from train.training.loop import Trainer
 
 K = len(TASKS_2D)
 

@@ -14,10 +14,10 @@ import pytest
 from helpers import TINY_CLI, cli, error_line, tiny
 
 from lcrl.errors import LcrlError
-from train.config import ExploreConfig
-from train.explore import Explorer
-from train.loop import Trainer
-from train.tasks import ScriptedActor, find_language_wrapper
+from train.configs.config import ExploreConfig
+from train.environments.tasks import ScriptedActor, find_language_wrapper
+from train.training.explore import Explorer
+from train.training.loop import Trainer
 
 #: lang2d observation: pusher x, y, then 8 slots of [x, y, present, x - pusher x,
 #: y - pusher y, displacement x, displacement y].
@@ -293,7 +293,7 @@ def test_explore_needs_language_goals(tmp_path, capsys):
 
 
 def test_prelude_episodes_start_where_the_teacher_left_the_scene(tmp_path, monkeypatch):
-    import train.loop as loop
+    import train.training.loop as loop
     from captioner.rule import RuleCaptioner
 
     switches: list[tuple] = []

@@ -1,6 +1,7 @@
 """The extension points, used from test code only (as ``docs/extending.md`` shows): a new
-simulator enters :data:`train.environments.ENVS`, a new goal modality enters
-:data:`train.tasks.GOALS`, and the unchanged training loop, evaluation engine, checkpoints
+simulator enters :data:`train.environments.simulators.ENVS`, a new goal modality enters
+:data:`train.environments.tasks.GOALS`, and the unchanged training loop, evaluation engine,
+checkpoints
 and ``lcrl eval`` run them.
 
 * The simulator, ``point``: a point on a plane moved by 2-D velocity actions towards a goal
@@ -23,12 +24,12 @@ from helpers import cli
 
 from lcrl.goals import StateGoals
 from lcrl.nets import NetConfig
-from train.config import BufferConfig, TrainConfig
-from train.environments import ENVS, EnvConfig, EnvSpec
-from train.evaluate import run_episode
-from train.loading import load_policy
-from train.loop import Trainer
-from train.tasks import GOALS, GoalModality, Task
+from train.configs.config import BufferConfig, TrainConfig
+from train.environments.simulators import ENVS, EnvConfig, EnvSpec
+from train.environments.tasks import GOALS, GoalModality, Task
+from train.evaluation.evaluate import run_episode
+from train.policies.loading import load_policy
+from train.training.loop import Trainer
 
 REACHED = 0.1
 
@@ -243,10 +244,10 @@ def test_a_new_goal_kind_is_one_registry_line(monkeypatch):
 def test_reports_and_messages_read_the_goal_modality_not_its_name(monkeypatch):
     """A second task-id goal type, under a name of its own: reports, the policy's
     description and the presets' checks treat it as task ids from its registry entry."""
-    from train.config import TASKS_2D
-    from train.policy import describe_env
-    from train.report import learning_summary, task_name
-    from train.tasks import TaskIdTask
+    from train.configs.presets import TASKS_2D
+    from train.environments.tasks import TaskIdTask
+    from train.evaluation.report import learning_summary, task_name
+    from train.policies.policy import describe_env
 
     numbered = GoalModality(
         TaskIdTask, "numbered tasks", instructed=True, needs_tasks=True, relabel=False,

@@ -10,7 +10,7 @@ from gymnasium.utils.env_checker import check_env
 from envs.features import RelativePositions, SlotFeatures, slot_layout
 from envs.tabletop2d import Tabletop2DEnv
 from lcrl.errors import LcrlError
-from train.tasks import EnvConfig, make_env
+from train.environments.tasks import EnvConfig, make_env
 
 
 def test_relative_slots_match_the_scene() -> None:
@@ -105,8 +105,8 @@ def test_displacement_env_passes_the_env_checker() -> None:
 
 
 def test_slots_that_do_not_match_the_env_are_refused() -> None:
-    from train.config import PRESETS
-    from train.evaluate import check_slots
+    from train.configs.presets import PRESETS
+    from train.evaluation.evaluate import check_slots
 
     cfg = PRESETS["lang2d"][1]
     check_slots(cfg, make_env(cfg.env))  # the preset matches its env

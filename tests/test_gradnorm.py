@@ -13,7 +13,7 @@ from test_multitask import read_csv
 
 from lcrl.errors import LcrlError
 from lcrl.multitask import GradNorm, MultiTaskOptions
-from train.loop import Trainer
+from train.training.loop import Trainer
 
 
 def _weighted_norms(grad_norm: GradNorm, theta: torch.Tensor, scales: list[float]) -> np.ndarray:

@@ -27,8 +27,8 @@ from captioner.learned import (
 )
 from lcrl.checkpoint import seal_checkpoint
 from lcrl.errors import LcrlError
-from train.captions import collect
-from train.cli import main
+from train.commands.captions import collect
+from train.commands.cli import main
 
 TINY = CaptionModelConfig(channels=(16, 16, 16, 16), features=64, hidden=64, embed=32)
 
@@ -174,7 +174,7 @@ def test_cli_train_and_eval(dataset, tmp_path, capsys, one_thread):
 
 
 def _small_run(out, checkpoint, **relabel):
-    from train.config import RelabelConfig
+    from train.configs.config import RelabelConfig
 
     relabel_cfg = RelabelConfig(checkpoint=str(checkpoint), **relabel)
     return tiny("lang2d", out, scripted_fraction=0.5, eval_episodes=2, relabel=relabel_cfg)
@@ -182,7 +182,7 @@ def _small_run(out, checkpoint, **relabel):
 
 def test_push_misses_score_each_step_with_the_reward_model(trained, tmp_path, one_thread):
     from benchmarks.push_misses import run_pushes, summarise_rewards
-    from train.loop import Trainer
+    from train.training.loop import Trainer
 
     out = tmp_path / "run"
     Trainer(tiny("lang2d", out, total_steps=120, learning_starts=100)).run()
@@ -198,7 +198,7 @@ def test_push_misses_score_each_step_with_the_reward_model(trained, tmp_path, on
 
 def test_reach_rewards_score_reach_on_a_policys_own_episodes(trained, tmp_path, one_thread):
     from benchmarks.reach_rewards import run_episodes, summarise
-    from train.loop import Trainer
+    from train.training.loop import Trainer
 
     out = tmp_path / "run"
     Trainer(tiny("lang2d", out, total_steps=120, learning_starts=100)).run()
@@ -212,7 +212,7 @@ def test_reach_rewards_score_reach_on_a_policys_own_episodes(trained, tmp_path, 
 
 
 def test_training_with_learned_captioner_and_reward(trained, tmp_path, one_thread):
-    from train.loop import Trainer
+    from train.training.loop import Trainer
 
     cfg = _small_run(
         tmp_path / "run", trained, captioner="learned", reward="learned", min_logprob=-1e9
@@ -233,7 +233,7 @@ def test_training_with_learned_captioner_and_reward(trained, tmp_path, one_threa
 
 
 def test_confirmed_labels_are_rewarded_where_they_were_read(trained, tmp_path, one_thread):
-    from train.loop import Trainer
+    from train.training.loop import Trainer
 
     cfg = _small_run(
         tmp_path / "run", trained, captioner="learned", reward="learned", min_logprob=-1e9,
@@ -350,8 +350,8 @@ def test_labeller_thresholds_and_candidates(trained, dataset):
 
 
 def test_learned_rewards_do_not_end_training_episodes_at_the_privileged_success(trained, tmp_path):
-    from train.loop import Trainer
-    from train.tasks import find_language_wrapper
+    from train.environments.tasks import find_language_wrapper
+    from train.training.loop import Trainer
 
     for reward, ends in (("learned", False), ("captioner", False), ("rule", True)):
         cfg = _small_run(tmp_path / reward, trained, captioner="learned", reward=reward)
@@ -363,7 +363,7 @@ def test_learned_rewards_do_not_end_training_episodes_at_the_privileged_success(
 def test_reward_model_labels_relabel_with_every_instruction_it_rewards(
     trained, tmp_path, one_thread
 ):
-    from train.loop import Trainer
+    from train.training.loop import Trainer
 
     cfg = _small_run(tmp_path / "run", trained, captioner="reward", reward="learned", threshold=0.3)
     trainer = Trainer(cfg)
@@ -385,7 +385,7 @@ def test_reward_model_labels_relabel_with_every_instruction_it_rewards(
 def test_learned_rewards_can_end_training_episodes_where_they_judge_success(
     trained, tmp_path, one_thread
 ):
-    from train.loop import Trainer
+    from train.training.loop import Trainer
 
     ends = {}
     for name, threshold, end in (("always", 0.0, "learned"), ("never", 1.01, "learned"),
@@ -429,8 +429,9 @@ def test_learned_rewards_can_end_training_episodes_where_they_judge_success(
 def test_learned_relabelling_settings_are_checked(trained, tmp_path):
     import dataclasses
 
-    from train.config import PRESETS, RelabelConfig
-    from train.loop import Trainer
+    from train.configs.config import RelabelConfig
+    from train.configs.presets import PRESETS
+    from train.training.loop import Trainer
 
     with pytest.raises(LcrlError, match=r"relabel\.checkpoint"):
         Trainer(_small_run(tmp_path / "a", "", captioner="learned"))
@@ -567,7 +568,7 @@ def _frames(records):
 def test_captioner_rewards_store_the_captions_as_rewards(trained, tmp_path, one_thread):
     """reward=captioner: the learned captions are both the relabelling candidates and the
     rewards (no reward model, no rule rewards)."""
-    from train.loop import Trainer
+    from train.training.loop import Trainer
 
     with pytest.raises(LcrlError, match="captioner=learned"):
         Trainer(_small_run(tmp_path / "bad", trained, reward="captioner"))
@@ -588,7 +589,7 @@ def test_captioner_rewards_store_the_captions_as_rewards(trained, tmp_path, one_
 def test_learned_candidates_with_rule_rewards(trained, tmp_path, one_thread):
     """captioner=learned, reward=rule: the learned captions are the relabelling candidates
     and the rule captioner's labels are the rewards."""
-    from train.loop import Trainer
+    from train.training.loop import Trainer
 
     cfg = _small_run(
         tmp_path / "run", trained, captioner="learned", reward="rule", min_logprob=-1e9
@@ -651,7 +652,7 @@ def test_models_over_perception_learn_from_the_slots(slots_dataset, tmp_path, mo
     and current frame; given exact estimates (the simulator's state) they caption held-out
     episodes and rank their rewards far above chance."""
     import captioner.learned as learned
-    from train.perception import PerceptionTrainConfig, save_model
+    from train.environments.perception import PerceptionTrainConfig, save_model
 
     oracle = _oracle(slots_dataset)
     save_model(tmp_path / "oracle", oracle, PerceptionTrainConfig(), {}, 0, [], np.zeros(0, int))
@@ -757,7 +758,7 @@ def test_checkpoints_saved_before_slot_query_read_without_it(trained, tmp_path):
 
 def test_models_over_perception_refuse_another_camera(dataset, tmp_path):
     from lcrl.perception import Perception, SlotLayout
-    from train.perception import PerceptionTrainConfig, save_model
+    from train.environments.perception import PerceptionTrainConfig, save_model
 
     other = Perception((48, 48, 3), SlotLayout(2, 8, 3, 2))
     save_model(tmp_path / "p", other, PerceptionTrainConfig(), {}, 0, [], np.zeros(0, int))
@@ -774,7 +775,7 @@ def test_models_over_perception_refuse_another_camera(dataset, tmp_path):
 
 def test_relabel_agreement_counts_pairs_as_the_training_loop_does(trained, dataset, capsys):
     from captioner.learned import LearnedLabeller, relabel_agreement
-    from train.cli import main
+    from train.commands.cli import main
 
     lc = LearnedCaptioner.load(trained)
     with CaptionDataset(dataset) as data:

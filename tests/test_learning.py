@@ -24,8 +24,9 @@ import pytest
 import torch
 
 from lcrl.nets import NetConfig
-from train.config import PRESETS, BufferConfig, TrainConfig
-from train.loop import Trainer
+from train.configs.config import BufferConfig, TrainConfig
+from train.configs.presets import PRESETS
+from train.training.loop import Trainer
 
 
 @pytest.fixture(autouse=True, scope="module")
@@ -76,7 +77,7 @@ def test_her_learns_to_reach_state_goals_and_no_relabelling_does_not(tmp_path: P
 
 
 def test_attribute_slots_with_grounding_reach_held_out_combinations(tmp_path: Path) -> None:
-    from train.config import SLOT_ATTRIBUTES
+    from train.configs.presets import SLOT_ATTRIBUTES
 
     base = PRESETS["lang2d-quick"][1]
     pooled_net = dataclasses.replace(base.agent.net, slot_mode="select")

@@ -14,7 +14,7 @@ from lcrl.buffer import HindsightReplayBuffer
 from lcrl.checkpoint import find_latest, seal_checkpoint
 from lcrl.errors import LcrlError
 from lcrl.goals import ImageGoals, LabelGoals, StateGoals, TaskGoals
-from train.memory import WARN_SHARE, check_memory, fmt_bytes
+from train.runtime.memory import WARN_SHARE, check_memory, fmt_bytes
 
 TINY = ["--total-steps", "100", "--learning-starts", "50", "--batch-size", "16"]
 TINY += ["--eval-episodes", "1", "--eval-every", "0", "--no-progress", "--no-tensorboard"]

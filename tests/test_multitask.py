@@ -29,9 +29,9 @@ from lcrl.multitask import (
     task_weights,
 )
 from lcrl.nets import FlatAdam, GoalConditionedEnsemble, GoalConditionedNet, NetConfig, TaskHeads
-from train.config import TASKS_2D, BufferConfig, TrainConfig
-from train.loop import Trainer
-from train.tasks import (
+from train.configs.config import BufferConfig, TrainConfig
+from train.configs.presets import TASKS_2D
+from train.environments.tasks import (
     EnvConfig,
     LanguageTask,
     ScriptedActor,
@@ -40,6 +40,7 @@ from train.tasks import (
     make_task,
     reset_feasible,
 )
+from train.training.loop import Trainer
 
 
 @pytest.fixture(scope="module", autouse=True)

@@ -24,8 +24,8 @@ from helpers import TINY_CLI, cli, error_line, interrupt_update, tiny
 from lcrl.checkpoint import find_latest, load_checkpoint
 from lcrl.demos import DemoDataset, DemoWriter
 from lcrl.errors import LcrlError
-from train.demos import RecordConfig, record
-from train.offline import OfflineTrainer
+from train.training.demos import RecordConfig, record
+from train.training.offline import OfflineTrainer
 
 
 @pytest.fixture(scope="module", autouse=True)
@@ -382,8 +382,8 @@ def push_demos(tmp_path_factory) -> Path:
 
 
 def finetuner(out: Path, demos: Path, **finetune):
-    from train.config import FinetuneConfig
-    from train.loop import Trainer
+    from train.configs.config import FinetuneConfig
+    from train.training.loop import Trainer
 
     base = tiny("lang2d", out)
     ft = FinetuneConfig(demos=str(demos), **{"pretrain_updates": 600, **finetune})
@@ -424,7 +424,7 @@ def test_finetuning_pretrains_a_cloning_actor_before_the_first_episode(push_demo
 
 
 def test_finetuning_bc_weight_decays_to_zero():
-    from train.config import FinetuneConfig
+    from train.configs.config import FinetuneConfig
 
     ft = FinetuneConfig(demos="x.h5", bc_weight=2.0, decay_steps=100)
     assert [ft.weight(s) for s in (0, 50, 100, 500)] == [2.0, 1.0, 0.0, 0.0]
@@ -441,7 +441,7 @@ def test_finetuning_stopped_while_pretraining_resumes_there(push_demos, tmp_path
     state = ckpt.state("trainer")
     assert state["step"] == 0 and state["pretrained"] == 500 and state["demos_loaded"]
 
-    from train.loop import Trainer
+    from train.training.loop import Trainer
 
     resumed = Trainer(dataclasses.replace(trainer.cfg, resume=True))
     size = resumed.buffer.size

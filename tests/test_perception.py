@@ -14,7 +14,7 @@ from helpers import cli, error_line
 from lcrl.checkpoint import seal_checkpoint
 from lcrl.errors import LcrlError
 from lcrl.perception import Perception, SlotLayout, fit_stats
-from train.perception import evaluate, load_model, read_dataset
+from train.environments.perception import evaluate, load_model, read_dataset
 
 
 @pytest.fixture(scope="module", autouse=True)
@@ -170,7 +170,7 @@ def test_position_spreads_have_a_floor_and_init_widens_them(capsys):
     least MIN_POSITION_STD, and an --init model's spreads grow to its new data's where
     those are wider (lifted objects), never shrink."""
     from lcrl.perception import MIN_POSITION_STD, PerceptionConfig
-    from train.perception import widen_normalisers
+    from train.environments.perception import widen_normalisers
 
     layout = SlotLayout(2, 2, 3, 2)
     state = np.zeros((50, layout.dim), np.float32)
@@ -264,8 +264,8 @@ def test_a_policy_reads_the_estimate_not_the_privileged_state(trained, tmp_path)
     from helpers import tiny
 
     import lcrl
-    from train.loop import Trainer
-    from train.tasks import make_env
+    from train.environments.tasks import make_env
+    from train.training.loop import Trainer
 
     cfg = tiny("lang2d-quick", tmp_path / "run", total_steps=120, learning_starts=60)
     cfg.env.perception = str(trained)
@@ -316,8 +316,8 @@ def test_cached_estimates_equal_recomputed_ones(trained, tmp_path):
     from envs.features import SlotFeatures
     from lcrl.buffer import HindsightReplayBuffer
     from lcrl.perception import HeldSlots
-    from train.evaluate import build_task
-    from train.tasks import make_env
+    from train.environments.tasks import make_env
+    from train.evaluation.evaluate import build_task
 
     cfg = tiny("lang2d-quick", tmp_path / "run")
     cfg.env.perception = str(trained)
@@ -376,7 +376,7 @@ def read_every_frame_alone(env) -> None:
     its own frame's estimate, what the differentiable reader of a run that fine-tunes
     perception computes."""
     from lcrl.perception import HeldSlots
-    from train.perception import find_perception
+    from train.environments.perception import find_perception
 
     wrapper = find_perception(env)
     wrapper.held = HeldSlots(wrapper.model.layout, 0.0)
@@ -399,7 +399,7 @@ def test_a_perception_policy_acts_from_frames_alone(trained, tmp_path):
     from helpers import tiny
 
     import lcrl
-    from train.loop import Trainer
+    from train.training.loop import Trainer
 
     model_dir = tmp_path / "perception"
     shutil.copytree(trained, model_dir)
@@ -441,7 +441,7 @@ def test_perception_fine_tuned_end_to_end(trained, tmp_path):
 
     import lcrl
     from lcrl.perception import PerceivedSlots
-    from train.loop import Trainer
+    from train.training.loop import Trainer
 
     cfg = tiny("lang2d-quick", tmp_path / "run", total_steps=160, learning_starts=100)
     cfg.env.perception = str(trained)
@@ -466,8 +466,8 @@ def test_perception_fine_tuned_end_to_end(trained, tmp_path):
 def test_perceived_slots_match_the_env_features(trained):
     """The differentiable reader computes what the env's wrappers compute from a frame."""
     from lcrl.perception import PerceivedSlots
-    from train.config import PRESETS
-    from train.tasks import make_env
+    from train.configs.presets import PRESETS
+    from train.environments.tasks import make_env
 
     cfg = PRESETS["lang2d-quick"][1].env
     cfg = type(cfg)(**{**vars(cfg), "perception": str(trained)})
@@ -496,7 +496,7 @@ def test_demonstrations_recorded_through_perception_fill_a_perception_run(
     import h5py
     from helpers import tiny
 
-    from train.loop import Trainer
+    from train.training.loop import Trainer
 
     demos = tmp_path / "demos.h5"
     args = ["demos", "record", "--preset", "lang2d-quick", "--perception", str(trained)]
@@ -537,9 +537,9 @@ def test_presence_holds_from_the_first_frame(trained, monkeypatch):
     keep the presence flags of the episode's first frame when a later frame's own flags
     (a gripper over an object) say otherwise, and the next reset reads them again."""
     from lcrl.perception import PerceivedSlots
-    from train.config import PRESETS
-    from train.perception import find_perception
-    from train.tasks import make_env
+    from train.configs.presets import PRESETS
+    from train.environments.perception import find_perception
+    from train.environments.tasks import make_env
 
     cfg = PRESETS["lang2d-quick"][1].env
     cfg = type(cfg)(**{**vars(cfg), "perception": str(trained)})
@@ -686,8 +686,8 @@ def test_the_hold_radius_is_set_when_acting_and_refused_where_it_cannot_apply(
     from helpers import tiny
 
     import lcrl
-    from train.loop import Trainer
-    from train.tasks import make_env
+    from train.environments.tasks import make_env
+    from train.training.loop import Trainer
 
     model, _ = load_model(trained)
     cfg = tiny("lang2d-quick", tmp_path / "run", total_steps=80, learning_starts=40)

@@ -140,7 +140,7 @@ def test_training_embeds_phrasings_for_the_updates(tmp_path) -> None:
 
     from helpers import tiny
 
-    from train.loop import Trainer, text_goal_sample
+    from train.training.loop import Trainer, text_goal_sample
 
     base = tiny("lang2d-quick", tmp_path / "run", total_steps=200)
     cfg = dataclasses.replace(base, env=dataclasses.replace(base.env, phrasings=3))

@@ -11,7 +11,7 @@ from helpers import cli, error_line, tiny
 from torch import nn
 
 from lcrl.errors import LcrlError
-from train.loop import Trainer
+from train.training.loop import Trainer
 
 
 def filled(tmp_path, preset: str = "lang2d-quick", precision: str = "fp32") -> Trainer:

@@ -13,7 +13,8 @@ from collections.abc import Callable
 import pytest
 
 from lcrl.algos.base import value_bounds
-from train.config import PRESETS, TrainConfig
+from train.configs.config import TrainConfig
+from train.configs.presets import PRESETS
 
 
 def _goal_type(cfg: TrainConfig) -> str:

@@ -9,8 +9,8 @@ import sys
 import pytest
 from helpers import cli, error_line, tiny
 
-from train.config import CollectionConfig
-from train.loop import Trainer
+from train.configs.config import CollectionConfig
+from train.training.loop import Trainer
 
 ray = pytest.importorskip("ray")
 

@@ -8,18 +8,18 @@ import shutil
 from helpers import cli, tiny
 
 from lcrl.checkpoint import find_latest, load_checkpoint
-from train.text_reading import READER_CACHE, STATE
+from train.environments.text_reading import READER_CACHE, STATE
 
 
 def test_the_reader_of_a_weights_only_checkpoint_is_fitted_once_and_kept(
     tmp_path, capsys, monkeypatch
 ):
-    import train.text_reading
-    from train.loop import Trainer
+    import train.environments.text_reading
+    from train.training.loop import Trainer
 
     # a small reader: what is tested is where it comes from, not how well it reads
-    monkeypatch.setattr(train.text_reading, "CANONICAL_MEMBERS", 1)
-    monkeypatch.setattr(train.text_reading, "READER_STEPS", 30)
+    monkeypatch.setattr(train.environments.text_reading, "CANONICAL_MEMBERS", 1)
+    monkeypatch.setattr(train.environments.text_reading, "READER_STEPS", 30)
 
     run = tmp_path / "run"
     Trainer(tiny("lang2d-quick", run, total_steps=200, learning_starts=100)).run()

@@ -16,11 +16,9 @@ pytest.importorskip("robosuite")
 from lcrl.errors import LcrlError
 from lcrl.goals import ImageGoals, LabelGoals, StateGoals
 from lcrl.nets import NetConfig
-from train.config import PRESETS, BufferConfig, TrainConfig
-from train.evaluate import run_episode
-from train.loading import load_policy
-from train.loop import Trainer
-from train.tasks import (
+from train.configs.config import BufferConfig, TrainConfig
+from train.configs.presets import PRESETS
+from train.environments.tasks import (
     EnvConfig,
     ImageGoalTask,
     LanguageTask,
@@ -28,6 +26,9 @@ from train.tasks import (
     make_env,
     make_task,
 )
+from train.evaluation.evaluate import run_episode
+from train.policies.loading import load_policy
+from train.training.loop import Trainer
 
 SIZE = 64
 

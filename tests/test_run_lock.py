@@ -12,7 +12,7 @@ from pathlib import Path
 from helpers import cli, error_line, hold
 from test_stopping import TINY, Run, latest_step, log_steps
 
-from train.run_lock import LOCK_NAME, holder, lock_run, unlock_run
+from train.runtime.run_lock import LOCK_NAME, holder, lock_run, unlock_run
 
 ROOT = Path(__file__).resolve().parent.parent
 
@@ -20,7 +20,7 @@ ROOT = Path(__file__).resolve().parent.parent
 def second(out: Path, *extra: str, timeout: float = 60) -> subprocess.CompletedProcess:
     args = ["train", "state2d", "--out", str(out), "--total-steps", "400", *TINY, *extra]
     return subprocess.run(
-        [sys.executable, "-m", "train.entry", *args],
+        [sys.executable, "-m", "train.commands.entry", *args],
         cwd=ROOT,
         capture_output=True,
         text=True,

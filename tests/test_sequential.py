@@ -12,9 +12,9 @@ from helpers import cli, error_line, tiny
 
 from lcrl.buffer import Batch, batch_rows
 from lcrl.continual import EWC
-from train.config import SequentialConfig
-from train.loop import Trainer
-from train.sequential import transfer_metrics
+from train.configs.config import SequentialConfig
+from train.evaluation.sequential import transfer_metrics
+from train.training.loop import Trainer
 
 
 def test_ewc_penalty_is_zero_at_the_anchor_and_grows_away_from_it():
@@ -125,7 +125,7 @@ def test_stages_train_only_their_families(tmp_path):
     cfg = tiny("lang2d", tmp_path / "run", sequential=SequentialConfig(stages=("push", "reach")))
     trainer = Trainer(cfg)
     try:
-        from train.tasks import find_language_wrapper
+        from train.environments.tasks import find_language_wrapper
 
         assert find_language_wrapper(trainer.envs[0]).families == ("push",)
         families = {trainer.task.captioner.parse(t).family for t in trainer.task.label_ids}

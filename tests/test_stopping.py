@@ -38,14 +38,14 @@ if slow:
         return write(*args, **kwargs)
     safetensors.torch.save_file = slow_write
 if slow_eval:
-    import train.trainer
-    evaluate = train.trainer.evaluate
+    import train.training.trainer
+    evaluate = train.training.trainer.evaluate
     def slow_evaluate(*args, **kwargs):
         print("evaluating", flush=True)
         time.sleep(slow_eval)
         return evaluate(*args, **kwargs)
-    train.trainer.evaluate = slow_evaluate
-from train.cli import main
+    train.training.trainer.evaluate = slow_evaluate
+from train.commands.cli import main
 main(sys.argv[3:])
 """
 TINY = [
@@ -225,7 +225,7 @@ def test_resume_below_the_checkpoint_changes_nothing(tmp_path, capsys, one_threa
 
 
 def test_progress_log_widens_its_header_for_columns_that_start_later(tmp_path):
-    from train.trainer import CsvLog
+    from train.training.trainer import CsvLog
 
     path = tmp_path / "progress.csv"
     log = CsvLog(path)
@@ -248,12 +248,12 @@ def test_progress_log_widens_its_header_for_columns_that_start_later(tmp_path):
 #: prints "starting" and sleeps inside the command, before any training loop exists.
 SLOW_START = """
 import sys, time
-import train.cli
+import train.commands.cli
 def slow_train(argv):
     print("starting", flush=True)
     time.sleep(60)
-train.cli._train = slow_train
-train.cli.main(["train", "state2d"])
+train.commands.cli._train = slow_train
+train.commands.cli.main(["train", "state2d"])
 """
 
 
@@ -291,7 +291,7 @@ def test_a_signal_at_any_instant_of_start_up_stops_the_console_script(tmp_path, 
     and builds (1.5 s) or as it begins to train (4 s) stops it within seconds, with one
     line, the signal's status and no traceback."""
     out = tmp_path / "run"
-    cmd = [sys.executable, "-m", "train.entry", "train", "lang2d-quick", "--out", str(out)]
+    cmd = [sys.executable, "-m", "train.commands.entry", "train", "lang2d-quick", "--out", str(out)]
     proc = subprocess.Popen(
         [*cmd, "--no-progress", "--no-tensorboard", "--torch-threads", "1"],
         cwd=ROOT,

@@ -9,8 +9,8 @@ import pytest
 
 from lcrl.buffer import HindsightReplayBuffer
 from lcrl.errors import LcrlError
-from train.report import write_report
-from train.tasks import EnvConfig, StateTask, make_env
+from train.environments.tasks import EnvConfig, StateTask, make_env
+from train.evaluation.report import write_report
 
 
 def test_fetch_reach_rewards_come_from_its_compute_reward() -> None:
@@ -104,7 +104,7 @@ def test_report_has_curves_and_final_table(tmp_path) -> None:
 def test_registered_slot_layouts_match_the_simulators(kind) -> None:
     """The slot layout an ENVS entry documents is the one its simulator reports."""
     from envs.features import slot_layout
-    from train.environments import ENVS, EnvConfig
+    from train.environments.simulators import ENVS, EnvConfig
 
     spec = ENVS[kind]
     if spec.slot_layout is None:

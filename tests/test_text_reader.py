@@ -10,9 +10,9 @@ from helpers import tiny
 from lcrl.checkpoint import load_checkpoint
 from lcrl.errors import LcrlError
 from lcrl.text_reader import ReadingEncoder, fit_reader
-from train.evaluate import resolve_checkpoint
-from train.loop import Trainer
-from train.text_reading import SLOT_VALUES, reading_encoder
+from train.environments.text_reading import SLOT_VALUES, reading_encoder
+from train.evaluation.evaluate import resolve_checkpoint
+from train.training.loop import Trainer
 
 
 def test_the_reader_learns_which_token_carries_a_slot():
@@ -204,7 +204,11 @@ def _canonical_on_split(seed: int = 0):
     """A canonical reader fitted (as a run fits it) on the lang2d reach and push split."""
     from captioner.splits import make_split
     from lcrl.text_encoder import FrozenTextEncoder
-    from train.text_reading import CANONICAL_MEMBERS, CanonicalEncoder, train_reading_encoder
+    from train.environments.text_reading import (
+        CANONICAL_MEMBERS,
+        CanonicalEncoder,
+        train_reading_encoder,
+    )
 
     split = make_split(0, ("reach", "push"))
     train = list(split.instructions("train"))
@@ -239,7 +243,7 @@ def test_the_canonical_reader_keeps_canonical_sentences_and_canonicalises_phrasi
 def test_the_canonical_decoder_gives_valid_meanings():
     """Scores that favour an invalid meaning (a reference object equal to the object)
     decode to the best valid one."""
-    from train.text_reading import CanonicalEncoder
+    from train.environments.text_reading import CanonicalEncoder
 
     enc = _Encoder()
     slots = {k: len(v) for k, v in SLOT_VALUES.items()}
@@ -286,14 +290,14 @@ def test_a_run_with_the_canonical_reader_saves_it_and_eval_can_add_one(tmp_path,
     """Training with --env.canonical-reader keeps the policy's goal width and saves the
     reader; queries read through it. A checkpoint without a reader gets one fitted by
     ``lcrl eval --canonical-reader``; a --env.text-reader checkpoint cannot swap readers."""
-    from train.cli import EvalCommand
-    from train.environments import check_env_config
-    from train.text_reading import CanonicalEncoder
+    from train.commands.cli import EvalCommand
+    from train.environments.simulators import check_env_config
+    from train.environments.text_reading import CanonicalEncoder
 
     # two members of 40 steps instead of five of 600: saving, loading and fitting for eval
     # are what is checked (how well a canonical reader reads: the test above)
-    monkeypatch.setattr("train.text_reading.CANONICAL_MEMBERS", 2)
-    monkeypatch.setattr("train.text_reading.READER_STEPS", 40)
+    monkeypatch.setattr("train.environments.text_reading.CANONICAL_MEMBERS", 2)
+    monkeypatch.setattr("train.environments.text_reading.READER_STEPS", 40)
     out = tmp_path / "run"
     cfg = tiny("lang2d-grounded", out, total_steps=200)
     cfg.env.canonical_reader = True

@@ -21,10 +21,10 @@ from helpers import cli, error_line, tiny
 
 from lcrl.checkpoint import find_latest, load_checkpoint
 from lcrl.errors import LcrlError
-from train.config import PRESETS
-from train.evaluate import evaluate, run_episode
-from train.loading import load_policy
-from train.loop import Trainer
+from train.configs.presets import PRESETS
+from train.evaluation.evaluate import evaluate, run_episode
+from train.policies.loading import load_policy
+from train.training.loop import Trainer
 
 EPISODE = 50  # state2d's max_episode_steps; goal="pusher" episodes never terminate early
 SETS = ("train", "heldout", "paraphrase")
@@ -489,7 +489,7 @@ def test_td3_and_dqn_presets_run_and_load(text_encoder, tmp_path, preset, algo):
 
 
 def test_saved_configs_keep_their_text_goal_normalisation():
-    from train.config import config_from_dict, config_to_dict
+    from train.configs.config import config_from_dict, config_to_dict
 
     cfg = PRESETS["lang2d"][1]
     cfg = dataclasses.replace(cfg, agent=dataclasses.replace(cfg.agent, text_goal_norm="whiten"))

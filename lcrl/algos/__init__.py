@@ -16,7 +16,7 @@ action spaces, multi-task support, data source), and :data:`ALGOS` below is the 
 an algorithm is listed: :func:`build_agent`, :func:`check_algo`, the training config's
 validation and the command line derive from it. Adding an algorithm takes a module with
 its agent, config (with ``validate()``) and ``SPEC``, one line in :data:`ALGOS`, and a
-field of the same name holding its config in :class:`train.config.TrainConfig`.
+field of the same name holding its config in :class:`train.configs.config.TrainConfig`.
 """
 
 from __future__ import annotations

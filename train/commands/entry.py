@@ -1,0 +1,45 @@
+"""The ``lcrl`` console script: signals first, then everything else.
+
+Importing the command line (torch, transformers, tyro, the simulators) takes seconds. A
+signal in those seconds used to be lost where the shell started ``lcrl`` in the
+background (SIGINT ignored: the run then trained on) or to end in a ``KeyboardInterrupt``
+traceback in the foreground. This module imports nothing heavy: it makes SIGINT and
+SIGTERM stop the process before the command line is imported, so a signal at any instant
+ends ``lcrl`` with one line and the shell's status of that signal (130, 143).
+"""
+
+from __future__ import annotations
+
+import signal
+import sys
+from collections.abc import Sequence
+from typing import Any
+
+
+class StartupInterrupted(KeyboardInterrupt):
+    """A signal that arrived before the command began its work; ``signum`` says which."""
+
+    def __init__(self, signum: int) -> None:
+        super().__init__(signal.Signals(signum).name)
+        self.signum = int(signum)
+
+
+def _stop(signum: int, frame: Any) -> None:
+    raise StartupInterrupted(signum)
+
+
+def main(argv: Sequence[str] | None = None) -> None:
+    """Install the stop handlers, import the command line and run it."""
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        signal.signal(sig, _stop)
+    try:
+        from train.commands.cli import main as cli_main
+
+        cli_main(argv)  # installs the commands' own handlers first thing
+    except StartupInterrupted as e:
+        print(f"lcrl: interrupted by {e.args[0]} while starting", file=sys.stderr)
+        sys.exit(128 + e.signum)
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,564 @@
+"""One command that builds a camera policy from nothing: ``lcrl train robosuite-camera``.
+
+The stages, each a command of its own run in a child process (its progress shown as it
+goes), each writing into the pipeline's folder (``--out``)::
+
+    perception-data   lcrl perception collect: random and scripted frames, labelled
+    perception        lcrl perception train: frames -> object slots
+    teacher-FAMILY    per family: scripted demonstrations (lcrl demos record), then a
+                      privileged-state SAC teacher fine-tuned from them (lcrl train)
+    student           lcrl distill: one student of every teacher (DAgger over chains),
+                      acting from the camera through perception, slots picked by colour
+                      and shape
+    student-frames    lcrl perception collect: the student's own episodes
+    perception-ft     lcrl perception train --init: perception fine-tuned on them
+    student-ft        lcrl distill --resume --new-perception: more DAgger rounds with it
+    eval              lcrl eval: every instruction set, and chains of two
+    keep              the final policy (weights and configs), its perception model and its
+                      canonical reader copied to --keep, with checksums
+
+A stage that finished is recorded in ``OUT/stages/STAGE.json`` and skipped the next time:
+the artefact is there. A stage that was stopped goes on where it stopped (``--resume``
+for the training stages; the collection and perception stages start again, writing their
+files atomically). ``--stages`` runs some of them only; a stage whose inputs are missing
+says which stage makes them. Ctrl-C and SIGTERM stop the stage in hand (it saves what it
+can) and the pipeline, with the status of the signal.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import shlex
+import shutil
+import signal
+import subprocess
+import sys
+import time
+from collections.abc import Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+from lcrl.errors import LcrlError
+from train.runtime.run_lock import lock_run, unlock_run
+
+
+@dataclass
+class TeacherRecipe:
+    """How one family's privileged-state teacher is trained."""
+
+    family: str
+    preset: str
+    """The ``lcrl train`` preset."""
+    steps: int
+    """Environment steps."""
+    demos: int = 0
+    """Scripted demonstrations recorded first and fine-tuned from (0: none)."""
+    extra: tuple[str, ...] = ()
+    """More ``lcrl train`` options."""
+
+
+@dataclass
+class CameraPipeline:
+    """A camera policy for a whole grammar, built stage by stage (see the module)."""
+
+    env: str
+    """The simulator of ``lcrl perception collect`` (``robosuite``, ``lang2d``)."""
+    teachers: tuple[TeacherRecipe, ...]
+    """One recipe per family; the first family's teacher is the student's base."""
+    out: str = "runs/camera"
+    """The pipeline's folder."""
+    stages: tuple[str, ...] = ()
+    """Stages to run (default: every one not done yet)."""
+    resume: bool = True
+    """Skip finished stages and continue a stopped one (``--no-resume``: refuse a folder
+    that holds a pipeline)."""
+    keep: str = ""
+    """Where the ``keep`` stage copies the final policy (empty: ``OUT/kept``)."""
+    perception: str = ""
+    """Use this perception model instead of building one (skips ``perception-data`` and
+    ``perception``)."""
+    image_size: int = 84
+    """Camera frame side in pixels."""
+    perception_episodes: int = 3000
+    """Episodes of ``perception-data`` (random and scripted)."""
+    perception_episode_steps: int = 20
+    """Steps of each such episode (more layouts, not longer episodes, is what helps)."""
+    perception_steps: int = 10_000
+    """Training steps of ``perception``."""
+    rounds: int = 30
+    """DAgger rounds of ``student``."""
+    episodes_per_round: int = 40
+    """Episodes the student (with the teachers' share) collects per round."""
+    updates_per_round: int = 2000
+    """Student updates per round, on everything gathered."""
+    student_hidden: tuple[int, ...] = (512, 512, 512)
+    """The student's hidden layers."""
+    chain: float = 0.5
+    """Probability that an achieved instruction is followed by another (chains)."""
+    student_frames: int = 400
+    """Episodes of the student collected for ``perception-ft``."""
+    max_episode_steps: int = 100
+    """The student's episode length (and that of the episodes of ``student-frames``)."""
+    perception_ft_steps: int = 4000
+    """Training steps of ``perception-ft``."""
+    rounds_ft: int = 10
+    """More DAgger rounds through the fine-tuned perception (``student-ft``)."""
+    eval_episodes: int = 100
+    """Episodes per instruction set of ``eval``."""
+    eval_seed: int = 1
+    """Evaluation seed of ``eval`` (choose builds on other seeds)."""
+    seed: int = 0
+    """Seed of every stage's data and training."""
+    threads: int = 0
+    """Torch threads of each stage (0: automatic)."""
+    teacher_steps: int = 0
+    """Environment steps of every teacher (0: each recipe's own)."""
+    dry_run: bool = False
+    """Print the stages, whether each is done, and their commands; run nothing."""
+    reader: bool = True
+    """Free text through the canonical reader: the evaluation reads instructions through
+    it, and the kept policy has it on by default, fitted and kept beside it."""
+    extra_student: tuple[str, ...] = ()
+    """More ``lcrl distill`` options."""
+
+    @property
+    def families(self) -> tuple[str, ...]:
+        return tuple(t.family for t in self.teachers)
+
+
+STAGE_DIR = "stages"
+
+
+@dataclass
+class Stage:
+    name: str
+    what: str
+    commands: list[list[str]]
+    needs: tuple[str, ...] = ()
+    """Files the stage reads, each with the stage that makes it (``path<stage``)."""
+    outputs: tuple[str, ...] = ()
+    """What the stage leaves (recorded when it finishes)."""
+
+
+def _teacher_dir(p: CameraPipeline, family: str) -> Path:
+    return Path(p.out) / "teachers" / family
+
+
+def _perception_model(p: CameraPipeline) -> str:
+    return p.perception or str(Path(p.out) / "perception" / "model")
+
+
+def _running(path: Path) -> bool:
+    return (path / "latest.json").is_file()
+
+
+def stages(p: CameraPipeline) -> list[Stage]:
+    """The pipeline's stages, in order, with their commands as they would run now."""
+    out = Path(p.out)
+    data = out / "data"
+    threads = ["--threads", str(p.threads)] if p.threads else []
+    torch_threads = ["--torch-threads", str(p.threads)] if p.threads else []
+    found: list[Stage] = []
+    if not p.perception:
+        found.append(
+            Stage(
+                "perception-data",
+                "random and scripted camera frames, labelled with the true object slots",
+                [
+                    [
+                        "perception", "collect", "--env", p.env,
+                        "--episodes", str(p.perception_episodes),
+                        "--max-episode-steps", str(p.perception_episode_steps),
+                        "--image-size", str(p.image_size), "--seed", str(p.seed),
+                        "--out", str(data / "perception.h5"), "--overwrite",
+                    ]
+                ],
+                outputs=(str(data / "perception.h5"),),
+            )
+        )  # fmt: skip
+        found.append(
+            Stage(
+                "perception",
+                "the perception model: camera frame and proprioception -> object slots",
+                [
+                    [
+                        "perception", "train", "--data", str(data / "perception.h5"),
+                        "--steps", str(p.perception_steps), "--seed", str(p.seed),
+                        "--out", str(out / "perception"), *threads,
+                    ]
+                ],
+                needs=(f"{data / 'perception.h5'}<perception-data",),
+                outputs=(_perception_model(p),),
+            )
+        )  # fmt: skip
+    for t in p.teachers:
+        if p.teacher_steps:
+            t = dataclasses.replace(t, steps=p.teacher_steps)
+        run = _teacher_dir(p, t.family)
+        commands = []
+        train = ["train", t.preset, "--out", str(run), "--no-progress", *torch_threads]
+        if t.demos:
+            demos = data / f"demos-{t.family}.h5"
+            if not demos.is_file():
+                commands.append(
+                    [
+                        "demos", "record", "--preset", t.preset, "--families", t.family,
+                        "--episodes", str(t.demos), "--seed", str(p.seed),
+                        "--out", str(demos), "--overwrite",
+                    ]
+                )  # fmt: skip
+            train += ["--finetune.demos", str(demos), "--sac.demo-bc", "1.0"]
+        if _running(run):
+            train += ["--resume", "--total-steps", str(t.steps)]
+        else:
+            train += [
+                "--env.families", t.family, "--total-steps", str(t.steps),
+                "--seed", str(p.seed), "--agent.seed", str(p.seed), *t.extra,
+            ]  # fmt: skip
+        commands.append(train)
+        found.append(
+            Stage(
+                f"teacher-{t.family}",
+                f"the privileged-state teacher of {t.family} ({t.preset}, {t.steps:,} steps"
+                + (f", from {t.demos} scripted demonstrations)" if t.demos else ")"),
+                commands,
+                outputs=(str(run),),
+            )
+        )
+    base, *others = p.teachers
+    student = out / "student"
+    distill = ["distill", str(_teacher_dir(p, base.family)), "--out", str(student)]
+    distill += ["--no-progress", "--eval-every", "0", "--eval-sets", "train"]
+    if _running(student):
+        distill += ["--resume", "--rounds", str(p.rounds), "--perception", _perception_model(p)]
+    else:
+        distill += [
+            "--perception", _perception_model(p), "--rounds", str(p.rounds),
+            "--episodes-per-round", str(p.episodes_per_round),
+            "--updates-per-round", str(p.updates_per_round),
+            "--hidden", *map(str, p.student_hidden), "--slot-mode", "attributes",
+            "--grounding", "1.0", "--seed", str(p.seed), "--overwrite",
+            "--families", *p.families, "--max-episode-steps", str(p.max_episode_steps),
+            *(["--teacher-for", *(f"{t.family}={_teacher_dir(p, t.family)}" for t in others)]
+              if others else []),
+            *(["--chain", str(p.chain)] if p.chain else []),
+            *p.extra_student,
+        ]  # fmt: skip
+    teacher_needs = tuple(f"{_teacher_dir(p, t.family)}<teacher-{t.family}" for t in p.teachers)
+    perception_need = () if p.perception else (f"{_perception_model(p)}<perception",)
+    found.append(
+        Stage(
+            "student",
+            "one student of every teacher (DAgger), acting from the camera through perception",
+            [distill],
+            needs=(*teacher_needs, *perception_need),
+            outputs=(str(student),),
+        )
+    )
+    frames = data / "student-frames.h5"
+    found.append(
+        Stage(
+            "student-frames",
+            "the student's own episodes, labelled with the true object slots",
+            [
+                [
+                    "perception", "collect", "--env", p.env, "--sources", "policy",
+                    "--policy", str(student), "--families", *p.families,
+                    "--episodes", str(p.student_frames),
+                    "--max-episode-steps", str(p.max_episode_steps),
+                    "--image-size", str(p.image_size), "--seed", str(p.seed + 101),
+                    "--out", str(frames), "--overwrite",
+                ]
+            ],
+            needs=(f"{student}<student",),
+            outputs=(str(frames),),
+        )
+    )  # fmt: skip
+    base_data = (
+        ["--data", str(data / "perception.h5"), "--extra-data", str(frames)]
+        if not p.perception
+        else ["--data", str(frames)]
+    )
+    found.append(
+        Stage(
+            "perception-ft",
+            "perception fine-tuned on the student's own frames",
+            [
+                [
+                    "perception", "train", *base_data, "--init", _perception_model(p),
+                    "--steps", str(p.perception_ft_steps), "--lr", "5e-4",
+                    "--seed", str(p.seed), "--out", str(out / "perception-ft"), *threads,
+                ]
+            ],
+            needs=(f"{frames}<student-frames",),
+            outputs=(str(out / "perception-ft" / "model"),),
+        )
+    )  # fmt: skip
+    total = p.rounds + p.rounds_ft
+    reader = ["--canonical-reader"] if p.reader else []
+    found.append(
+        Stage(
+            "student-ft",
+            "more DAgger rounds, the student acting through the fine-tuned perception",
+            [
+                [
+                    "distill", str(_teacher_dir(p, base.family)), "--out", str(student),
+                    "--resume", "--rounds", str(total), "--no-progress",
+                    "--perception", str(out / "perception-ft" / "model"),
+                    "--new-perception", str(out / "perception-ft" / "model"),
+                ]
+            ],
+            needs=(f"{out / 'perception-ft' / 'model'}<perception-ft",),
+            outputs=(str(student),),
+        )
+    )  # fmt: skip
+    found.append(
+        Stage(
+            "eval",
+            "the final student on every instruction set and on chains of two",
+            [
+                [
+                    "eval", str(student), "--episodes", str(p.eval_episodes),
+                    "--seed", str(p.eval_seed), *reader,
+                    "--out", str(out / "eval"), "--no-progress",
+                ],
+                [
+                    "eval", str(student), "--episodes", str(p.eval_episodes),
+                    "--seed", str(p.eval_seed), *reader, "--chain", "2",
+                    "--sets", "train", "--out", str(out / "eval-chain2"), "--no-progress",
+                ],
+            ],
+            needs=(f"{student}<student",),
+            outputs=(str(out / "eval"), str(out / "eval-chain2")),
+        )
+    )  # fmt: skip
+    found.append(
+        Stage(
+            "keep",
+            "the final policy, its perception model and its reader, weights and configs only",
+            [],
+            needs=(f"{student}<student",),
+            outputs=(p.keep or str(out / "kept"),),
+        )
+    )
+    return found
+
+
+def stage_names(p: CameraPipeline) -> list[str]:
+    return [s.name for s in stages(p)]
+
+
+def _record(p: CameraPipeline) -> Path:
+    return Path(p.out) / STAGE_DIR
+
+
+def finished(p: CameraPipeline, name: str) -> dict[str, Any] | None:
+    """The record of a finished stage (None: not finished)."""
+    path = _record(p) / f"{name}.json"
+    if not path.is_file():
+        return None
+    try:
+        return json.loads(path.read_text())
+    except (OSError, ValueError):
+        return None
+
+
+class _Signals:
+    """SIGINT and SIGTERM passed on to the stage's process; the pipeline stops after it."""
+
+    def __init__(self) -> None:
+        self.proc: subprocess.Popen | None = None
+        self.signum: int | None = None
+
+    def handle(self, signum: int, frame: Any) -> None:
+        self.signum = self.signum or signum
+        if self.proc is not None and self.proc.poll() is None:
+            self.proc.send_signal(signum)
+
+
+def run_command(args: list[str], signals: _Signals) -> float:
+    """Run ``lcrl ARGS`` in a child process; its seconds.
+
+    Raises:
+        LcrlError: the command failed (its status and the command are named).
+        KeyboardInterrupt: the pipeline was stopped by a signal.
+    """
+    argv = [sys.executable, "-m", "train.commands.entry", *args]
+    print(f"  $ lcrl {shlex.join(args)}", flush=True)
+    t0 = time.perf_counter()
+    signals.proc = subprocess.Popen(argv)
+    status = signals.proc.wait()
+    signals.proc = None
+    if signals.signum is not None:
+        raise KeyboardInterrupt(signal.Signals(signals.signum).name)
+    if status != 0:
+        raise LcrlError(f"the command `lcrl {shlex.join(args)}` failed (status {status})")
+    return time.perf_counter() - t0
+
+
+def keep_policy(p: CameraPipeline, signals: _Signals) -> float:
+    """Copy the final student's latest checkpoint (weights and configs, no replay data or
+    optimiser state) with the canonical reader on by default, fit its reader if needed,
+    and seal it: a folder ``lcrl act`` / ``lcrl eval`` / ``lcrl.load`` take."""
+    from lcrl.checkpoint import find_latest, seal_checkpoint
+    from train.environments.text_reading import READER_CACHE
+
+    t0 = time.perf_counter()
+    latest = find_latest(Path(p.out) / "student")
+    if latest is None:
+        raise LcrlError(f"no student in {p.out}/student: run the stage student first")
+    dest = Path(p.keep or Path(p.out) / "kept")
+    tmp = dest.with_name(f".{dest.name}.tmp")
+    shutil.rmtree(tmp, ignore_errors=True)
+    tmp.mkdir(parents=True)
+    for f in latest.iterdir():
+        if f.is_file() and f.name not in ("arrays.npz", "state.json", "state.safetensors"):
+            shutil.copy2(f, tmp / f.name)
+    meta = json.loads((tmp / "meta.json").read_text())
+    meta["config"]["env"]["canonical_reader"] = p.reader  # free text by default
+    meta.pop("checksums", None), meta.pop("meta_checksum", None)
+    (tmp / "meta.json").write_text(json.dumps(meta, indent=1))
+    if (latest / READER_CACHE).is_dir():
+        shutil.copytree(latest / READER_CACHE, tmp / READER_CACHE)
+    seal_checkpoint(tmp)
+    shutil.rmtree(dest, ignore_errors=True)
+    tmp.rename(dest)
+    if p.reader and not (dest / READER_CACHE).is_dir():  # fitted once, kept beside it
+        run_command(
+            ["act", str(dest), "--instruction", "reach the red cube", "--episodes", "1"], signals
+        )
+    return time.perf_counter() - t0
+
+
+def run_pipeline(p: CameraPipeline) -> dict[str, Any]:
+    """Run the stages not done yet (or ``p.stages``); returns the stage records."""
+    every = stages(p)
+    names = [s.name for s in every]
+    unknown = [s for s in p.stages if s not in names]
+    if unknown:
+        raise LcrlError(f"--stages {' '.join(unknown)}: the stages are {' '.join(names)}")
+    out = Path(p.out)
+    if p.dry_run:
+        for i, stage in enumerate(every, 1):
+            done = finished(p, stage.name)
+            state = f"done ({done['seconds']:.0f} s)" if done else "to run"
+            print(f"[{i}/{len(every)}] {stage.name}: {stage.what} -- {state}")
+            for args in stage.commands:
+                print(f"  $ lcrl {shlex.join(args)}")
+        return {s.name: finished(p, s.name) for s in every}
+    if not p.resume and _record(p).is_dir() and any(_record(p).iterdir()):
+        raise LcrlError(f"{out} holds a pipeline already: leave out --no-resume to continue it")
+    # one pipeline per folder: its stage records are locked (the stages lock their own
+    # folders, and write elsewhere inside OUT)
+    note = lock_run(_record(p), "--out")
+    if note:
+        print(f"lcrl: {note}", file=sys.stderr)
+    (out / "pipeline.json").write_text(json.dumps(dataclasses.asdict(p), indent=1))
+    signals = _Signals()
+    previous = {sig: signal.signal(sig, signals.handle) for sig in (signal.SIGINT, signal.SIGTERM)}
+    wanted = list(p.stages) or names
+    try:
+        for i, name in enumerate(names, 1):
+            if name not in wanted:
+                continue
+            stage = next(s for s in stages(p) if s.name == name)  # commands as of now
+            done = finished(p, name)
+            head = f"[{i}/{len(names)}] {name}: {stage.what}"
+            if done is not None and not p.stages:
+                print(f"{head} -- done ({done['seconds']:.0f} s), kept", flush=True)
+                continue
+            for need in stage.needs:
+                path, _, maker = need.rpartition("<")
+                if not Path(path).exists():
+                    raise LcrlError(f"the stage {name} needs {path}: run the stage {maker} first")
+            print(head, flush=True)
+            seconds = 0.0
+            for args in stage.commands:
+                seconds += run_command(args, signals)
+            if name == "keep":
+                seconds += keep_policy(p, signals)
+            record = {
+                "stage": name,
+                "seconds": round(seconds, 1),
+                "commands": ["lcrl " + shlex.join(a) for a in stage.commands],
+                "outputs": list(stage.outputs),
+                "finished": time.strftime("%Y-%m-%dT%H:%M:%S"),
+            }
+            (_record(p) / f"{name}.json").write_text(json.dumps(record, indent=1))
+    finally:
+        for sig, handler in previous.items():
+            signal.signal(sig, handler)
+        unlock_run(_record(p))
+    records = {n: finished(p, n) for n in names}
+    total = sum(r["seconds"] for r in records.values() if r)
+    done = sum(1 for r in records.values() if r)
+    print(f"pipeline {out}: {done}/{len(names)} stages done, {total:.0f} s of stages")
+    return records
+
+
+def robosuite_camera() -> CameraPipeline:
+    """The robosuite tabletop's five families from the agentview camera."""
+    return CameraPipeline(
+        env="robosuite",
+        out="runs/robosuite-camera",
+        teachers=(
+            TeacherRecipe("reach", "robosuite-reach", 30_000),
+            TeacherRecipe("push", "robosuite-push", 15_000, demos=600),
+            TeacherRecipe("lift", "robosuite-lift", 15_000, demos=600),
+            TeacherRecipe("put", "robosuite-put", 30_000, demos=2000),
+            TeacherRecipe("stack", "robosuite-stack", 30_000, demos=2000),
+        ),
+    )
+
+
+def lang2d_camera() -> CameraPipeline:
+    """The same pipeline on the 2D tabletop's camera frames, sized for minutes (CI)."""
+    return CameraPipeline(
+        env="lang2d",
+        out="runs/lang2d-camera",
+        teachers=(
+            TeacherRecipe(
+                "reach",
+                "lang2d-quick",
+                3000,
+                extra=("--eval-every", "0", "--eval-episodes", "20"),
+            ),
+        ),
+        image_size=64,
+        perception_episodes=200,
+        perception_episode_steps=5,
+        perception_steps=600,
+        rounds=4,
+        episodes_per_round=10,
+        updates_per_round=300,
+        student_hidden=(128, 128),
+        chain=0.0,
+        student_frames=20,
+        max_episode_steps=30,
+        perception_ft_steps=200,
+        rounds_ft=2,
+        eval_episodes=30,
+    )
+
+
+#: ``lcrl train NAME`` builds these instead of training one preset.
+PIPELINES = {"robosuite-camera": robosuite_camera, "lang2d-camera": lang2d_camera}
+
+
+def pipeline_cli(name: str, argv: Sequence[str]) -> CameraPipeline:
+    """The pipeline ``name`` with the options of ``argv`` (``--out``, ``--stages`` ...)."""
+    import tyro
+
+    base = PIPELINES[name]()
+    return tyro.cli(
+        CameraPipeline,
+        default=base,
+        args=list(argv),
+        prog=f"lcrl train {name}",
+        description=(PIPELINES[name].__doc__ or "") + "\n\n" + (__doc__ or "").split("\n\n")[1],
+    )
+
+
+__all__ = ["PIPELINES", "CameraPipeline", "TeacherRecipe", "pipeline_cli", "run_pipeline", "stages"]

@@ -1,0 +1,9 @@
+"""Trainers.
+
+- ``trainer``: the interface every trainer shares, run folders, checkpoints, stopping.
+- ``loop``: online RL with hindsight relabelling (``lcrl train``).
+- ``episodes``: one training episode as collected; ``explore``: where episodes start.
+- ``ray_collect``: rollout workers on Ray.
+- ``bc``, ``offline``, ``distill``: behavioural cloning, offline RL, DAgger distillation.
+- ``demos``: demonstration files (``lcrl demos``).
+"""
