@@ -22,6 +22,7 @@ __all__ = [
     "command",
     "die_with_parent",
     "final_eval",
+    "git_commit",
     "machine",
     "machine_line",
     "run_jobs",
@@ -134,10 +135,37 @@ def command() -> str:
     return " ".join(["python", shlex.quote(str(shown)), *args])
 
 
+def git_commit() -> str:
+    """The commit the results were measured on, ``+changes`` when the tree differs from it
+    (``unknown`` outside a git checkout)."""
+    root = RESULTS_DIR.parent.parent
+    try:
+        head = subprocess.run(
+            ["git", "rev-parse", "--short=12", "HEAD"],
+            cwd=root,
+            capture_output=True,
+            text=True,
+            check=True,
+        ).stdout.strip()
+        dirty = subprocess.run(
+            ["git", "diff", "--quiet", "HEAD", "--", ".", ":!benchmarks/results"],
+            cwd=root,
+            capture_output=True,
+            check=False,
+        ).returncode
+    except (OSError, subprocess.CalledProcessError):
+        return "unknown"
+    return head + ("+changes" if dirty else "")
+
+
 def save_json(name: str, payload: dict[str, Any]) -> Path:
-    """Write ``results/<name>.json``."""
+    """Write ``results/<name>.json``, with the ``git`` commit the figures were measured on
+    and the ``date`` added where the payload does not give them."""
     RESULTS_DIR.mkdir(parents=True, exist_ok=True)
     path = RESULTS_DIR / f"{name}.json"
+    payload = {**payload}
+    payload.setdefault("git", git_commit())
+    payload.setdefault("date", time.strftime("%Y-%m-%d"))
     path.write_text(json.dumps(payload, indent=1))
     return path
 

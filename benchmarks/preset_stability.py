@@ -26,7 +26,6 @@ import argparse
 import csv
 import json
 import os
-import subprocess
 import sys
 from pathlib import Path
 from typing import Any
@@ -34,6 +33,7 @@ from typing import Any
 from benchmarks.common import (
     RESULTS_DIR,
     command,
+    git_commit,
     machine,
     run_jobs,
     save_figure,
@@ -63,18 +63,6 @@ def recorded() -> dict[tuple[str, int], dict[str, Any]]:
         return {}
     runs = json.loads(path.read_text()).get("runs", [])
     return {(r["preset"], int(r["seed"])): r for r in runs if "curves" in r}
-
-
-def commit() -> str:
-    """The commit of the code that trained a run (with ``+changes`` for a dirty tree)."""
-    try:
-        head = subprocess.run(
-            ["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True, check=True
-        ).stdout.strip()
-        dirty = subprocess.run(["git", "diff", "--quiet", "HEAD"], check=False).returncode
-    except (OSError, subprocess.CalledProcessError):
-        return "unknown"
-    return head + ("+changes" if dirty else "")
 
 
 def run_folder(preset: str, seed: int) -> Path:
@@ -152,7 +140,7 @@ def analyse(preset: str, seed: int) -> dict[str, Any]:
     return {
         "preset": preset,
         "seed": seed,
-        "commit": commit(),
+        "commit": git_commit(),
         "curves": {
             "step": steps[::every],
             "q": [round(v, 4) for v in q[::every]],

@@ -24,6 +24,7 @@ from pathlib import Path
 from typing import Any
 
 from benchmarks.common import command, machine, save_figure, save_json, save_markdown
+from benchmarks.protocol import check_single_policy, check_test_seed
 
 NAME = "robosuite-camera"
 FAMILIES = ("reach", "push", "lift", "put", "stack")
@@ -107,10 +108,11 @@ def main() -> None:
     # any other option is passed on to lcrl train robosuite-camera (--threads 1 ...)
     args, pipeline = p.parse_known_args()
     work = Path(args.work)
+    check_test_seed(args.eval_seed)
     if not args.analyse:
         lcrl("train", "robosuite-camera", "--out", str(work), "--keep", args.model, *pipeline)
     stages = {f.stem: json.loads(f.read_text()) for f in sorted((work / "stages").glob("*.json"))}
-    ev = evaluate(args.model, args.eval_seed, args.episodes, work)
+    ev = evaluate(str(check_single_policy(args.model)), args.eval_seed, args.episodes, work)
     summary = summarise(ev)
     wall = sum(s["seconds"] for s in stages.values())
     headline = {

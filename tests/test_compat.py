@@ -102,9 +102,13 @@ def test_removed_registry_names_give_the_new_spelling():
     import train.environments.tasks
     from lcrl.errors import LcrlError
 
-    with pytest.raises(ImportError, match=r"ENV_KINDS was replaced by train\.environments\.ENVS"):
+    with pytest.raises(
+        ImportError, match=r"ENV_KINDS was replaced by train\.environments\.simulators\.ENVS"
+    ):
         from train.environments.tasks import ENV_KINDS  # noqa: F401
-    with pytest.raises(LcrlError, match=r"GOAL_TYPES was replaced by train\.tasks\.GOALS"):
+    with pytest.raises(
+        LcrlError, match=r"GOAL_TYPES was replaced by train\.environments\.tasks\.GOALS"
+    ):
         _ = train.environments.tasks.GOAL_TYPES
     assert not hasattr(
         train.environments.tasks, "NO_SUCH_NAME"

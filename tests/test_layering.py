@@ -211,7 +211,6 @@ MAX_LINES = 800
 #: Files that were longer when the limit was set, each held to its length then until it is
 #: split: none may grow, and a new file over the limit fails.
 LONG_FILES = {
-    "captioner/learned.py": 2020,
     "lcrl/checkpoint.py": 1291,
     "lcrl/demos.py": 1201,
     "train/environments/tasks.py": 1127,
@@ -230,6 +229,8 @@ LONG_FILES = {
 
 
 def test_no_library_file_grows_past_its_limit():
+    gone = [rel for rel in LONG_FILES if not (ROOT / rel).is_file()]
+    assert not gone, f"split or moved: drop them from LONG_FILES: {gone}"
     over = []
     for package in ("envs", "lcrl", "captioner", "train"):
         for path in sorted((ROOT / package).rglob("*.py")):

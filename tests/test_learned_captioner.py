@@ -468,7 +468,7 @@ def test_learned_relabelling_settings_are_checked(trained, tmp_path):
 
 
 def test_random_shift_moves_both_frames_of_a_pair_together():
-    from captioner.learned import _augment
+    from captioner.learned.training import _augment
 
     gen = torch.Generator().manual_seed(0)
     frames = torch.randint(0, 255, (8, 16, 16, 3), dtype=torch.uint8, generator=gen)
@@ -483,7 +483,7 @@ def test_random_shift_moves_both_frames_of_a_pair_together():
 
 
 def test_spatial_softmax_finds_a_peak():
-    from captioner.learned import spatial_softmax
+    from lcrl.nets import spatial_softmax
 
     h = torch.full((1, 2, 9, 9), -50.0)
     h[0, 0, 0, 8] = 50.0  # top right: y = -1, x = +1
@@ -651,12 +651,13 @@ def test_models_over_perception_learn_from_the_slots(slots_dataset, tmp_path, mo
     """``--model.encoder perception``: the models read perception's estimates of the first
     and current frame; given exact estimates (the simulator's state) they caption held-out
     episodes and rank their rewards far above chance."""
-    import captioner.learned as learned
+    from captioner.learned import saved, training
     from train.environments.perception import PerceptionTrainConfig, save_model
 
     oracle = _oracle(slots_dataset)
     save_model(tmp_path / "oracle", oracle, PerceptionTrainConfig(), {}, 0, [], np.zeros(0, int))
-    monkeypatch.setattr(learned, "load_model", lambda path, device="cpu": (oracle, {}))
+    for module in (training, saved):  # where the models are trained, and loaded again
+        monkeypatch.setattr(module, "load_model", lambda path, device="cpu": (oracle, {}))
     model = dataclasses.replace(TINY, encoder="perception")
     cfg = CaptionTrainConfig(
         data=str(slots_dataset), out=str(tmp_path / "ckpt"), steps=800, model=model,
@@ -704,7 +705,8 @@ def test_first_presence_keeps_the_objects_the_arm_hides(slots_dataset):
     flags of its episode's first frame: an object perception loses under the arm keeps
     its place instead of reading as gone (position 0), in training data and when
     scoring alike."""
-    from captioner.learned import Vocabulary, _perceive_dataset
+    from captioner.learned import Vocabulary
+    from captioner.learned.training import _perceive_dataset
 
     oracle = _oracle(slots_dataset)
     read = oracle.observation
@@ -853,7 +855,8 @@ def test_onset_delay_moves_an_achievements_first_steps_to_the_negatives():
 
 
 def test_reward_positives_follow_the_onset_delay(dataset):
-    from captioner.learned import _Pairs, _parse, _Sampler
+    from captioner.learned.data import _Pairs, _Sampler
+    from captioner.learned.training import _parse
 
     with CaptionDataset(dataset) as data:
         pairs = _Pairs(data, 0.2, 0)

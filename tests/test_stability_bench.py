@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import re
 
 import pytest
 
@@ -55,6 +56,8 @@ def test_the_result_file_keeps_finished_runs_for_the_next_machine(work):
         "planned": 4,
         "complete": False,
     }
+    assert saved["git"] == "unknown" and saved["date"]  # results outside a checkout
+    assert saved["runs"][0]["commit"] == "unknown"
     markdown = (work / "results" / "preset-stability.md").read_text()
     assert "1 of 4 planned runs finished" in markdown
     assert "robosuite-reach seed 22" in markdown  # what is still to train, named
@@ -71,3 +74,29 @@ def test_the_result_file_keeps_finished_runs_for_the_next_machine(work):
     _, argv, _ = preset_stability.pending(["lang2d"], [22], totals, kept)[0]
     assert argv[-6:] == ["--seed", "22", "--agent.seed", "22", "--overwrite", "--no-progress"]
     assert (work / "results" / "preset-stability.png").is_file()
+
+
+def test_results_name_the_commit_they_were_measured_on():
+    commit = common.git_commit()  # this checkout
+    assert commit == "unknown" or re.fullmatch(r"[0-9a-f]{12}(\+changes)?", commit)
+
+
+def test_the_protocol_refuses_a_validation_seed_a_composite_or_unlike_peers(tmp_path):
+    from benchmarks import protocol
+    from lcrl.errors import LcrlError
+
+    assert protocol.check_test_seed(7) == 7
+    with pytest.raises(LcrlError, match="used for choices"):
+        protocol.check_test_seed(protocol.VALIDATION_SEEDS[0])
+    single, mean = tmp_path / "single", tmp_path / "mean"
+    for folder, meta in ((single, {"config": {}}), (mean, {"ensemble": {"members": []}})):
+        folder.mkdir()
+        (folder / "meta.json").write_text(json.dumps(meta))
+    assert protocol.check_single_policy(single) == single
+    with pytest.raises(LcrlError, match="made of other policies"):
+        protocol.check_single_policy(mean)
+    with pytest.raises(LcrlError, match="not a checkpoint"):
+        protocol.check_single_policy(tmp_path)
+    protocol.check_like_for_like({"precision": "float32"}, {"precision": "float32"})
+    with pytest.raises(LcrlError, match="precision 'bfloat16' against 'float32'"):
+        protocol.check_like_for_like({"precision": "bfloat16"}, {"precision": "float32"})

@@ -21,18 +21,8 @@ def load_policy(
     device: str | None = None,
     render: bool = False,
 ) -> LoadedPolicy:
-    """Load a checkpoint, whatever it is made of, and rebuild its env, task and agent.
-
-    Args:
-        path: a checkpoint folder or a run folder.
-        env_overrides: env config fields to change (e.g. ``families``); the resulting
-            env must match the checkpoint's observation and action shapes.
-        device: run the policy here instead of the checkpoint's device.
-        render: make the env with ``render_mode="rgb_array"`` (for videos).
-
-    Raises:
-        LcrlError: the checkpoint is missing or does not match the environment.
-    """
+    """Load a checkpoint, whatever it is made of, and rebuild its env, task and agent; the
+    arguments and errors are those of :func:`train.evaluation.evaluate.load_single`."""
     loaded = load_single(path, env_overrides, device, render)
     if ROUTER in loaded.checkpoint.meta:  # experts routed by instruction family
         loaded = routed(loaded, device)

@@ -1,0 +1,86 @@
+"""Caption metrics: BLEU-4, ROC AUC, per-slot agreement with the label."""
+
+from __future__ import annotations
+
+import math
+from collections import Counter
+from collections.abc import Sequence
+
+import numpy as np
+
+from captioner.grammar import Instruction
+
+# --------------------------------------------------------------------------- metrics
+
+
+def bleu4(candidate: str, references: Sequence[str]) -> float:
+    """Sentence BLEU-4 against several references (uniform weights, brevity penalty, +1
+    smoothing of the higher n-gram precisions as in Lin and Och 2004)."""
+    cand = candidate.split()
+    refs = [r.split() for r in references]
+    if not cand or not refs:
+        return 0.0
+    logs = []
+    for n in range(1, 5):
+        grams = Counter(tuple(cand[i : i + n]) for i in range(len(cand) - n + 1))
+        if not grams:
+            logs.append(math.log(1.0 / (1.0 + 1.0)))  # smoothed empty order
+            continue
+        best: Counter = Counter()
+        for r in refs:
+            rg = Counter(tuple(r[i : i + n]) for i in range(len(r) - n + 1))
+            for g in grams:
+                best[g] = max(best[g], rg[g])
+        hit = sum(min(c, best[g]) for g, c in grams.items())
+        total = sum(grams.values())
+        if n == 1:
+            if hit == 0:
+                return 0.0
+            logs.append(math.log(hit / total))
+        else:
+            logs.append(math.log((hit + 1.0) / (total + 1.0)))
+    ref_len = min((abs(len(r) - len(cand)), len(r)) for r in refs)[1]
+    bp = 1.0 if len(cand) > ref_len else math.exp(1.0 - ref_len / len(cand))
+    return bp * math.exp(sum(logs) / 4.0)
+
+
+def roc_auc(scores: np.ndarray, labels: np.ndarray) -> float:
+    """Area under the ROC curve (ties count one half); NaN without both classes."""
+    scores = np.asarray(scores, np.float64)
+    labels = np.asarray(labels, bool)
+    pos, neg = labels.sum(), (~labels).sum()
+    if pos == 0 or neg == 0:
+        return float("nan")
+    order = np.argsort(scores, kind="mergesort")
+    ranks = np.empty(len(scores), np.float64)
+    sorted_scores = scores[order]
+    i = 0
+    while i < len(scores):  # average ranks over ties
+        j = i
+        while j + 1 < len(scores) and sorted_scores[j + 1] == sorted_scores[i]:
+            j += 1
+        ranks[order[i : j + 1]] = 0.5 * (i + j) + 1.0
+        i = j + 1
+    return float((ranks[labels].sum() - pos * (pos + 1) / 2.0) / (pos * neg))
+
+
+SLOT_GROUPS: dict[str, tuple[str, ...]] = {
+    "verb": ("family",),
+    "object": ("colour", "shape"),
+    "colour": ("colour",),
+    "shape": ("shape",),
+    "direction": ("direction",),
+    "relation": ("relation",),
+    "reference": ("target_colour", "target_shape"),
+}
+
+
+def slot_matches(generated: Instruction | None, label: Instruction) -> dict[str, bool]:
+    """For each slot group the label has, whether the generated instruction agrees."""
+    want = label.slots()
+    got = generated.slots() if generated is not None else {}
+    out = {}
+    for group, keys in SLOT_GROUPS.items():
+        if all(k in want for k in keys):
+            out[group] = all(got.get(k) == want[k] for k in keys)
+    return out
