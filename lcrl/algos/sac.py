@@ -4,7 +4,7 @@ task weights, PCGrad and gradient-conflict measurement over a fixed task set."""
 from __future__ import annotations
 
 from collections.abc import Mapping
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
@@ -78,6 +78,32 @@ class SACConfig:
             positive_or_none=("max_grad_norm", "target_clip"),
             finite_or_none=("target_entropy",),
         )
+
+
+@dataclass
+class _Update:
+    """What one SAC update's critic and actor steps share."""
+
+    obs: dict[str, torch.Tensor]
+    #: the observations the actor reads (detached where perception learned from the critic)
+    actor_obs: dict[str, torch.Tensor]
+    goal: torch.Tensor
+    act: torch.Tensor
+    y: torch.Tensor  # TD targets
+    weights: torch.Tensor | None  # per-row weights (task weights), None: equal
+    alpha: torch.Tensor
+    measure: bool  # this update compares task gradients
+    parts: list[np.ndarray | None]  # each task's rows, or [None]: the whole batch
+    coefs: np.ndarray
+    n: int
+    relabelled: np.ndarray
+    n_rel: int
+    demo: np.ndarray
+    n_demo: int
+    named: torch.Tensor | None  # the slots each row's instruction names (grounding)
+    grounding: dict[str, list[float]] = field(default_factory=lambda: {"critic": [], "actor": []})
+    demo_rows: int = 0
+    demo_cloned: int = 0
 
 
 def _weighted_mean(x: torch.Tensor, weights: torch.Tensor | None) -> torch.Tensor:
@@ -203,142 +229,182 @@ class SAC(Agent):
         """
         if self.perceiver_opt is not None:
             self.perceiver_opt.zero_grad()
-        obs, nobs, goal, act, rew, boot = self.batch_tensors(batch)
+        u = self._prepare(batch)
+        metrics, critic_value, qs = self._critic_step(u)
         # a fine-tuned perception module learns from the critic loss; from the actor loss
         # where the critics read privileged state instead
         critic_perceives = self.perceiver is not None and not self.problem.privileged
-        cfg = self.cfg
+        if critic_perceives:
+            self.perceiver_opt.step()
+            u.actor_obs = {k: v.detach() for k, v in u.obs.items()}
+        self.critic.requires_grad_(False)
+        actor_metrics, actor_value, bc_value, logp = self._actor_step(u)
+        metrics.update(actor_metrics)
+        if self.perceiver_opt is not None and not critic_perceives:
+            self.perceiver_opt.step()
+        self.critic.requires_grad_(True)
+        if self.cfg.autotune_alpha:
+            alpha_loss = -(self.log_alpha * (logp.detach() + self.target_entropy)).mean()
+            self.alpha_opt.zero_grad()
+            alpha_loss.backward()
+            self.alpha_opt.step()
+        with torch.no_grad():
+            self._target_flat.lerp_(self.critic_opt.flat, self.cfg.tau)
+        self.updates += 1
+        out = {
+            "critic_loss": critic_value,
+            "actor_loss": actor_value,
+            "alpha": float(u.alpha),
+            "q": (q_all := torch.cat(qs)).mean().item(),
+            "q_max": q_all.max().item(),
+            "entropy": -logp.detach().mean().item(),
+        }
+        if bc_value is not None:
+            out["bc_loss"] = bc_value
+        if u.n_demo:  # share of the batch from demonstrations, share of those cloned
+            out["demo_rows"] = u.n_demo / u.n
+            out["demo_cloned"] = u.demo_cloned / max(u.demo_rows, 1)
+        for name, values in u.grounding.items():
+            if values:  # cross-entropy of the slots picked against the slots named
+                out[f"grounding_{name}"] = float(np.mean(values))
+        return {**out, **metrics}
+
+    def _prepare(self, batch: Batch) -> _Update:
+        """The tensors, targets, task parts and row masks one update shares."""
+        obs, nobs, goal, act, rew, boot = self.batch_tensors(batch)
         alpha = self.log_alpha.detach().exp()
         y = self.td_target(nobs, goal, rew, boot, alpha)
         measure = self._measures()
         parts, coefs, weights = self._parts(batch, measure)
         n = len(batch.reward)
         relabelled = np.asarray(batch.relabelled, bool)
-        n_rel = int(relabelled.sum())
         demo = np.zeros(n, bool) if batch.demo is None else np.asarray(batch.demo, bool)
-        n_demo = int(demo.sum()) if cfg.demo_bc > 0.0 else 0
-        demo_stats = {"rows": 0, "cloned": 0}
+        return _Update(
+            obs=obs,
+            actor_obs=obs,
+            goal=goal,
+            act=act,
+            y=y,
+            weights=weights,
+            alpha=alpha,
+            measure=measure,
+            parts=parts,
+            coefs=coefs,
+            n=n,
+            relabelled=relabelled,
+            n_rel=int(relabelled.sum()),
+            demo=demo,
+            n_demo=int(demo.sum()) if self.cfg.demo_bc > 0.0 else 0,
+            named=self.grounding_rows(batch.goal),  # the slots each instruction names
+        )
 
-        def take(rows: np.ndarray | None, o: Any = obs) -> tuple[Any, ...]:
-            """Observations, goals, actions, targets and row weights of a part."""
-            if rows is None:
-                return o, goal, act, y, weights
-            idx = torch.as_tensor(rows, device=self.device)
-            return {k: v[idx] for k, v in o.items()}, goal[idx], act[idx], y[idx], None
+    def _take(self, u: _Update, rows: np.ndarray | None, o: Any) -> tuple[Any, ...]:
+        """Observations, goals, actions, targets and row weights of a part."""
+        if rows is None:
+            return o, u.goal, u.act, u.y, u.weights
+        idx = torch.as_tensor(rows, device=self.device)
+        return {k: v[idx] for k, v in o.items()}, u.goal[idx], u.act[idx], u.y[idx], None
 
-        # the slots each row's instruction names (the auxiliary grounding loss)
-        named = self.grounding_rows(batch.goal)
-        grounding: dict[str, list[float]] = {"critic": [], "actor": []}
+    def _ground(
+        self, u: _Update, net: Any, o: Any, g: torch.Tensor, rows: np.ndarray | None, name: str
+    ) -> Any:
+        """The weighted grounding loss of a part (0 when grounding is off)."""
+        if u.named is None:
+            return 0.0
+        t = u.named if rows is None else u.named[torch.as_tensor(rows, device=self.device)]
+        loss = grounding_loss(net.selection_logits(o, g), t)
+        u.grounding[name].append(float(loss.detach()))
+        return self.options.grounding * loss
 
-        def ground(net: Any, o: Any, g: torch.Tensor, rows: np.ndarray | None, name: str) -> Any:
-            """The weighted grounding loss of a part (0 when grounding is off)."""
-            if named is None:
-                return 0.0
-            t = named if rows is None else named[torch.as_tensor(rows, device=self.device)]
-            loss = grounding_loss(net.selection_logits(o, g), t)
-            grounding[name].append(float(loss.detach()))
-            return self.options.grounding * loss
-
-        # critic: 0.5 (Q_k - y)^2 per critic and row
+    def _critic_step(self, u: _Update) -> tuple[dict[str, float], float, list[torch.Tensor]]:
+        """The critics' step on 0.5 (Q_k - y)^2 per critic and row: its metrics, the
+        weighted loss and each part's Q values."""
         losses: list[torch.Tensor | None] = []
         qs = []
-        for rows in parts:
+        for rows in u.parts:
             if rows is not None and len(rows) == 0:
                 losses.append(None)
                 continue
-            o, g, a, target, w = take(rows)
+            o, g, a, target, w = self._take(u, rows, u.obs)
             q = self.critic(o, g, a).squeeze(-1)
             loss = 0.5 * _weighted_mean((q - target).pow(2), w).sum()
-            losses.append(loss + ground(self.critic, o, g, rows, "critic"))
+            losses.append(loss + self._ground(u, self.critic, o, g, rows, "critic"))
             qs.append(q.detach().reshape(-1))
-        metrics = self._step("critic", measure, losses, coefs)
-        critic_value = _weighted(coefs, losses)
+        metrics = self._step("critic", u.measure, losses, u.coefs)
         if self._gradnorm is not None and self._task_norms is not None:
             values = [np.nan if loss is None else float(loss.detach()) for loss in losses]
             w = self._gradnorm.update(self._task_norms, np.asarray(values))
             self._task_w = torch.as_tensor(w / w.mean(), dtype=torch.float32, device=self.device)
-        actor_obs = obs
-        if critic_perceives:
-            self.perceiver_opt.step()
-            actor_obs = {k: v.detach() for k, v in obs.items()}
+        return metrics, _weighted(u.coefs, losses), qs
 
-        # actor: alpha log pi - min_k Q_k per row, plus hindsight BC on relabelled rows
-        self.critic.requires_grad_(False)
-        losses, bc_losses, logps = [], [], []
-        for rows in parts:
+    def _actor_step(self, u: _Update) -> tuple[dict[str, float], float, float | None, torch.Tensor]:
+        """The actor's step on alpha log pi - min_k Q_k per row, plus hindsight BC on
+        relabelled rows and BC on demonstration rows: its metrics, the weighted loss, the
+        weighted hindsight-BC loss (None without one) and the log-probabilities."""
+        losses: list[torch.Tensor | None] = []
+        bc_losses: list[torch.Tensor | None] = []
+        logps = []
+        bc_weight = self.cfg.hindsight_bc + self.extra_bc
+        for rows in u.parts:
             if rows is not None and len(rows) == 0:
                 losses.append(None)
                 bc_losses.append(None)
                 continue
-            o, g, a_taken, _, w = take(rows, actor_obs)
+            o, g, a_taken, _, w = self._take(u, rows, u.actor_obs)
             a, logp, mean_action = self._policy(o, g, with_mean=True)
             q_pi = self.critic(o, g, a).min(0).values.squeeze(-1)
-            loss = _weighted_mean(alpha * logp - self.q_weight * q_pi, w)
-            rel = relabelled if rows is None else relabelled[rows]
+            loss = _weighted_mean(u.alpha * logp - self.q_weight * q_pi, w)
+            rel = u.relabelled if rows is None else u.relabelled[rows]
             bc_loss = None
-            bc_weight = cfg.hindsight_bc + self.extra_bc
             if bc_weight > 0.0 and rel.any():
                 mask = torch.as_tensor(rel, device=self.device)
                 bc_rows = (mean_action[mask] - a_taken[mask]).pow(2).sum(-1)
                 bc_loss = _weighted_mean(bc_rows, None if w is None else w[mask])
                 if rows is not None:  # the task's share of the mean over relabelled rows
-                    bc_loss = bc_loss * (int(rel.sum()) / n_rel * n / len(rows))
+                    bc_loss = bc_loss * (int(rel.sum()) / u.n_rel * u.n / len(rows))
                 loss = loss + bc_weight * bc_loss
-            dem = (demo if rows is None else demo[rows]) if n_demo else None
+            dem = (u.demo if rows is None else u.demo[rows]) if u.n_demo else None
             if dem is not None and dem.any():
-                mask = torch.as_tensor(dem, device=self.device)
-                if cfg.q_filter:  # clone where the demonstrator's action is valued higher
-                    with torch.no_grad():
-                        q_demo = (
-                            self.critic({k: v[mask] for k, v in o.items()}, g[mask], a_taken[mask])
-                            .min(0)
-                            .values.squeeze(-1)
-                        )
-                    keep = q_demo > q_pi.detach()[mask]
-                else:
-                    keep = torch.ones(int(mask.sum()), dtype=torch.bool, device=self.device)
-                demo_rows = (mean_action[mask] - a_taken[mask]).pow(2).sum(-1) * keep
-                demo_loss = demo_rows.mean()
-                if rows is not None:  # the task's share of the mean over demonstration rows
-                    demo_loss = demo_loss * (int(dem.sum()) / n_demo * n / len(rows))
-                loss = loss + cfg.demo_bc * demo_loss
-                demo_stats["rows"] += int(dem.sum())
-                demo_stats["cloned"] += int(keep.sum())
-            losses.append(loss + ground(self.actor, o, g, rows, "actor"))
+                loss = loss + self.cfg.demo_bc * self._demo_loss(
+                    u, rows, dem, o, g, a_taken, mean_action, q_pi
+                )
+            losses.append(loss + self._ground(u, self.actor, o, g, rows, "actor"))
             bc_losses.append(bc_loss)
             logps.append(logp)
-        metrics.update(self._step("actor", measure, losses, coefs))
-        if self.perceiver_opt is not None and not critic_perceives:
-            self.perceiver_opt.step()
-        self.critic.requires_grad_(True)
-        actor_value = _weighted(coefs, losses)
-        logp = torch.cat(logps)
+        metrics = self._step("actor", u.measure, losses, u.coefs)
+        bc_value = _weighted(u.coefs, bc_losses) if any(x is not None for x in bc_losses) else None
+        return metrics, _weighted(u.coefs, losses), bc_value, torch.cat(logps)
 
-        if cfg.autotune_alpha:
-            alpha_loss = -(self.log_alpha * (logp.detach() + self.target_entropy)).mean()
-            self.alpha_opt.zero_grad()
-            alpha_loss.backward()
-            self.alpha_opt.step()
-        with torch.no_grad():
-            self._target_flat.lerp_(self.critic_opt.flat, cfg.tau)
-        self.updates += 1
-        out = {
-            "critic_loss": critic_value,
-            "actor_loss": actor_value,
-            "alpha": float(alpha),
-            "q": (q_all := torch.cat(qs)).mean().item(),
-            "q_max": q_all.max().item(),
-            "entropy": -logp.detach().mean().item(),
-        }
-        if any(x is not None for x in bc_losses):
-            out["bc_loss"] = _weighted(coefs, bc_losses)
-        if n_demo:  # share of the batch from demonstrations, share of those cloned
-            out["demo_rows"] = n_demo / n
-            out["demo_cloned"] = demo_stats["cloned"] / max(demo_stats["rows"], 1)
-        for name, values in grounding.items():
-            if values:  # cross-entropy of the slots picked against the slots named
-                out[f"grounding_{name}"] = float(np.mean(values))
-        return {**out, **metrics}
+    def _demo_loss(
+        self,
+        u: _Update,
+        rows: np.ndarray | None,
+        dem: np.ndarray,
+        o: Any,
+        g: torch.Tensor,
+        a_taken: torch.Tensor,
+        mean_action: torch.Tensor,
+        q_pi: torch.Tensor,
+    ) -> torch.Tensor:
+        """Behavioural cloning on a part's demonstration rows (``dem``), with the Q filter
+        (clone where the demonstrator's action is valued higher) when it is on."""
+        mask = torch.as_tensor(dem, device=self.device)
+        if self.cfg.q_filter:
+            with torch.no_grad():
+                q_demo = (
+                    self.critic({k: v[mask] for k, v in o.items()}, g[mask], a_taken[mask])
+                    .min(0)
+                    .values.squeeze(-1)
+                )
+            keep = q_demo > q_pi.detach()[mask]
+        else:
+            keep = torch.ones(int(mask.sum()), dtype=torch.bool, device=self.device)
+        demo_loss = ((mean_action[mask] - a_taken[mask]).pow(2).sum(-1) * keep).mean()
+        if rows is not None:  # the task's share of the mean over demonstration rows
+            demo_loss = demo_loss * (int(dem.sum()) / u.n_demo * u.n / len(rows))
+        u.demo_rows += int(dem.sum())
+        u.demo_cloned += int(keep.sum())
+        return demo_loss
 
     def _measures(self) -> bool:
         """Whether this update compares task gradients."""
