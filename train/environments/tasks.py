@@ -1044,12 +1044,11 @@ def make_task(cfg: EnvConfig, env: gym.Env, embed: Any = None, **kwargs: Any) ->
     (:data:`GOALS`).
 
     Args:
-        cfg: the env config.
+        cfg: the env config, checked when :func:`make_env` built ``env`` from it.
         env: the env :func:`make_env` built for it.
         embed: ``texts -> (N, d)`` embeddings (the frozen text encoder), for text goals.
         kwargs: a saved instruction table (``table``, ``num_train``).
     """
-    check_tasks(cfg)
     return goal_modality(cfg.goal_type).task.from_config(cfg, env, embed, **kwargs)
 
 
