@@ -293,7 +293,7 @@ def test_explore_needs_language_goals(tmp_path, capsys):
 
 
 def test_prelude_episodes_start_where_the_teacher_left_the_scene(tmp_path, monkeypatch):
-    import train.training.loop as loop
+    import train.training.collection as loop  # where episodes begin
     from captioner.rule import RuleCaptioner
 
     switches: list[tuple] = []

@@ -218,7 +218,6 @@ LONG_FILES = {
     "train/commands/cli.py": 1091,
     "lcrl/nets.py": 1084,
     "train/evaluation/eval_suite.py": 1055,
-    "train/training/loop.py": 1014,
     "train/evaluation/report.py": 1008,
     "lcrl/algos/base.py": 993,
     "train/configs/config.py": 936,
@@ -229,8 +228,12 @@ LONG_FILES = {
 
 
 def test_no_library_file_grows_past_its_limit():
-    gone = [rel for rel in LONG_FILES if not (ROOT / rel).is_file()]
-    assert not gone, f"split or moved: drop them from LONG_FILES: {gone}"
+    gone = [
+        rel
+        for rel in LONG_FILES
+        if not (ROOT / rel).is_file() or len((ROOT / rel).read_text().splitlines()) <= MAX_LINES
+    ]
+    assert not gone, f"split, moved or short enough now: drop them from LONG_FILES: {gone}"
     over = []
     for package in ("envs", "lcrl", "captioner", "train"):
         for path in sorted((ROOT / package).rglob("*.py")):

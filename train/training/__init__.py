@@ -1,7 +1,8 @@
 """Trainers.
 
 - ``trainer``: the interface every trainer shares, run folders, checkpoints, stopping.
-- ``loop``: online RL with hindsight relabelling (``lcrl train``).
+- ``loop``: online RL with hindsight relabelling (``lcrl train``), with its parts
+  ``collection`` (its own environments or Ray workers) and ``stages`` (sequential stages).
 - ``episodes``: one training episode as collected; ``explore``: where episodes start.
 - ``ray_collect``: rollout workers on Ray.
 - ``bc``, ``offline``, ``distill``: behavioural cloning, offline RL, DAgger distillation.
