@@ -213,7 +213,6 @@ MAX_LINES = 800
 LONG_FILES = {
     "lcrl/checkpoint.py": 1291,
     "lcrl/demos.py": 1201,
-    "train/environments/tasks.py": 1127,
     "train/training/demos.py": 1101,
     "train/commands/cli.py": 1091,
     "lcrl/nets.py": 1084,
