@@ -214,7 +214,6 @@ LONG_FILES = {
     "lcrl/checkpoint.py": 1291,
     "lcrl/demos.py": 1201,
     "train/training/demos.py": 1101,
-    "train/commands/cli.py": 1091,
     "lcrl/nets.py": 1084,
     "train/evaluation/eval_suite.py": 1055,
     "train/evaluation/report.py": 1008,
