@@ -15,8 +15,7 @@ import torch
 
 from lcrl.buffer import Batch, HindsightReplayBuffer
 from lcrl.errors import LcrlError
-from lcrl.goals import STRATEGIES as GOAL_STRATEGIES
-from lcrl.goals import LabelGoals, StateGoals
+from lcrl.goals import STRATEGIES as GOAL_STRATEGIES, LabelGoals, StateGoals
 
 OBS_DIM = 3
 ACT_DIM = 2

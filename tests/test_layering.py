@@ -215,7 +215,6 @@ LONG_FILES = {
     "lcrl/demos.py": 1201,
     "train/training/demos.py": 1101,
     "lcrl/nets.py": 1084,
-    "train/evaluation/report.py": 1008,
     "lcrl/algos/base.py": 993,
     "train/configs/config.py": 936,
     "envs/robosuite_tabletop.py": 926,

@@ -2,8 +2,7 @@
 
 import numpy as np
 import pytest
-from hypothesis import HealthCheck, given, settings
-from hypothesis import strategies as st
+from hypothesis import HealthCheck, given, settings, strategies as st
 
 from captioner.grammar import FAMILIES, all_instructions, random_paraphrase
 from captioner.rule import RuleCaptioner, Thresholds

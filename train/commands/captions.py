@@ -16,8 +16,12 @@ from typing import Any
 
 import numpy as np
 
-from captioner.dataset import CaptionDatasetWriter, CaptionSimulator, CollectConfig
-from captioner.dataset import collect as collect_dataset
+from captioner.dataset import (
+    CaptionDatasetWriter,
+    CaptionSimulator,
+    CollectConfig,
+    collect as collect_dataset,
+)
 from lcrl.errors import LcrlError
 from train.environments.simulators import ENVS, EnvConfig, canonical_kind
 from train.environments.tasks import find_language_wrapper

@@ -4,6 +4,7 @@
 - ``eval_suite``: ``lcrl eval`` (sets, families, slot values, chains, parallel envs),
   over ``eval_episodes`` (episodes in a vector env), ``instruction_files`` and
   ``statistics`` (Wilson intervals).
-- ``report``: curves, summaries and figures of runs and evaluations.
+- ``report``: a run's report and runs compared, over ``run_logs`` (reading a run),
+  ``report_plots`` (figures) and ``evaluation_report`` (an evaluation's document).
 - ``sequential``: the success matrix and forgetting of sequential stages.
 """

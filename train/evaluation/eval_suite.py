@@ -54,26 +54,16 @@ from train.environments.tasks import (
 )
 from train.evaluation.eval_episodes import (
     EpisodeResult as EpisodeResult,
-)
-from train.evaluation.eval_episodes import (
     EpisodeSpec as EpisodeSpec,
-)
-from train.evaluation.eval_episodes import (
     EvalEpisodes as EvalEpisodes,
 )
 from train.evaluation.instruction_files import (
     FileInstruction as FileInstruction,
-)
-from train.evaluation.instruction_files import (
     read_instruction_file as read_instruction_file,
 )
 from train.evaluation.statistics import (
     Z95 as Z95,
-)
-from train.evaluation.statistics import (
     rate_stats as rate_stats,
-)
-from train.evaluation.statistics import (
     wilson_interval as wilson_interval,
 )
 
