@@ -57,7 +57,7 @@ def old_writer(path: Path, arrays: dict[str, np.ndarray]) -> None:
 def timed_save(trainer: Any, layout: str, repeats: int) -> tuple[float, float]:
     """Median seconds of ``trainer.save()`` and the checkpoint's size in MB, in the
     ``before`` (every slot, stored) or ``after`` layout."""
-    import lcrl.checkpoint as ck
+    import lcrl.checkpoint.writing as ck  # where save_checkpoint finds write_npz
 
     buffer = trainer.buffer
     arrays, writer = buffer.arrays, ck.write_npz

@@ -2,6 +2,7 @@
 
 import errno
 import json
+import os
 import pickle
 import random
 import shutil
@@ -15,7 +16,6 @@ import safetensors.torch
 import torch
 from torch import nn
 
-from lcrl import checkpoint as ckpt_mod
 from lcrl.checkpoint import (
     FORMAT_VERSION,
     CheckpointError,
@@ -480,7 +480,7 @@ def test_failure_during_save_keeps_previous_checkpoint(tmp_path, monkeypatch):
 def test_failure_while_swapping_restores_previous(tmp_path, monkeypatch):
     path = tmp_path / "ckpt"
     _save_basic(path, meta={"v": 1})
-    real_rename = ckpt_mod.os.rename
+    real_rename = os.rename
     calls = []
 
     def flaky_rename(src, dst):
@@ -489,7 +489,7 @@ def test_failure_while_swapping_restores_previous(tmp_path, monkeypatch):
             raise OSError("rename failed")
         real_rename(src, dst)
 
-    monkeypatch.setattr(ckpt_mod.os, "rename", flaky_rename)
+    monkeypatch.setattr(os, "rename", flaky_rename)  # the one os module the writer uses
     with pytest.raises(CheckpointWriteError, match=f"cannot write {path}: rename failed") as e:
         _save_basic(path, meta={"v": 2})
     assert isinstance(e.value.__cause__, OSError)
