@@ -715,7 +715,7 @@ def test_cli_import_robomimic(tmp_path, capsys):
 
 def test_ctrl_c_keeps_the_finished_episodes(tmp_path, monkeypatch, capsys):
     """Interrupting a recording completes the file with the episodes finished so far."""
-    import train.training.demos as demos
+    import train.training.demo_recording as demos  # where episodes are recorded
 
     real = demos._record_episode
     calls = {"n": 0}

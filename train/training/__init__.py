@@ -6,5 +6,6 @@
 - ``episodes``: one training episode as collected; ``explore``: where episodes start.
 - ``ray_collect``: rollout workers on Ray.
 - ``bc``, ``offline``, ``distill``: behavioural cloning, offline RL, DAgger distillation.
-- ``demos``: demonstration files (``lcrl demos``).
+- ``demos``: demonstration files (``lcrl demos``), with ``demo_episodes`` (episodes as
+  the trainers read them), ``demo_recording`` and ``demo_relabelling``.
 """
