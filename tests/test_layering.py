@@ -215,7 +215,6 @@ LONG_FILES = {
     "train/configs/config.py": 936,
     "envs/robosuite_tabletop.py": 926,
     "captioner/dataset.py": 854,
-    "lcrl/goals.py": 807,
 }
 
 
