@@ -150,7 +150,9 @@ def test_bad_arguments(kwargs: dict, name: str) -> None:
 
 
 def test_missing_robosuite_is_a_clear_error(monkeypatch: pytest.MonkeyPatch) -> None:
-    monkeypatch.setattr(rt, "_BACKEND", {})
+    import envs.robosuite_backend as backend
+
+    monkeypatch.setattr(backend, "_BACKEND", {})  # robosuite not imported yet
     monkeypatch.setitem(sys.modules, "robosuite.controllers", None)
     with pytest.raises(RobosuiteMissingError, match=r"pip install -e \"\.\[robot\]\"") as info:
         RobosuiteTabletopEnv()
