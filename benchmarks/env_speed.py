@@ -172,15 +172,9 @@ def interpreter() -> str:
 
 def machine_info(pinning: str) -> dict[str, Any]:
     """Platform, CPU and library versions."""
-    cpu = platform.processor() or ""
-    try:
-        with open("/proc/cpuinfo") as f:
-            for line in f:
-                if line.startswith("model name"):
-                    cpu = line.split(":", 1)[1].strip()
-                    break
-    except OSError:
-        pass
+    from train.runtime.machine import cpu_name
+
+    cpu = cpu_name()
     return {
         "platform": platform.platform(),
         "cpu": cpu,

@@ -51,6 +51,8 @@ Q_SLACK = 0.05
 #: A fall of seen success below the run's best earlier evaluation that counts as divergence.
 DROP = 0.2
 WORK = Path("runs/stability")
+#: Where the commit of the code that trains each run is written when the run starts.
+COMMITS = "commits"
 #: Curves kept per run in the result file (every n-th logged row, so that the figure can be
 #: drawn again from the file alone).
 KEPT_POINTS = 200
@@ -82,11 +84,27 @@ def finished(out: Path, total: int) -> bool:
     return bool(rows) and int(float(rows[-1]["step"])) >= total
 
 
+def commit_file(preset: str, seed: int) -> Path:
+    """The file naming the commit of the code that trains a run (beside the run folders:
+    ``--overwrite`` clears a run's own folder)."""
+    return WORK / COMMITS / f"{preset}-s{seed}.txt"
+
+
+def trained_by(preset: str, seed: int) -> str:
+    """The commit of the code that trained a run (recorded when it started)."""
+    path = commit_file(preset, seed)
+    return path.read_text().strip() if path.is_file() else "unknown"
+
+
 def job(preset: str, seed: int, total: int) -> tuple[str, list[str], Path] | None:
     """The command that trains (or resumes) one run; None when it is finished."""
     out = run_folder(preset, seed)
     if finished(out, total):
         return None
+    record = commit_file(preset, seed)
+    if not record.is_file():  # the code that trains it
+        record.parent.mkdir(parents=True, exist_ok=True)
+        record.write_text(git_commit() + "\n")
     argv = [sys.executable, "-m", "train.commands.entry", "train", preset, "--out", str(out)]
     if (out / "latest.json").is_file():
         argv += ["--resume", "--total-steps", str(total)]
@@ -140,7 +158,7 @@ def analyse(preset: str, seed: int) -> dict[str, Any]:
     return {
         "preset": preset,
         "seed": seed,
-        "commit": git_commit(),
+        "commit": trained_by(preset, seed),
         "curves": {
             "step": steps[::every],
             "q": [round(v, 4) for v in q[::every]],
@@ -197,7 +215,8 @@ def write(runs: list[dict[str, Any]], args: argparse.Namespace, info: dict[str, 
             "planned": planned,
             "complete": len(runs) == planned,
         },
-        "command": command(),
+        # --analyse only reads what the command trains: the command is the one that does both
+        "command": command().replace(" --analyse", ""),
         "machine": info,
         "seeds": list(args.seeds),
         "criteria": {
@@ -240,7 +259,8 @@ def write(runs: list[dict[str, Any]], args: argparse.Namespace, info: dict[str, 
         lines += ["", f"Not yet trained to the full budget: {', '.join(missing)}."]
     lines += ["", "Lowest final seen success per preset: "]
     lines += [f"- {n}: {v:.2f}" for n, v in min_seen.items()]
-    save_markdown(NAME, "Shipped presets on new seeds", "\n".join(lines), info)
+    cmd = command().replace(" --analyse", "")
+    save_markdown(NAME, "Shipped presets on new seeds", "\n".join(lines), info, cmd)
     if presets:
         figure(runs, presets, info)
     print(json.dumps(payload["headline"], indent=1))
@@ -262,7 +282,7 @@ def figure(runs: list[dict[str, Any]], presets: list[str], info: dict[str, Any])
         bottom.set(ylabel="mean Q (dashed: bound)", xlabel="step")
         top.legend(fontsize=7)
     fig.tight_layout(rect=(0, 0.06, 1, 1))
-    save_figure(NAME, fig, info)
+    save_figure(NAME, fig, info, command().replace(" --analyse", ""))
 
 
 if __name__ == "__main__":

@@ -73,6 +73,8 @@ def test_the_result_file_keeps_finished_runs_for_the_next_machine(work):
     assert names == ["robosuite-reach seed 21", "lang2d seed 22", "robosuite-reach seed 22"]
     _, argv, _ = preset_stability.pending(["lang2d"], [22], totals, kept)[0]
     assert argv[-6:] == ["--seed", "22", "--agent.seed", "22", "--overwrite", "--no-progress"]
+    # the code that trains a run is named when it starts, beside the run folders
+    assert preset_stability.trained_by("lang2d", 22) == common.git_commit()
     assert (work / "results" / "preset-stability.png").is_file()
 
 

@@ -75,17 +75,21 @@ def set_threads(threads: int = 0, helpers: int = 0) -> int:
     return n
 
 
-def machine() -> dict[str, Any]:
-    """CPU, cores, memory, Python and torch versions, GPU if any."""
-    cpu = platform.processor() or platform.machine()
+def cpu_name() -> str:
+    """The CPU's model name (``/proc/cpuinfo``), else what the platform says."""
     try:
         with open("/proc/cpuinfo") as f:
             for line in f:
                 if line.startswith("model name"):
-                    cpu = line.split(":", 1)[1].strip()
-                    break
+                    return line.split(":", 1)[1].strip()
     except OSError:
         pass
+    return platform.processor() or platform.machine()
+
+
+def machine() -> dict[str, Any]:
+    """CPU, cores, memory, Python and torch versions, GPU if any."""
+    cpu = cpu_name()
     mem_gib = None
     try:
         with open("/proc/meminfo") as f:
