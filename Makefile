@@ -38,12 +38,12 @@ test-slow: $(STAMP)
 
 bench: $(STAMP)
 	$(BIN)/python -m pip install --quiet -e ".[bench]"
-	$(BIN)/python benchmarks/env_speed.py
-	$(BIN)/python benchmarks/text_encoder_speed.py
-	$(BIN)/python benchmarks/speed_vs_sb3.py --rounds 5
-	$(BIN)/python benchmarks/learning_curves.py fetch-reach
-	$(BIN)/python benchmarks/learning_curves.py lang2d --parallel
-	$(BIN)/python benchmarks/captioning.py
+	$(BIN)/python -m benchmarks.env_speed
+	$(BIN)/python -m benchmarks.text_encoder_speed
+	$(BIN)/python -m benchmarks.speed_vs_sb3 --rounds 5
+	$(BIN)/python -m benchmarks.learning_curves fetch-reach
+	$(BIN)/python -m benchmarks.learning_curves lang2d --parallel
+	$(BIN)/python -m benchmarks.captioning
 
 lint: $(STAMP)
 	$(BIN)/ruff check .
