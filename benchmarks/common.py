@@ -139,20 +139,19 @@ def git_commit() -> str:
     """The commit the results were measured on, ``+changes`` when the tree differs from it
     (``unknown`` outside a git checkout)."""
     root = RESULTS_DIR.parent.parent
-    try:
-        head = subprocess.run(
+    try:  # check_output and call: a test that fakes subprocess.run leaves them alone
+        head = subprocess.check_output(
             ["git", "rev-parse", "--short=12", "HEAD"],
             cwd=root,
-            capture_output=True,
             text=True,
-            check=True,
-        ).stdout.strip()
-        dirty = subprocess.run(
+            stderr=subprocess.DEVNULL,
+        ).strip()
+        dirty = subprocess.call(
             ["git", "diff", "--quiet", "HEAD", "--", ".", ":!benchmarks/results"],
             cwd=root,
-            capture_output=True,
-            check=False,
-        ).returncode
+            stdout=subprocess.DEVNULL,
+            stderr=subprocess.DEVNULL,
+        )
     except (OSError, subprocess.CalledProcessError):
         return "unknown"
     return head + ("+changes" if dirty else "")

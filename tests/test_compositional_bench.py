@@ -250,6 +250,7 @@ def test_canonical_arms_reuse_the_runs_and_add_their_own_evaluation(tmp_path, mo
         return Done()
 
     monkeypatch.setattr(comp.subprocess, "run", fake_run)
+    monkeypatch.setattr(common, "git_commit", lambda: "abc")  # no git through the fake
     args = ["--work", str(work), "--seeds", "0", "1", "--arms", "phrased"]
     args += ["--canonical", "phrased", "--headline-arm", "phrased-canonical"]
     assert comp.main(args) == 0
