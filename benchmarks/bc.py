@@ -33,7 +33,9 @@ from typing import Any
 
 from benchmarks.common import (
     RESULTS_DIR,
+    add_report_only,
     die_with_parent,
+    eval_headline,
     machine,
     save_figure,
     save_json,
@@ -80,11 +82,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument(
         "--reuse", action="store_true", help="keep demo files and finished runs already there"
     )
-    parser.add_argument(
-        "--report-only",
-        action="store_true",
-        help="run nothing: rebuild the summary from the eval.json files already written",
-    )
+    add_report_only(parser, "the eval.json files already written")
     args = parser.parse_args(argv)
     info = machine()
     data = ROOT / args.data
@@ -151,7 +149,12 @@ def main(argv: list[str] | None = None) -> int:
     payload = {"machine": info, "settings": settings, "timings": timings}
     if aug.exists():
         counts["sources"] = hindsight_sources(aug)
-    save_json("bc-robosuite", {**payload, "relabel": counts, "runs": docs})
+    payload["headline"] = eval_headline(docs)
+    save_json(
+        "bc-robosuite",
+        {**payload, "relabel": counts, "runs": docs},
+        tried=[f"BC from {v}: {VARIANTS[v][0]}" for v in VARIANTS],
+    )
     save_markdown(
         "bc-robosuite",
         "Language-conditioned BC from scripted robosuite demos, with and without hindsight "
@@ -298,8 +301,7 @@ def _figure(docs: dict[str, Any], args: argparse.Namespace, info: dict[str, Any]
     axes[0].set_ylabel("success (95% Wilson interval)")
     axes[0].legend(loc="upper right", fontsize=8)
     fig.suptitle("Language-conditioned BC on the robosuite tabletop: hindsight augmentation")
-    fig.tight_layout(rect=(0, 0.08, 1, 0.95))
-    save_figure("bc-robosuite", fig, info)
+    save_figure("bc-robosuite", fig, info, rect=(0, 0.08, 1, 0.95))
 
 
 if __name__ == "__main__":

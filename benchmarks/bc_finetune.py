@@ -25,44 +25,37 @@ Writes ``benchmarks/results/bc_finetune.{json,md,png}``: ``headline.finetuned_se
 from __future__ import annotations
 
 import argparse
-import sys
 from pathlib import Path
 from typing import Any
 
 from benchmarks.common import (
-    command,
     final_eval,
     machine,
-    run_jobs,
+    new_figure,
+    record_once,
+    run_dir,
     save_figure,
     save_json,
     save_markdown,
+    train_arms,
+    verdict,
 )
 from lcrl.demos import DemoDataset
 from train.evaluation.report import spread
 
 NAME = "bc_finetune"
-LCRL = [sys.executable, "-m", "train.commands.cli"]
 ARMS = ("bc", "rl", "finetuned")
+ARMS_ORDER = ("rl", "finetuned", "bc")  # the longest runs first
 SETS = ("train", "heldout", "paraphrase")
 COMMON = ["--env.families", "push", "--eval-every", "0", "--checkpoint-every", "0"]
 COMMON += ["--overwrite", "--no-progress", "--no-tensorboard"]
 
 
-def run_dir(args: argparse.Namespace, arm: str, seed: int) -> Path:
-    return Path(args.work) / f"{arm}-s{seed}"
-
-
 def record(args: argparse.Namespace) -> Path:
     """The demonstration file (recorded once)."""
-    path = Path(args.work) / f"push-{args.demos}.h5"
-    if not path.is_file():
-        cmd = [*LCRL, "demos", "record", "--preset", "lang2d", "--families", "push"]
-        cmd += ["--episodes", str(args.demos), "--noise", "0.3", "--seed", "100"]
-        run_jobs(
-            [("record", [*cmd, "--out", str(path), "--no-progress"], path.with_suffix(".log"))]
-        )
-    return path
+    cmd = ["demos", "record", "--preset", "lang2d", "--families", "push"]
+    cmd += ["--episodes", str(args.demos), "--noise", "0.3", "--seed", "100"]
+    return record_once(Path(args.work) / f"push-{args.demos}.h5", cmd)
 
 
 def arm_command(arm: str, args: argparse.Namespace, seed: int, demos: Path, budget: int) -> list:
@@ -70,14 +63,14 @@ def arm_command(arm: str, args: argparse.Namespace, seed: int, demos: Path, budg
     out = ["--out", str(run_dir(args, arm, seed)), "--seed", str(seed)]
     out += ["--eval-episodes", str(args.eval_episodes), *COMMON]
     if arm == "bc":
-        return [*LCRL, "train", "lang2d-bc", "--demos", str(demos), *out, "--total-steps",
+        return ["train", "lang2d-bc", "--demos", str(demos), *out, "--total-steps",
                 str(args.bc_updates)]  # fmt: skip
     online = ["--scripted-fraction", "0"]
     if arm == "rl":
-        return [*LCRL, "train", "lang2d", *out, *online, "--total-steps", str(budget)]
+        return ["train", "lang2d", *out, *online, "--total-steps", str(budget)]
     finetune = ["--finetune.demos", str(demos), "--finetune.decay-steps", str(args.decay_steps)]
     finetune += ["--finetune.pretrain-updates", str(args.pretrain_updates)]
-    return [*LCRL, "train", "lang2d", *out, *online, "--total-steps", str(args.steps), *finetune]
+    return ["train", "lang2d", *out, *online, "--total-steps", str(args.steps), *finetune]
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -97,24 +90,14 @@ def main(argv: list[str] | None = None) -> int:
     with DemoDataset(demos) as data:
         demo_steps = data.num_steps
     budget = demo_steps + args.steps  # environment steps behind each RL arm
-    jobs = [
-        (
-            f"{arm}-s{s}",
-            arm_command(arm, args, s, demos, budget),
-            run_dir(args, arm, s).with_suffix(".log"),
-        )
-        for s in args.seeds
-        for arm in ("rl", "finetuned", "bc")
-        if not (run_dir(args, arm, s) / "report.md").is_file()
-    ]
-    run_jobs(jobs, args.parallel)
+    train_arms(args, lambda arm, s, out: arm_command(arm, args, s, demos, budget), ARMS_ORDER)
 
     info = machine()
     arms: dict[str, Any] = {}
     for arm in ARMS:
         runs = {s: final_eval(run_dir(args, arm, s), args.eval_episodes, SETS) for s in args.seeds}
         arms[arm] = {
-            "command": " ".join(arm_command(arm, args, args.seeds[0], demos, budget)[3:]),
+            "command": " ".join(arm_command(arm, args, args.seeds[0], demos, budget)),
             **{n: spread([r[n]["success"] for r in runs.values()]) for n in SETS},
             "per_seed": {str(s): r for s, r in runs.items()},
         }
@@ -135,7 +118,6 @@ def main(argv: list[str] | None = None) -> int:
             "headline": headline,
             "target": "finetuned_seen above bc_seen and rl_seen at the same environment budget",
             "reached": reached,
-            "command": command(),
             "machine": info,
             "settings": {**vars(args), "data": str(demos)},
             "environment_steps": env_steps,
@@ -157,23 +139,17 @@ def main(argv: list[str] | None = None) -> int:
         lines.append(f"| {arm} | {env_steps[arm]} | " + " | ".join(cells) + f" | {per} |")
     lines += ["", "Commands (from the repository root):", ""]
     lines += [f"- {arm}: `lcrl {a['command']}`" for arm, a in arms.items()]
-    verdict = ", ".join(f"{k} {'reached' if v else 'NOT reached'}" for k, v in reached.items())
     body = (
         f"{args.demos} scripted push demonstrations ({demo_steps} steps, action noise 0.3) of "
         f"`lang2d`; fine-tuning: {args.pretrain_updates} offline updates, then {args.steps} "
         f"online steps with the BC weight decaying over {args.decay_steps}; RL alone: "
         f"{budget} steps; seeds {args.seeds}; {args.eval_episodes} evaluation episodes per "
-        f"set. Target, fine-tuned above BC alone and RL alone: **{verdict}**.\n\n"
+        f"set. Target, fine-tuned above BC alone and RL alone: **{verdict(reached)}**.\n\n"
         + "\n".join(lines)
     )
     save_markdown(NAME, "BC -> RL fine-tuning (lang2d push)", body, info)
 
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    fig, ax = plt.subplots(figsize=(6, 3.6))
+    fig, ax = new_figure(figsize=(6, 3.6))
     names = list(arms)
     ax.bar(
         names,
@@ -189,7 +165,6 @@ def main(argv: list[str] | None = None) -> int:
             ax.plot(x, r["train"]["success"], "k.", ms=4)
     ax.set(ylim=(0, 1.02), ylabel="seen success (mean ± sd; seeds, 95% CI)")
     ax.set_title(f"lang2d push, {budget} environment steps")
-    fig.tight_layout(rect=(0, 0.08, 1, 1))
     save_figure(NAME, fig, info)
     return 0
 

@@ -213,7 +213,6 @@ PERCEPTION_TARGETS = {"exact_match": 0.80, "reward_auc": 0.95}
 def perception_payload(payload: dict, previous: Path) -> dict:
     """The results of the models over perception, with a ``headline``; the figures of the
     frame encoder's earlier run (and any learned-relabelling figures) are kept."""
-    from benchmarks.common import command
 
     old = json.loads(previous.read_text()) if previous.exists() else {}
     frames = old.get("frame_encoder") or {k: v for k, v in old.items() if k != "headline"}
@@ -231,7 +230,6 @@ def perception_payload(payload: dict, previous: Path) -> dict:
         "headline": headline,
         "targets": {**old.get("targets", {}), **PERCEPTION_TARGETS},
         "reached": {**old.get("reached", {}), **reached},
-        "command": command(),
         **payload,
         "frame_encoder": frames or None,
     }
@@ -399,7 +397,6 @@ def _figure(name: str, p: dict, info: dict) -> None:
     ax.set_ylim(0, 1)
     ax.set_title("held-out episodes (greedy captions; reward-model AUC)")
     ax.legend()
-    fig.tight_layout(rect=(0, 0.08, 1, 1))
     save_figure(name, fig, info)
 
 

@@ -31,8 +31,8 @@ from typing import Any
 import numpy as np
 
 from benchmarks.common import (
-    command,
     machine,
+    new_figure,
     save_figure,
     save_json,
     save_markdown,
@@ -176,7 +176,6 @@ def main(argv: list[str] | None = None) -> int:
         NAME,
         {
             "headline": headline,
-            "command": command(),
             "machine": info,
             "preset": "lang2d",
             "buffer_capacity": cfg.buffer.capacity,
@@ -224,12 +223,7 @@ def main(argv: list[str] | None = None) -> int:
     )
     save_markdown(NAME, "Checkpoint save time and size", body, info)
 
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    fig, axes = plt.subplots(1, 2, figsize=(9, 3.6))
+    fig, axes = new_figure(1, 2, figsize=(9, 3.6))
     steps = sorted({r["step"] for r in rows})
     x = np.arange(len(steps))
     for ax, key, label in zip(
@@ -245,7 +239,6 @@ def main(argv: list[str] | None = None) -> int:
         ax.set_yscale("log")
     axes[0].legend()
     fig.suptitle("lang2d checkpoint: every buffer slot vs the written slots")
-    fig.tight_layout(rect=(0, 0.08, 1, 1))
     save_figure(NAME, fig, info)
     print(f"wrote benchmarks/results/{NAME}.{{json,md,png}}")
     return 0

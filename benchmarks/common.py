@@ -17,23 +17,44 @@ from typing import Any
 from train.runtime.machine import PROCESSES_VARIABLE, available_cores, machine, machine_line
 
 __all__ = [
+    "LCRL",
+    "REQUIRED_KEYS",
     "RESULTS_DIR",
+    "add_arm_options",
+    "add_report_only",
     "caption",
+    "child_env",
     "command",
+    "curve",
     "die_with_parent",
+    "eval_headline",
+    "evaluate",
     "final_eval",
     "git_commit",
+    "keep_timings",
     "machine",
     "machine_line",
+    "new_figure",
+    "publish",
+    "record_once",
+    "reported_variants",
+    "run_dir",
     "run_jobs",
+    "run_logged",
+    "run_seconds",
     "save_figure",
     "save_json",
     "save_markdown",
     "side_by_side_env",
     "success_bars",
+    "train_arms",
+    "tried_entries",
+    "verdict",
 ]
 
 RESULTS_DIR = Path(__file__).resolve().parent / "results"
+#: The ``lcrl`` command as a benchmark starts it: this interpreter, the console's module.
+LCRL = [sys.executable, "-m", "train.commands.cli"]
 
 
 def die_with_parent() -> None:
@@ -122,6 +143,16 @@ def final_eval(out: Path, episodes: int, sets: Sequence[str]) -> dict[str, Any]:
     return result
 
 
+def eval_headline(docs: dict[str, dict[str, Any]]) -> dict[str, float]:
+    """The headline of results made of ``lcrl eval`` documents (``eval.json``), one per
+    name: each name's success on each instruction set, as ``NAME_SET``."""
+    return {
+        f"{name}_{set_name}": round(float(result["success"]), 3)
+        for name, doc in docs.items()
+        for set_name, result in doc.get("sets", {}).items()
+    }
+
+
 def command() -> str:
     """The command line that ran this benchmark, as typed from the repository root:
     ``python -m benchmarks.NAME ...`` for a module run, else the script's relative path."""
@@ -157,14 +188,57 @@ def git_commit() -> str:
     return head + ("+changes" if dirty else "")
 
 
-def save_json(name: str, payload: dict[str, Any]) -> Path:
-    """Write ``results/<name>.json``, with the ``git`` commit the figures were measured on
-    and the ``date`` added where the payload does not give them."""
+#: Keys every result file carries (``command`` is this process's command unless given).
+REQUIRED_KEYS = ("headline", "command", "machine", "tried", "git", "date")
+
+
+def reported_variants(payload: dict[str, Any]) -> list[str]:
+    """The variants a result reports side by side (its ``arms`` or ``variants``): each was
+    tried, so each is listed under ``tried``."""
+    return [
+        f"{key.rstrip('s')} {name}"
+        for key in ("arms", "variants")
+        if isinstance(payload.get(key), dict)
+        for name in payload[key]
+    ]
+
+
+def tried_entries(previous: Sequence[str], given: Sequence[str], run: str) -> list[str]:
+    """A result's ``tried``: what earlier runs of it tried, what this run lists, and this
+    run itself, in that order and each once. A result rewritten by a new run keeps the
+    record of every variant tried before it."""
+    entries: list[str] = []
+    for entry in [*previous, *given, run]:
+        if entry not in entries:
+            entries.append(entry)
+    return entries
+
+
+def save_json(name: str, payload: dict[str, Any], tried: Sequence[str] = ()) -> Path:
+    """Write ``results/<name>.json``. The payload gives its ``headline`` and ``machine``;
+    the harness adds the ``command`` (this process's, unless given), the ``git`` commit the
+    figures were measured on, the ``date`` and ``tried``: the variants ``tried`` (and the
+    payload's own ``tried``) after those the file already listed, then this run."""
+    from lcrl.errors import LcrlError
+
+    missing = [key for key in ("headline", "machine") if key not in payload]
+    if missing:
+        raise LcrlError(f"result {name}: the payload has no {' or '.join(missing)}")
     RESULTS_DIR.mkdir(parents=True, exist_ok=True)
     path = RESULTS_DIR / f"{name}.json"
     payload = {**payload}
+    payload.setdefault("command", command())
     payload.setdefault("git", git_commit())
     payload.setdefault("date", time.strftime("%Y-%m-%d"))
+    previous: list[str] = []
+    if path.is_file():
+        try:
+            previous = list(json.loads(path.read_text()).get("tried", []))
+        except (ValueError, AttributeError):
+            previous = []
+    run = f"{payload['command']} (git {payload['git']}, {payload['date']})"
+    given = [*payload.get("tried", []), *reported_variants(payload), *tried]
+    payload["tried"] = tried_entries(previous, given, run)
     path.write_text(json.dumps(payload, indent=1))
     return path
 
@@ -196,11 +270,20 @@ def caption(fig: Any, info: dict[str, Any], cmd: str | None = None) -> None:
     fig.text(0.01, 0.01, text, fontsize=CAPTION_SIZE, va="bottom")
 
 
-def save_figure(name: str, fig: Any, info: dict[str, Any], cmd: str | None = None) -> Path:
-    """Caption a matplotlib figure with the command (default this process's) and machine,
-    write ``results/<name>.png`` and close it."""
+def save_figure(
+    name: str,
+    fig: Any,
+    info: dict[str, Any],
+    cmd: str | None = None,
+    rect: tuple[float, float, float, float] | None = (0, 0.08, 1, 1),
+) -> Path:
+    """Lay out a matplotlib figure in ``rect`` (the room above its caption; None: as it
+    is), caption it with the command (default this process's) and machine, write
+    ``results/<name>.png`` and close it."""
     import matplotlib.pyplot as plt
 
+    if rect is not None:
+        fig.tight_layout(rect=rect)
     caption(fig, info, cmd)
     RESULTS_DIR.mkdir(parents=True, exist_ok=True)
     path = RESULTS_DIR / f"{name}.png"
@@ -215,3 +298,145 @@ def success_bars(ax: Any, names: list[str], results: list[dict], episodes: int, 
     for i, r in enumerate(results):
         ax.plot([i, i], r["ci"], c="k", lw=1)
     ax.set(ylim=(0, 1.02), ylabel=f"success ({episodes} episodes, 95% CI)")
+
+
+def new_figure(**subplots: Any) -> tuple[Any, Any]:
+    """A matplotlib figure and its axes (``plt.subplots(**subplots)``) drawn off screen."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    return plt.subplots(**subplots)
+
+
+def verdict(reached: dict[str, bool]) -> str:
+    """``"a reached, b NOT reached"``: each target by name and whether it was reached."""
+    return ", ".join(f"{k} {'reached' if v else 'NOT reached'}" for k, v in reached.items())
+
+
+def run_logged(argv: Sequence[str], log_path: Path, what: str) -> float:
+    """Run one command with its output in ``log_path`` (stopped if the benchmark dies);
+    a failure stops the benchmark naming the log. Returns its wall-clock seconds."""
+    print("== " + shlex.join(argv), flush=True)
+    log_path.parent.mkdir(parents=True, exist_ok=True)
+    start = time.perf_counter()
+    with open(log_path, "w") as log:
+        code = subprocess.run(
+            list(argv), stdout=log, stderr=subprocess.STDOUT, preexec_fn=die_with_parent
+        ).returncode
+    if code != 0:
+        raise SystemExit(f"the {what} run failed: see {log_path}")
+    return time.perf_counter() - start
+
+
+def run_dir(args: Any, arm: str, seed: int) -> Path:
+    """The run folder of one (arm, seed) of a benchmark: ``WORK/ARM-sSEED``."""
+    return Path(args.work) / f"{arm}-s{seed}"
+
+
+def train_arms(args: Any, argv: Any, arms: Sequence[str] | None = None) -> None:
+    """Train every (arm, seed) of ``arms`` (default ``args.arms``) and ``args.seeds`` whose
+    :func:`run_dir` has not finished (no ``report.md``), ``args.parallel`` at a time
+    (:func:`run_jobs`). ``argv(arm, seed, out)`` is the ``lcrl`` command line after
+    :data:`LCRL`; its log is the folder's name plus ``.log``."""
+    jobs = []
+    for seed in args.seeds:
+        for arm in args.arms if arms is None else arms:
+            out = run_dir(args, arm, seed)
+            if not (out / "report.md").is_file():
+                cmd = [*LCRL, *argv(arm, seed, out)]
+                jobs.append((f"{arm}-s{seed}", cmd, out.with_suffix(".log")))
+    run_jobs(jobs, args.parallel)
+
+
+def record_once(path: Path, argv: Sequence[str]) -> Path:
+    """A dataset ``lcrl ARGV --out PATH`` records, recorded only when it is not there."""
+    if not path.is_file():
+        cmd = [*LCRL, *argv, "--out", str(path), "--no-progress"]
+        run_jobs([("record", cmd, path.with_suffix(".log"))], 1)
+    return path
+
+
+def keep_timings(name: str, results: dict[str, Any], keys: Sequence[str] = ("seconds",)) -> None:
+    """Runs read back from their folders (which do not say how long they trained) keep the
+    ``keys`` that the previous ``results/<name>.json`` measured for the same curve."""
+    path = RESULTS_DIR / f"{name}.json"
+    if not path.exists():
+        return
+    old = json.loads(path.read_text()).get("runs", {})
+    for run, res in results.items():
+        prev = old.get(run, {})
+        if res["seconds"] is None and prev.get("seconds") and prev.get("curve") == res["curve"]:
+            res.update({key: prev[key] for key in keys if key in prev})
+
+
+def publish(
+    name: str,
+    payload: dict[str, Any],
+    title: str,
+    body: str,
+    fig: Any = None,
+    tried: Sequence[str] = (),
+) -> None:
+    """Write a result: ``results/<name>.json`` (:func:`save_json`), ``.md`` under ``title``
+    and, given a figure, ``.png`` (laid out above its caption); then say where they are."""
+    save_json(name, payload, tried)
+    save_markdown(name, title, body, payload["machine"], payload.get("command"))
+    if fig is not None:
+        save_figure(name, fig, payload["machine"], payload.get("command"))
+    print(f"wrote benchmarks/results/{name}.{{json,md{',png' if fig is not None else ''}}}")
+
+
+def child_env() -> dict[str, str]:
+    """Two runs share the cores (one torch thread each on two cores), offscreen rendering."""
+    return side_by_side_env(2, MUJOCO_GL="egl")
+
+
+def evaluate(
+    run: Path, episodes: int, sets: Sequence[str], seed: int = 0, env: dict | None = None
+) -> dict:
+    """``lcrl eval`` of a run's final checkpoint on the instruction ``sets``, at evaluation
+    ``seed`` (another seed than 0 writes ``eval-seed<seed>.json`` beside the run's
+    ``final-eval.json``): success per set. ``env``: the child's environment (default
+    :func:`child_env`)."""
+    path = run / (f"eval-seed{seed}.json" if seed else "final-eval.json")
+    cmd = [*LCRL, "eval", str(run), "--episodes", str(episodes), "--json", str(path)]
+    cmd += ["--sets", *sets, *(("--seed", str(seed)) if seed else ()), "--no-progress"]
+    env = child_env() if env is None else env
+    subprocess.run(cmd, check=True, env=env, preexec_fn=die_with_parent)
+    return json.loads(path.read_text())["sets"]
+
+
+def run_seconds(run: Path) -> float:
+    """How long a finished run trained: from its config.json (written when it starts) to
+    its report.md (written when it ends)."""
+    return (run / "report.md").stat().st_mtime - (run / "config.json").stat().st_mtime
+
+
+def curve(run: Path) -> list[dict[str, float]]:
+    """The periodic evaluations of a run (the rows of its eval.csv; none without one)."""
+    path = run / "eval.csv"
+    if not path.is_file():
+        return []
+    with path.open() as f:
+        return [{k: float(v) for k, v in row.items() if v != ""} for row in csv.DictReader(f)]
+
+
+def add_report_only(parser: Any, what: str) -> None:
+    """``--report-only``: run nothing, rebuild the results from ``what``."""
+    parser.add_argument(
+        "--report-only", action="store_true", help=f"run nothing: rebuild the results from {what}"
+    )
+
+
+def add_arm_options(
+    parser: Any, arms: Sequence[str], work: str, seeds: Sequence[int] = (0, 1, 2)
+) -> None:
+    """The options of a benchmark over arms and seeds: ``--arms``, ``--seeds``,
+    ``--eval-episodes``, ``--parallel`` (runs at a time, one thread each) and ``--work``."""
+    parser.add_argument("--arms", nargs="+", choices=list(arms), default=list(arms))
+    parser.add_argument("--seeds", type=int, nargs="+", default=list(seeds))
+    parser.add_argument("--eval-episodes", type=int, default=100)
+    parser.add_argument("--parallel", type=int, default=2)
+    parser.add_argument("--work", default=work)

@@ -17,12 +17,17 @@ is eager ms / compiled ms, ``headline.bf16_speedup_<n>_threads`` eager ms / bf16
 from __future__ import annotations
 
 import argparse
-import shutil
 import statistics
 import time
 
-from benchmarks.common import command, machine, save_figure, save_json, save_markdown
-from benchmarks.loop_bound import trainer
+from benchmarks.common import (
+    machine,
+    new_figure,
+    save_figure,
+    save_json,
+    save_markdown,
+)
+from benchmarks.loop_bound import discard, trainer
 
 NAME = "compiled_update"
 
@@ -89,9 +94,7 @@ def main(argv: list[str] | None = None) -> int:
             f"ms (x{row['bf16_speedup']:.2f})",
             flush=True,
         )
-    out = t.out
-    t.close()
-    shutil.rmtree(out, ignore_errors=True)
+    discard(t)
 
     info = machine()
     headline = {f"speedup_{r['threads']}_threads": r["speedup"] for r in rows}
@@ -104,7 +107,6 @@ def main(argv: list[str] | None = None) -> int:
         NAME,
         {
             "headline": headline,
-            "command": command(),
             "machine": info,
             "settings": vars(args),
             "rows": rows,
@@ -126,12 +128,7 @@ def main(argv: list[str] | None = None) -> int:
     )
     save_markdown(NAME, "torch.compile and bf16 on the CPU (lang2d update)", body, info)
 
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    fig, ax = plt.subplots(figsize=(5, 3.5))
+    fig, ax = new_figure(figsize=(5, 3.5))
     x = range(len(rows))
     ax.bar([i - 0.27 for i in x], [r["eager_ms"] for r in rows], 0.27, label="eager fp32")
     ax.bar(list(x), [r["compiled_ms"] for r in rows], 0.27, label="compiled")
@@ -139,8 +136,7 @@ def main(argv: list[str] | None = None) -> int:
     ax.set_xticks(list(x), [f"{r['threads']} thread(s)" for r in rows])
     ax.set(ylabel="ms per update", title="lang2d SAC update, CPU")
     ax.legend()
-    fig.tight_layout(rect=(0, 0.1, 1, 1))
-    save_figure(NAME, fig, info)
+    save_figure(NAME, fig, info, rect=(0, 0.1, 1, 1))
     return 0
 
 

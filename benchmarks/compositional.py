@@ -49,14 +49,14 @@ from typing import Any
 
 import benchmarks.common as common
 from benchmarks.common import (
-    command,
+    LCRL,
+    child_env,
     die_with_parent,
     machine,
     save_figure,
     save_json,
     save_markdown,
 )
-from benchmarks.image_policy import LCRL, child_env
 from train.evaluation.report import spread
 
 PRESETS = {"lang2d": "lang2d", "robosuite": "robosuite-reach"}
@@ -428,7 +428,6 @@ def main(argv: list[str] | None = None) -> int:
         "headline": {},
         "targets": TARGETS[args.env],
         "reached": {},
-        "command": command(),
         "machine": info,
         "settings": vars(args),
         "arm_options": {arm: arm_args(arm, args.grounding, args.phrasings) for arm in arms},
@@ -496,7 +495,6 @@ def main(argv: list[str] | None = None) -> int:
     ax.set(ylim=(0, 1.02), ylabel="success (mean ± sd over seeds; dots: seeds)")
     ax.set_title(f"{args.preset}, {args.steps:,} steps, seeds {args.seeds}")
     ax.legend()
-    fig.tight_layout(rect=(0, 0.08, 1, 1))
     save_figure(name, fig, info)
     print(json.dumps(head, indent=1))
     return 0

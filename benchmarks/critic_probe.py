@@ -155,6 +155,15 @@ def probe(
     return rows
 
 
+def headline(results: dict[str, list[dict[str, Any]]]) -> dict[str, float]:
+    """Each probe's recall and false-positive rate after its last update."""
+    head: dict[str, float] = {}
+    for name, curve in results.items():
+        head[f"{name}_recall"] = round(curve[-1]["recall"], 3)
+        head[f"{name}_false_positive_rate"] = round(curve[-1]["false_positive_rate"], 4)
+    return head
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("networks", nargs="*", help=f"any of {', '.join(NETWORKS)} (default: all)")
@@ -190,6 +199,7 @@ def main(argv: list[str] | None = None) -> int:
     save_json(
         "critic_probe",
         {
+            "headline": headline(results),
             "machine": info,
             "samples": args.samples,
             "positives": float(data["label"].mean()),

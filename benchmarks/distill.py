@@ -22,15 +22,17 @@ from pathlib import Path
 
 from benchmarks import common
 from benchmarks.common import (
+    LCRL,
+    child_env,
     command,
     die_with_parent,
+    evaluate,
     machine,
     save_figure,
     save_json,
     save_markdown,
     success_bars,
 )
-from benchmarks.image_policy import LCRL, child_env, evaluate
 
 NAME = "distill-robosuite"
 TARGET_GAP = 0.05
@@ -501,7 +503,6 @@ def main(argv: list[str] | None = None) -> int:
         "headline": headline,
         "target": f"student_seen >= teacher_seen - {TARGET_GAP}",
         "reached": {"within_5_points": headline["gap"] <= TARGET_GAP},
-        "command": command(),
         "machine": info,
         "settings": vars(args),
         "teacher_config": {k: teacher_cfg[k] for k in ("env", "total_steps", "seed")},
@@ -776,8 +777,7 @@ def render(payload: dict, info: dict) -> None:
         ax3.set(xlabel="DAgger round", ylabel="push student's seen success", ylim=(0, 1.02))
         ax3.set_title("push students, 20-episode evaluations along the rounds", fontsize=9)
         ax3.legend(fontsize=6, loc="lower right")
-    fig.tight_layout(rect=(0, 0.06, 1, 1))
-    save_figure(NAME, fig, info, payload["command"])
+    save_figure(NAME, fig, info, payload["command"], rect=(0, 0.06, 1, 1))
 
 
 if __name__ == "__main__":

@@ -35,13 +35,13 @@ import gymnasium as gym
 import numpy as np
 
 import envs  # noqa: F401  (registers the gymnasium ids)
+from benchmarks.common import RESULTS_DIR, save_json
 from envs.tabletop2d import Tabletop2DEnv
 
 TARGET_STATE = 20_000
 TARGET_IMAGE = 2_000
 EPISODE_STEPS = 50
 ACTION_POOL = 4096
-RESULTS_DIR = Path(__file__).resolve().parent / "results"
 
 
 @dataclass
@@ -309,8 +309,13 @@ def main(argv: list[str] | None = None) -> int:
         print(f"{config.name:58s} {median:15,.0f} {target:8,}{flag}")
 
     args.out_dir.mkdir(parents=True, exist_ok=True)
-    payload = {**meta, "results": [asdict(r) for r in results]}
-    (args.out_dir / "env_speed.json").write_text(json.dumps(payload, indent=2) + "\n")
+    head = {r.name: round(r.median_steps_per_s) for r in results}
+    head["targets_met"] = f"{sum(r.meets_target for r in results)} of {len(results)}"
+    payload = {**meta, "headline": head, "results": [asdict(r) for r in results]}
+    if args.out_dir.resolve() == RESULTS_DIR.resolve():
+        save_json("env_speed", payload)
+    else:
+        (args.out_dir / "env_speed.json").write_text(json.dumps(payload, indent=2) + "\n")
     write_markdown(args.out_dir / "env_speed.md", results, meta)
     write_plot(args.out_dir / "env_speed.png", results, meta)
     print(f"wrote {args.out_dir}/env_speed.{{json,md,png}}")

@@ -23,23 +23,23 @@ from __future__ import annotations
 
 import argparse
 import json
-import sys
 from pathlib import Path
 from typing import Any
 
 from benchmarks.common import (
-    command,
+    add_arm_options,
     machine,
-    run_jobs,
+    new_figure,
+    run_dir,
     save_figure,
     save_json,
     save_markdown,
+    train_arms,
 )
 from train.evaluation.report import spread
 
 NAME = "forgetting"
 ARMS = ("naive", "replay", "ewc", "ewc-loss")
-LCRL = [sys.executable, "-m", "train.commands.cli"]
 
 
 def arm_args(arm: str, args: argparse.Namespace) -> list[str]:
@@ -59,38 +59,26 @@ def key(arm: str) -> str:
     return "forgetting_" + arm.replace("-", "_")
 
 
-def run_dir(args: argparse.Namespace, arm: str, seed: int) -> Path:
-    return Path(args.work) / f"{arm}-s{seed}"
-
-
 def run_all(args: argparse.Namespace) -> None:
     """Train every (arm, seed) without a finished run, ``--parallel`` at a time."""
-    jobs = []
-    for seed in args.seeds:
-        for arm in args.arms:
-            out = run_dir(args, arm, seed)
-            if (out / "report.md").is_file():
-                continue
-            cmd = [*LCRL, "train", "lang2d", "--out", str(out), "--seed", str(seed)]
-            cmd += ["--total-steps", str(args.steps), "--eval-every", "0"]
-            cmd += ["--eval-episodes", str(args.eval_episodes), "--checkpoint-every", "0"]
-            cmd += ["--overwrite", "--no-progress", "--no-tensorboard", *arm_args(arm, args)]
-            jobs.append((f"{arm}-s{seed}", cmd, out.parent / f"{out.name}.log"))
-    run_jobs(jobs, args.parallel)
+
+    def argv(arm: str, seed: int, out: Path) -> list[str]:
+        cmd = ["train", "lang2d", "--out", str(out), "--seed", str(seed)]
+        cmd += ["--total-steps", str(args.steps), "--eval-every", "0"]
+        cmd += ["--eval-episodes", str(args.eval_episodes), "--checkpoint-every", "0"]
+        return [*cmd, "--overwrite", "--no-progress", "--no-tensorboard", *arm_args(arm, args)]
+
+    train_arms(args, argv)
 
 
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--stages", nargs="+", default=["reach", "push"])
-    parser.add_argument("--arms", nargs="+", choices=ARMS, default=list(ARMS))
-    parser.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2])
+    add_arm_options(parser, ARMS, "runs/bench/forgetting")
     parser.add_argument("--steps", type=int, default=60_000, help="all stages together")
     parser.add_argument("--replay", type=int, default=10_000, help="replay arm's memory")
     parser.add_argument("--ewc", type=float, default=100.0, help="EWC arm's weight")
     parser.add_argument("--ewc-loss", type=float, default=100.0, help="ewc-loss arm's weight")
-    parser.add_argument("--eval-episodes", type=int, default=100)
-    parser.add_argument("--parallel", type=int, default=2)
-    parser.add_argument("--work", default="runs/bench/forgetting")
     args = parser.parse_args(argv)
 
     run_all(args)
@@ -131,7 +119,6 @@ def main(argv: list[str] | None = None) -> int:
             "seeds, and on most seeds against naive on the same seed)",
             "seeds_below_naive": wins,
             "reached": reached,
-            "command": command(),
             "machine": info,
             "settings": vars(args),
             "arms": arms,
@@ -183,12 +170,7 @@ def main(argv: list[str] | None = None) -> int:
     )
     save_markdown(NAME, "Forgetting in sequential training (lang2d)", body, info)
 
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    fig, ax = plt.subplots(figsize=(6, 3.5))
+    fig, ax = new_figure(figsize=(6, 3.5))
     names = list(arms)
     means = [arms[a]["metrics"]["forgetting"]["mean"] for a in names]
     stds = [arms[a]["metrics"]["forgetting"]["std"] for a in names]
@@ -203,7 +185,6 @@ def main(argv: list[str] | None = None) -> int:
         for r in arms[a]["per_seed"].values():
             ax.plot(a_i, r["metrics"]["forgetting"], "k.", ms=4)
     ax.set(ylabel="forgetting (drop from best)", title="lang2d: " + " -> ".join(args.stages))
-    fig.tight_layout(rect=(0, 0.08, 1, 1))
     save_figure(NAME, fig, info)
     return 0
 

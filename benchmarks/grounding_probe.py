@@ -31,7 +31,7 @@ import argparse
 import json
 import sys
 
-from benchmarks.common import command, machine, save_figure, save_json, save_markdown
+from benchmarks.common import machine, save_figure, save_json, save_markdown
 
 SETS = ("train", "heldout", "paraphrase")
 
@@ -87,7 +87,6 @@ def main(argv: list[str] | None = None) -> int:
         name,
         {
             "headline": headline,
-            "command": command(),
             "machine": info,
             "settings": vars(args),
             "set_sizes": sizes,
@@ -142,8 +141,7 @@ def main(argv: list[str] | None = None) -> int:
         ax.set_xticks(range(len(SETS)), ["seen", "held-out", "paraphrases"])
         ax.set(ylim=(0, 1.05), ylabel="slot picked = object named", title=f"families: {fs}")
         ax.legend()
-    fig.tight_layout(rect=(0, 0.1, 1, 1))
-    save_figure(name, fig, info)
+    save_figure(name, fig, info, rect=(0, 0.1, 1, 1))
     print(json.dumps(headline, indent=1))
     return 0
 

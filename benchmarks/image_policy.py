@@ -22,7 +22,6 @@ instructions >= 0.80 within 5,400 s (3,600 s beyond it).
 from __future__ import annotations
 
 import argparse
-import csv
 import json
 import subprocess
 import sys
@@ -31,25 +30,23 @@ from pathlib import Path
 
 from benchmarks import common
 from benchmarks.common import (
+    LCRL,
+    child_env,
     command,
+    curve,
     die_with_parent,
+    evaluate,
     machine,
+    run_seconds,
     save_figure,
     save_json,
     save_markdown,
-    side_by_side_env,
     success_bars,
 )
 
 NAME = "robosuite-image-reach"
 TARGETS = {"seen": 0.80, "wall_clock_s": 5400.0}
 GOAL_WALL_CLOCK_S = 3600.0
-LCRL = [sys.executable, "-m", "train.commands.cli"]
-
-
-def child_env() -> dict[str, str]:
-    """Two runs share the cores (one torch thread each on two cores), offscreen rendering."""
-    return side_by_side_env(2, MUJOCO_GL="egl")
 
 
 def perception_stage(args: argparse.Namespace) -> tuple[Path, dict[str, float]]:
@@ -138,29 +135,8 @@ def train_args(
     ]
 
 
-def evaluate(run: Path, episodes: int, sets: tuple[str, ...], seed: int = 0) -> dict:
-    """``lcrl eval`` of a run's final checkpoint (at evaluation ``seed``; another seed than
-    0 writes ``eval-seed<seed>.json`` beside the run's ``final-eval.json``)."""
-    path = run / (f"eval-seed{seed}.json" if seed else "final-eval.json")
-    cmd = [*LCRL, "eval", str(run), "--episodes", str(episodes), "--json", str(path)]
-    cmd += ["--sets", *sets, *(("--seed", str(seed)) if seed else ()), "--no-progress"]
-    subprocess.run(cmd, check=True, env=child_env(), preexec_fn=die_with_parent)
-    return json.loads(path.read_text())["sets"]
-
-
-def run_seconds(run: Path) -> float:
-    """How long a finished run trained: from its config.json (written when it starts) to
-    its report.md (written when it ends)."""
-    return (run / "report.md").stat().st_mtime - (run / "config.json").stat().st_mtime
-
-
-def verdict(ok: bool) -> str:
+def reached_word(ok: bool) -> str:
     return "reached" if ok else "NOT reached"
-
-
-def curve(run: Path) -> list[dict[str, float]]:
-    with open(run / "eval.csv") as f:
-        return [{k: float(v) for k, v in row.items() if v != ""} for row in csv.DictReader(f)]
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -376,9 +352,9 @@ def render(payload: dict, info: dict) -> None:
             for family, rows in curves.items()
         ),
         "",
-        f"Targets: seen >= {TARGETS['seen']} ({verdict(reached['seen'])}); wall clock <= "
-        f"{TARGETS['wall_clock_s']:.0f} s ({verdict(reached['wall_clock_s'])}; "
-        f"{GOAL_WALL_CLOCK_S:.0f} s: {verdict(reached['wall_clock_goal_3600_s'])})."
+        f"Targets: seen >= {TARGETS['seen']} ({reached_word(reached['seen'])}); wall clock <= "
+        f"{TARGETS['wall_clock_s']:.0f} s ({reached_word(reached['wall_clock_s'])}; "
+        f"{GOAL_WALL_CLOCK_S:.0f} s: {reached_word(reached['wall_clock_goal_3600_s'])})."
         + (
             (
                 " The first command trained reach and push (without demonstrations) side by "
@@ -435,8 +411,7 @@ def render(payload: dict, info: dict) -> None:
     values = list(reach.values()) + (list(push.values()) if push else [])
     success_bars(ax2, names, values, episodes, color="tab:blue")
     ax2.set_title(f"final policy; {wall:.0f} s to the reach policy")
-    fig.tight_layout(rect=(0, 0.06, 1, 1))
-    save_figure(NAME, fig, info, payload["command"])
+    save_figure(NAME, fig, info, payload["command"], rect=(0, 0.06, 1, 1))
 
 
 if __name__ == "__main__":

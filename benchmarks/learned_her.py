@@ -28,15 +28,18 @@ import time
 from pathlib import Path
 
 from benchmarks.common import (
+    LCRL,
     RESULTS_DIR,
+    child_env,
     command,
+    curve,
     die_with_parent,
+    evaluate,
     machine,
     save_figure,
     save_json,
     save_markdown,
 )
-from benchmarks.image_policy import LCRL, child_env, curve, evaluate
 
 TARGET_GAP = 0.10
 PRESETS = {"robosuite": "robosuite-image-reach", "lang2d": "lang2d"}
@@ -253,7 +256,6 @@ def main(argv: list[str] | None = None) -> int:
             "headline": headline,
             "target": f"learned_her_seen >= rule_her_seen - {TARGET_GAP}",
             "reached": reached,
-            "command": command(),
             "machine": info,
             "settings": {**vars(args), "preset": PRESETS[args.env]},
             "seconds": seconds,
@@ -370,7 +372,6 @@ def main(argv: list[str] | None = None) -> int:
     ax.set_title(f"{PRESETS[args.env]}: relabelled by rule or learned models,\n{seed_word} "
                  f"{', '.join(map(str, seeds))}", fontsize="medium")  # fmt: skip
     ax.legend()
-    fig.tight_layout(rect=(0, 0.08, 1, 1))
     save_figure(name, fig, info)
     print(json.dumps(headline, indent=1))
     return 0

@@ -63,7 +63,14 @@ import matplotlib
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt
 
-from benchmarks.common import caption, die_with_parent, machine, save_json, save_markdown
+from benchmarks.common import (
+    die_with_parent,
+    keep_timings,
+    machine,
+    save_figure,
+    save_json,
+    save_markdown,
+)
 from train.configs.config import BufferConfig, RelabelConfig, TrainConfig
 from train.configs.presets import PRESETS
 from train.environments.tasks import EnvConfig
@@ -324,18 +331,18 @@ def read_run(preset: str, overrides: dict[str, Any], out: Path) -> dict[str, Any
     }
 
 
-def _keep_timings(suite: str, results: dict[str, Any]) -> None:
-    """Rebuilt results keep the training time a previous report measured for the same
-    curve."""
-    path = Path(__file__).resolve().parent / "results" / f"{suite}.json"
-    if not path.exists():
-        return
-    old = json.loads(path.read_text()).get("runs", {})
-    for name, res in results.items():
-        prev = old.get(name, {})
-        if res["seconds"] is None and prev.get("seconds") and prev.get("curve") == res["curve"]:
-            res["seconds"] = prev["seconds"]
-            res["total_steps"] = prev["total_steps"]
+def headline(
+    results: dict[str, dict[str, Any]], reached: float | None, set_name: str
+) -> dict[str, Any]:
+    """The first step at which the target run reached its target, and each run's final
+    success on every instruction set it was evaluated on."""
+    head: dict[str, Any] = {"first_step_reached": reached}
+    for name, run in results.items():
+        last = run["curve"][-1] if run.get("curve") else {}
+        for key, value in last.items():
+            if key.endswith("/success") and value is not None:
+                head[f"{name}_{key.split('/')[0]}"] = round(float(value), 3)
+    return head
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -407,7 +414,7 @@ def main(argv: list[str] | None = None) -> int:
             }
     if args.report_only:
         results.update({name: read_run(*job[:2], job[2]) for name, job in jobs.items()})
-        _keep_timings(args.suite, results)
+        keep_timings(args.suite, results, ("seconds", "total_steps"))
     elif args.parallel and len(jobs) > 1:
         # One process per run, one torch thread each, so that the runs share the machine.
         ctx = multiprocessing.get_context("spawn")
@@ -425,6 +432,7 @@ def main(argv: list[str] | None = None) -> int:
     reached = next((r["step"] for r in curve if r[key] >= threshold and r["step"] <= budget), None)
     payload = {
         "suite": args.suite,
+        "headline": headline(results, reached, set_name),
         "machine": info,
         "target": {
             "run": run_name,
@@ -436,7 +444,7 @@ def main(argv: list[str] | None = None) -> int:
         },
         "runs": results,
     }
-    save_json(args.suite, payload)
+    save_json(args.suite, payload, tried=[f"run {name}" for name in results])
 
     sets = [k.split("/")[0] for k in curve[0] if k.endswith("/success")]
     lines = [
@@ -501,9 +509,7 @@ def main(argv: list[str] | None = None) -> int:
     ax.set_ylim(-0.02, 1.02)
     ax.set_title(suite["title"], fontsize=10)
     ax.legend(fontsize=7, loc="upper left", bbox_to_anchor=(1.01, 1.0))
-    fig.tight_layout(rect=(0, 0.08, 1, 1))
-    caption(fig, info)
-    fig.savefig(Path(__file__).resolve().parent / "results" / f"{args.suite}.png", dpi=120)
+    save_figure(args.suite, fig, info)
     print(f"saved benchmarks/results/{args.suite}.{{json,md,png}}")
     return 0
 

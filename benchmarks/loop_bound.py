@@ -26,7 +26,13 @@ import tempfile
 import time
 from pathlib import Path
 
-from benchmarks.common import command, machine, save_figure, save_json, save_markdown
+from benchmarks.common import (
+    machine,
+    new_figure,
+    save_figure,
+    save_json,
+    save_markdown,
+)
 
 NAME = "loop_bound"
 TARGET = 0.95
@@ -58,6 +64,13 @@ def trainer(envs: int, steps: int, warmup: int, seed: int) -> object:
     while t.step < warmup:
         t.advance()
     return t
+
+
+def discard(t: object) -> None:
+    """Close a :func:`trainer` and remove its run folder."""
+    out = t.out
+    t.close()
+    shutil.rmtree(out, ignore_errors=True)
 
 
 def loop_rate(t: object, steps: int) -> float:
@@ -117,9 +130,7 @@ def main(argv: list[str] | None = None) -> int:
                 f"updates/s, fraction {loop / bare:.3f}",
                 flush=True,
             )
-            out = t.out
-            t.close()
-            shutil.rmtree(out, ignore_errors=True)
+            discard(t)
 
     info = machine()
     new = [r for r in rows if r["envs"] == args.envs]
@@ -133,7 +144,6 @@ def main(argv: list[str] | None = None) -> int:
         "headline": headline,
         "target": {"loop_fraction": TARGET},
         "reached": {"loop_fraction": headline["loop_fraction"] >= TARGET},
-        "command": command(),
         "machine": info,
         "settings": vars(args),
         "rows": rows,
@@ -155,18 +165,12 @@ def main(argv: list[str] | None = None) -> int:
     )
     save_markdown(NAME, "Loop speed against the update bound (lang2d)", body, info)
 
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    fig, ax = plt.subplots(figsize=(6, 3.5))
+    fig, ax = new_figure(figsize=(6, 3.5))
     labels = [f"{r['threads']} thr, {r['envs']} env" for r in rows]
     ax.bar(labels, [r["loop_fraction"] for r in rows], color="tab:blue")
     ax.axhline(TARGET, color="k", ls="--", lw=1, label=f"target {TARGET}")
     ax.set(ylim=(0, 1.05), ylabel="loop steps/s / bare updates/s", title="lang2d loop bound")
     ax.legend(loc="lower right")
-    fig.tight_layout(rect=(0, 0.08, 1, 1))
     save_figure(NAME, fig, info)
     return 0
 

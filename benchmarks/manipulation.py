@@ -49,13 +49,13 @@ import json
 import os
 import shlex
 import subprocess
-import sys
 from pathlib import Path
 from typing import Any
 
 from benchmarks.common import (
+    LCRL,
     RESULTS_DIR,
-    command,
+    curve,
     die_with_parent,
     machine,
     save_figure,
@@ -67,7 +67,6 @@ from train.configs.presets import MANIPULATION_FAMILIES
 
 NAME = "robosuite-manipulation"
 PRESET = "robosuite-manip"
-LCRL = [sys.executable, "-m", "train.commands.cli"]
 SETS = ("train", "heldout", "paraphrase")
 #: Seen-instruction success per family, and two instructions in a row.
 TARGETS = {"reach": 0.90, "push": 0.80, "lift": 0.70, "put": 0.50, "stack": 0.30, "chain2": 0.60}
@@ -328,15 +327,6 @@ def budget(work: Path) -> dict[str, float]:
     return out
 
 
-def curve(work: Path) -> list[dict[str, float]]:
-    """The periodic evaluations of the run (seen success per family)."""
-    path = work / "eval.csv"
-    if not path.is_file():
-        return []
-    with path.open() as f:
-        return [{k: float(v) for k, v in row.items() if v != ""} for row in csv.DictReader(f)]
-
-
 #: The settings that tell compared runs apart (``config.json`` paths) and the value of
 #: each in a config written before it existed.
 COMPARED_SETTINGS = (
@@ -539,8 +529,7 @@ def figure(
     bx.set_ylim(0, 1.05)
     bx.legend(fontsize=7)
     bx.set_title("learning curve")
-    fig.tight_layout(rect=(0, 0.12, 1, 1))
-    save_figure(name, fig, info)
+    save_figure(name, fig, info, rect=(0, 0.12, 1, 1))
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -638,7 +627,6 @@ def main(argv: list[str] | None = None) -> int:
             "headline": head,
             "targets": TARGETS,
             "reached": reached,
-            "command": command(),
             "machine": info,
             "settings": vars(args),
             "families": ev["families"],

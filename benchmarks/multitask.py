@@ -67,8 +67,10 @@ import numpy as np
 
 from benchmarks.common import (
     RESULTS_DIR,
+    add_report_only,
     command,
     die_with_parent,
+    keep_timings,
     machine,
     save_figure,
     save_json,
@@ -233,19 +235,6 @@ def summarise(name: str, cfg: TrainConfig, seconds: float | None) -> dict[str, A
     }
 
 
-def _keep_timings(results: dict[str, Any]) -> None:
-    """Runs read back (``--report-only``, ``--reuse``) keep the training time that the
-    previous results measured for the same evaluation curve."""
-    path = RESULTS_DIR / f"{NAME}.json"
-    if not path.exists():
-        return
-    old = json.loads(path.read_text()).get("runs", {})
-    for name, res in results.items():
-        prev = old.get(name, {})
-        if res["seconds"] is None and prev.get("seconds") and prev.get("curve") == res["curve"]:
-            res["seconds"] = prev["seconds"]
-
-
 def carry_over(results: dict[str, Any], names: set[str], path: Path | None = None) -> None:
     """Runs of the previous results that this invocation does not train (another run
     name, e.g. ``lang`` beside a task-balancing invocation) stay in the file, each with
@@ -360,8 +349,7 @@ def figure(results: dict[str, Any], tasks: tuple[str, ...], info: dict[str, Any]
         ax.set_ylim(-0.02, 1.02)
         ax.legend(fontsize=6)
     fig.suptitle(TITLE, fontsize=10)
-    fig.tight_layout(rect=(0, 0.06, 1, 1))
-    return save_figure(NAME, fig, info)
+    return save_figure(NAME, fig, info, rect=(0, 0.06, 1, 1))
 
 
 def balancing_headline(results: dict[str, Any]) -> dict[str, Any]:
@@ -404,11 +392,7 @@ def main(argv: list[str] | None = None) -> int:
         help="read a finished run with the same config in runs/bench/multitask-<run> (cut at "
         "this budget) instead of training it again",
     )
-    parser.add_argument(
-        "--report-only",
-        action="store_true",
-        help="train nothing: rebuild the results from the runs in runs/bench/",
-    )
+    add_report_only(parser, "the runs in runs/bench/")
     args = parser.parse_args(argv)
     info = machine()
     keys = {
@@ -444,7 +428,7 @@ def main(argv: list[str] | None = None) -> int:
     results = {}
     for (name, _), key in keys.items():
         results[key] = {"run": name, **summarise(name, configs[key], seconds[key])}
-    _keep_timings(results)
+    keep_timings(NAME, results)
     carry_over(results, set(args.runs))
     any_cfg = next(iter(configs.values()))
     tasks = task_texts(any_cfg.env)

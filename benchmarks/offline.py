@@ -25,23 +25,25 @@ the seen-instruction success), with per-seed figures, Wilson intervals and the s
 from __future__ import annotations
 
 import argparse
-import sys
 from pathlib import Path
 from typing import Any
 
 from benchmarks.common import (
-    command,
+    add_arm_options,
     final_eval,
     machine,
-    run_jobs,
+    new_figure,
+    record_once,
+    run_dir,
     save_figure,
     save_json,
     save_markdown,
+    train_arms,
+    verdict,
 )
 from train.evaluation.report import spread
 
 NAME = "offline-lang2d"
-LCRL = [sys.executable, "-m", "train.commands.cli"]
 #: Each arm's ``lcrl train`` options.
 ARMS: dict[str, list[str]] = {
     "her": ["--algo", "td3"],
@@ -62,46 +64,31 @@ SETS = ("train", "heldout", "paraphrase")
 FAMILIES = ("reach", "push")
 
 
-def run_dir(args: argparse.Namespace, arm: str, seed: int) -> Path:
-    return Path(args.work) / f"{arm}-s{seed}"
-
-
 def record(args: argparse.Namespace) -> Path:
     """The random-play file (recorded once)."""
-    path = Path(args.work) / f"play-{args.episodes}.h5"
-    if not path.is_file():
-        cmd = [*LCRL, "demos", "record", "--preset", "lang2d", "--actor", "random"]
-        cmd += ["--episodes", str(args.episodes), "--seed", "100", "--out", str(path)]
-        run_jobs([("record", [*cmd, "--no-progress"], path.with_suffix(".log"))], 1)
-    return path
+    cmd = ["demos", "record", "--preset", "lang2d", "--actor", "random"]
+    cmd += ["--episodes", str(args.episodes), "--seed", "100"]
+    return record_once(Path(args.work) / f"play-{args.episodes}.h5", cmd)
 
 
 def run_all(args: argparse.Namespace, data: Path) -> None:
     """Train every (arm, seed) without a finished run."""
-    jobs = []
-    for seed in args.seeds:
-        for arm in args.arms:
-            out = run_dir(args, arm, seed)
-            if (out / "report.md").is_file():
-                continue
-            cmd = [*LCRL, "train", "lang2d", "--offline", str(data), "--out", str(out)]
-            cmd += ["--seed", str(seed), "--total-steps", str(args.updates)]
-            cmd += ["--eval-every", "0", "--eval-episodes", str(args.eval_episodes)]
-            cmd += ["--checkpoint-every", "0", "--overwrite", "--no-progress"]
-            cmd += ["--no-tensorboard", *ARMS[arm]]
-            jobs.append((f"{arm}-s{seed}", cmd, out.parent / f"{out.name}.log"))
-    run_jobs(jobs, args.parallel)
+
+    def argv(arm: str, seed: int, out: Path) -> list[str]:
+        cmd = ["train", "lang2d", "--offline", str(data), "--out", str(out)]
+        cmd += ["--seed", str(seed), "--total-steps", str(args.updates)]
+        cmd += ["--eval-every", "0", "--eval-episodes", str(args.eval_episodes)]
+        cmd += ["--checkpoint-every", "0", "--overwrite", "--no-progress"]
+        return [*cmd, "--no-tensorboard", *ARMS[arm]]
+
+    train_arms(args, argv)
 
 
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("--arms", nargs="+", choices=list(ARMS), default=list(ARMS))
-    parser.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2])
+    add_arm_options(parser, list(ARMS), "runs/bench/offline")
     parser.add_argument("--episodes", type=int, default=5000, help="random-play episodes")
     parser.add_argument("--updates", type=int, default=10_000, help="per run")
-    parser.add_argument("--eval-episodes", type=int, default=100)
-    parser.add_argument("--parallel", type=int, default=2)
-    parser.add_argument("--work", default="runs/bench/offline")
     args = parser.parse_args(argv)
 
     data = record(args)
@@ -146,7 +133,6 @@ def main(argv: list[str] | None = None) -> int:
             "target": "offline_her_seen clearly above gcbc_seen and no_relabel_seen, 3 seeds "
             "(read here as: the HER arm's worst seed above the baseline's best seed)",
             "reached": reached,
-            "command": command(),
             "machine": info,
             "settings": {**vars(args), "data": str(data)},
             "arms": arms,
@@ -167,7 +153,6 @@ def main(argv: list[str] | None = None) -> int:
         )
         row = [LABELS[arm], f"`{' '.join(a['options'])}`", cells[0], *fams, *cells[1:], per]
         lines.append("| " + " | ".join(row) + " |")
-    verdict = ", ".join(f"{k} {'reached' if v else 'NOT reached'}" for k, v in reached.items())
     from lcrl.demos import DemoDataset
 
     with DemoDataset(data) as d:
@@ -180,17 +165,12 @@ def main(argv: list[str] | None = None) -> int:
         f"{args.episodes} random-play episodes of `lang2d` (reach and push), {args.updates} "
         f"updates per run, seeds {args.seeds}, {args.eval_episodes} evaluation episodes per "
         f"set (mean ± sd over seeds; per seed with the 95% Wilson interval). Best relabelling "
-        f"arm: `{best}`. Target, HER clearly above GCBC and no relabelling: **{verdict}**.\n\n"
-        + "\n".join(lines)
+        f"arm: `{best}`. Target, HER clearly above GCBC and no relabelling: "
+        f"**{verdict(reached)}**.\n\n" + "\n".join(lines)
     )
     save_markdown(NAME, "Offline goal-conditioned RL from random play (lang2d)", body, info)
 
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    fig, ax = plt.subplots(figsize=(7, 3.8))
+    fig, ax = new_figure(figsize=(7, 3.8))
     names = list(arms)
     width = 0.27
     for j, n in enumerate(SETS):
@@ -210,7 +190,6 @@ def main(argv: list[str] | None = None) -> int:
     ax.set(ylim=(0, 1.02), ylabel="success (mean ± sd over seeds)")
     ax.set_title(f"lang2d offline from {args.episodes} random-play episodes")
     ax.legend(fontsize=7)
-    fig.tight_layout(rect=(0, 0.08, 1, 1))
     save_figure(NAME, fig, info)
     return 0
 

@@ -31,7 +31,13 @@ import sys
 import time
 from pathlib import Path
 
-from benchmarks.common import command, machine, save_figure, save_json, save_markdown
+from benchmarks.common import (
+    machine,
+    new_figure,
+    save_figure,
+    save_json,
+    save_markdown,
+)
 from lcrl.perception import PerceptionConfig
 
 NAME = "perception-robosuite"
@@ -186,7 +192,6 @@ def main(argv: list[str] | None = None) -> int:
             "headline": headline,
             "targets": TARGETS,
             "reached": reached,
-            "command": command(),
             "machine": info,
             "settings": vars(args),
             "times": times,
@@ -249,12 +254,7 @@ def main(argv: list[str] | None = None) -> int:
     )
     save_markdown(NAME, "Perception on the robosuite tabletop", body, info)
 
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    fig, axes = plt.subplots(1, 2, figsize=(9, 3.6))
+    fig, axes = new_figure(1, 2, figsize=(9, 3.6))
     axes[0].plot([h["step"] for h in history], [h["position_loss"] for h in history])
     axes[0].set_yscale("log")
     axes[0].set_xlabel("step")
@@ -266,7 +266,6 @@ def main(argv: list[str] | None = None) -> int:
     axes[1].set_xlabel("object kind (slot)")
     axes[1].set_ylabel("held-out position error (cm)")
     axes[1].legend()
-    fig.tight_layout(rect=(0, 0.08, 1, 1))
     save_figure(NAME, fig, info)
     print(f"wrote benchmarks/results/{NAME}.{{json,md,png}}")
     return 0

@@ -283,8 +283,7 @@ def write_updates(args: argparse.Namespace, updates: dict[str, Any], info: dict)
     ax.bar(names, [updates[f"{n}_ms"] for n in names])
     ax.set(ylabel=f"ms per update (batch {updates['batch_size']})")
     ax.set_title(f"pixel SAC update, {headline['device']}", fontsize=9)
-    fig.tight_layout()
-    common.save_figure(name, fig, info)
+    common.save_figure(name, fig, info, rect=(0, 0, 1, 1))
     print(json.dumps(headline), flush=True)
     return 0
 
@@ -409,8 +408,7 @@ def main(argv: list[str] | None = None) -> int:
     ax2.bar(names, [updates[f"{n}_ms"] for n in names])
     ax2.set(ylabel=f"ms per update (batch {updates['batch_size']})")
     ax2.set_title("update time")
-    fig.tight_layout()
-    common.save_figure(NAME, fig, info)
+    common.save_figure(NAME, fig, info, rect=(0, 0, 1, 1))
     return 0
 
 

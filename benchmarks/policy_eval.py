@@ -20,7 +20,15 @@ import time
 from pathlib import Path
 from typing import Any
 
-from benchmarks.common import RESULTS_DIR, machine, save_figure, save_json, save_markdown
+from benchmarks.common import (
+    RESULTS_DIR,
+    add_report_only,
+    eval_headline,
+    machine,
+    save_figure,
+    save_json,
+    save_markdown,
+)
 
 #: name -> (run folder, what it is)
 RUNS = {
@@ -40,11 +48,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--episodes", type=int, default=100, help="chains per set")
     parser.add_argument("--chain", type=int, default=3)
     parser.add_argument("--num-envs", type=int, default=0, help="0: one per CPU core")
-    parser.add_argument(
-        "--report-only",
-        action="store_true",
-        help="evaluate nothing: rebuild the summary from the eval.json files already written",
-    )
+    add_report_only(parser, "the eval.json files already written")
     args = parser.parse_args(argv)
     from train.commands.cli import main as lcrl
 
@@ -71,7 +75,8 @@ def main(argv: list[str] | None = None) -> int:
         lcrl(cmd)
         docs[name] = json.loads((out / "eval.json").read_text())
         docs[name]["seconds"] = time.perf_counter() - t0
-    save_json("policy-eval", {"machine": info, "settings": vars(args), "runs": docs})
+    payload = {"headline": eval_headline(docs), "machine": info, "settings": vars(args)}
+    save_json("policy-eval", {**payload, "runs": docs})
     save_markdown(
         "policy-eval",
         "Seen vs held-out combinations vs paraphrases (lcrl eval)",
@@ -173,7 +178,6 @@ def _figure(docs: dict[str, Any], info: dict[str, Any]) -> None:
     ax.set_ylabel("first-instruction success (95% CI)")
     ax.set_title("Language HER policies: seen vs held-out vs paraphrased instructions")
     ax.legend(loc="upper left", bbox_to_anchor=(1.0, 1.0), fontsize=8)
-    fig.tight_layout(rect=(0, 0.08, 1, 1))
     save_figure("policy-eval", fig, info)
 
 

@@ -281,8 +281,7 @@ def figure(runs: list[dict[str, Any]], presets: list[str], info: dict[str, Any])
         top.set(title=name, ylim=(0, 1.02), ylabel="seen success", xlabel="step")
         bottom.set(ylabel="mean Q (dashed: bound)", xlabel="step")
         top.legend(fontsize=7)
-    fig.tight_layout(rect=(0, 0.06, 1, 1))
-    save_figure(NAME, fig, info, command().replace(" --analyse", ""))
+    save_figure(NAME, fig, info, command().replace(" --analyse", ""), rect=(0, 0.06, 1, 1))
 
 
 if __name__ == "__main__":

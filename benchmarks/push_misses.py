@@ -31,6 +31,7 @@ import json
 import sys
 from collections.abc import Sequence
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -127,6 +128,30 @@ def episode_probs(
     )[:, 0]  # fmt: skip
 
 
+def family_texts(task: Any, family: str, run: str | Path) -> list[str]:
+    """The seen instructions of ``family`` a run was trained on."""
+    from lcrl.errors import LcrlError
+
+    texts = [t for t in task.table[: task.num_train] if t.split()[:1] == [family]]
+    if not texts:
+        raise LcrlError(f"{run} was trained on no {family} instruction")
+    return texts
+
+
+def start_episode(env: Any, wrapper: Any, texts: list[str], seed: int, i: int) -> tuple:
+    """Episode ``i`` of an evaluation at ``seed``, on the instructions ``texts`` in turn:
+    its instruction, first observation, the scene it starts from, the parsed instruction
+    and the index of the object the instruction names."""
+    from train.environments.tasks import reset_feasible
+    from train.evaluation.eval_suite import episode_seed
+
+    text = texts[i % len(texts)]
+    obs, _ = reset_feasible(env, episode_seed(seed, i), text)
+    s0 = wrapper.env.unwrapped.scene()
+    ins = wrapper.captioner.parse(text)
+    return text, obs, s0, ins, s0.index(*ins.obj)
+
+
 def run_pushes(
     run: str | Path,
     episodes: int,
@@ -138,9 +163,7 @@ def run_pushes(
     """``episodes`` push episodes of ``run``'s policy on its seen push instructions (with
     ``captioner``, each episode's ``steps``: the rule's and the reward model's verdict)."""
     from captioner.rule import DIRECTION_VECTORS
-    from lcrl.errors import LcrlError
-    from train.environments.tasks import find_language_wrapper, reset_feasible
-    from train.evaluation.eval_suite import episode_seed
+    from train.environments.tasks import find_language_wrapper
     from train.policies.loading import load_policy
 
     models = None
@@ -157,16 +180,10 @@ def run_pushes(
     if models is not None:
         start = int(slot_layout_start(wrapper))
     rule = wrapper.captioner
-    texts = [t for t in task.table[: task.num_train] if t.split()[:1] == ["push"]]
-    if not texts:
-        raise LcrlError(f"{run} was trained on no push instruction")
+    texts = family_texts(task, "push", run)
     out = []
     for i in range(episodes):
-        text = texts[i % len(texts)]
-        obs, info = reset_feasible(env, episode_seed(seed, i), text)
-        s0 = wrapper.env.unwrapped.scene()
-        ins = rule.parse(text)
-        k = s0.index(*ins.obj)
+        text, obs, s0, ins, k = start_episode(env, wrapper, texts, seed, i)
         vec = np.asarray(DIRECTION_VECTORS[ins.direction])
         near = float(s0.half_extents[k, :2].max()) + rule.thresholds.reach_margin
         goal = np.asarray([task.goal(obs, env)])

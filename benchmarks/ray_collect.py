@@ -20,25 +20,23 @@ from __future__ import annotations
 import argparse
 import copy
 import dataclasses
-import json
-import shlex
-import subprocess
-import sys
+import os
 import tempfile
 import time
 from pathlib import Path
 
 from benchmarks.common import (
-    command,
-    die_with_parent,
+    LCRL,
+    evaluate,
     machine,
+    new_figure,
+    run_logged,
     save_figure,
     save_json,
     save_markdown,
 )
 
 NAME = "ray_collect"
-LCRL = [sys.executable, "-m", "train.commands.cli"]
 SETS = ("train", "heldout", "paraphrase")
 
 
@@ -50,13 +48,6 @@ def run_args(args: argparse.Namespace, arm: str) -> list[str]:
     if arm == "ray":
         cmd += ["--collect.backend", "ray", "--collect.workers", str(args.workers)]
     return cmd
-
-
-def evaluate(run: Path, episodes: int) -> dict:
-    path = run / "final-eval.json"
-    cmd = [*LCRL, "eval", str(run), "--episodes", str(episodes), "--json", str(path)]
-    subprocess.run([*cmd, "--sets", *SETS, "--no-progress"], check=True, preexec_fn=die_with_parent)
-    return json.loads(path.read_text())["sets"]
 
 
 def collection_rates(workers: int, seconds: float, seed: int) -> dict[str, float]:
@@ -126,19 +117,12 @@ def main(argv: list[str] | None = None) -> int:
     rates = collection_rates(args.workers, args.collect_seconds, args.seed)
     print(f"collection: {rates}", flush=True)
     for arm in args.arms:
-        cmd = run_args(args, arm)
-        print("== " + shlex.join(cmd), flush=True)
-        t0 = time.perf_counter()
-        with open(work / f"{arm}.log", "w") as log:
-            if (
-                subprocess.run(
-                    cmd, stdout=log, stderr=subprocess.STDOUT, preexec_fn=die_with_parent
-                ).returncode
-                != 0
-            ):
-                raise SystemExit(f"the {arm} run failed: see {log.name}")
-        (work / arm / "seconds.txt").write_text(f"{time.perf_counter() - t0:.1f}")
-    final = {arm: evaluate(work / arm, args.episodes) for arm in ("local", "ray")}
+        seconds = run_logged(run_args(args, arm), work / f"{arm}.log", arm)
+        (work / arm / "seconds.txt").write_text(f"{seconds:.1f}")
+    final = {
+        arm: evaluate(work / arm, args.episodes, SETS, env=dict(os.environ))
+        for arm in ("local", "ray")
+    }
     seconds = {arm: float((work / arm / "seconds.txt").read_text()) for arm in ("local", "ray")}
     info = machine()
     headline = {
@@ -152,7 +136,6 @@ def main(argv: list[str] | None = None) -> int:
         NAME,
         {
             "headline": headline,
-            "command": command(),
             "machine": info,
             "settings": vars(args),
             "collection": rates,
@@ -177,12 +160,7 @@ def main(argv: list[str] | None = None) -> int:
     )
     save_markdown(NAME, "Ray rollout workers on lang2d", body, info)
 
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    fig, axes = plt.subplots(1, 2, figsize=(9, 3.5))
+    fig, axes = new_figure(1, 2, figsize=(9, 3.5))
     x = range(len(SETS))
     for k, arm in enumerate(("local", "ray")):
         axes[0].bar(
@@ -197,7 +175,6 @@ def main(argv: list[str] | None = None) -> int:
         color="tab:green",
     )
     axes[1].set(ylabel="collection steps/s", title="collection alone")
-    fig.tight_layout(rect=(0, 0.08, 1, 1))
     save_figure(NAME, fig, info)
     return 0
 

@@ -82,11 +82,10 @@ def run_episodes(
 ) -> list[dict]:
     """Every step of ``episodes`` sampled-action episodes of ``run``'s policy on its seen
     ``family`` instructions: the rule's and the reward model's reach verdicts."""
-    from benchmarks.push_misses import episode_probs
+    from benchmarks.push_misses import episode_probs, family_texts, start_episode
     from captioner.learned import LearnedCaptioner
     from lcrl.errors import LcrlError
-    from train.environments.tasks import find_language_wrapper, reset_feasible, slot_layout_start
-    from train.evaluation.eval_suite import episode_seed
+    from train.environments.tasks import find_language_wrapper, slot_layout_start
     from train.policies.loading import load_policy
 
     models = LearnedCaptioner.load(captioner)
@@ -98,16 +97,10 @@ def run_episodes(
     wrapper = find_language_wrapper(env)
     start = int(slot_layout_start(wrapper))
     rule = wrapper.captioner
-    texts = [t for t in task.table[: task.num_train] if t.split()[:1] == [family]]
-    if not texts:
-        raise LcrlError(f"{run} was trained on no {family} instruction")
+    texts = family_texts(task, family, run)
     steps: list[dict] = []
     for i in range(episodes):
-        text = texts[i % len(texts)]
-        obs, _ = reset_feasible(env, episode_seed(seed, i), text)
-        s0 = wrapper.env.unwrapped.scene()
-        ins = rule.parse(text)
-        k = s0.index(*ins.obj)
+        _, obs, s0, ins, k = start_episode(env, wrapper, texts, seed, i)
         reach = f"reach the {ins.obj[0]} {ins.obj[1]}"
         goal = np.asarray([task.goal(obs, env)])
         first, prev = obs, s0.positions[k, :2].copy()

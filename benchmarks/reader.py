@@ -37,7 +37,13 @@ from typing import Any
 
 import numpy as np
 
-from benchmarks.common import command, machine, save_figure, save_json, save_markdown
+from benchmarks.common import (
+    machine,
+    new_figure,
+    save_figure,
+    save_json,
+    save_markdown,
+)
 
 SETS = ("paraphrase_forms", "paraphrase_set", "heldout", "heldout_forms")
 
@@ -183,7 +189,6 @@ def main(argv: list[str] | None = None) -> int:
         name,
         {
             "headline": head,
-            "command": command(),
             "machine": info,
             "settings": vars(args),
             **res,
@@ -225,12 +230,7 @@ def main(argv: list[str] | None = None) -> int:
     )  # fmt: skip
     save_markdown(name, f"Canonical reader accuracy ({args.preset})", body, info)
 
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    fig, ax = plt.subplots(figsize=(9, 4.5))
+    fig, ax = new_figure(figsize=(9, 4.5))
     width = 0.8 / len(res["arms"])
     for j, (d, arm) in enumerate(res["arms"].items()):
         xs = [i + (j - (len(res["arms"]) - 1) / 2) * width for i in range(len(SETS))]
@@ -240,7 +240,6 @@ def main(argv: list[str] | None = None) -> int:
     ax.set(ylim=(0, 1.02), ylabel="read right (mean ± sd over seeds)")
     ax.set_title(f"canonical reader, {args.preset}")
     ax.legend(fontsize=7, ncol=2, loc="lower left")
-    fig.tight_layout(rect=(0, 0.08, 1, 1))
     save_figure(name, fig, info)
     print(head)
     return 0

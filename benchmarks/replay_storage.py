@@ -26,7 +26,13 @@ import time
 
 import numpy as np
 
-from benchmarks.common import command, machine, save_figure, save_json, save_markdown
+from benchmarks.common import (
+    machine,
+    new_figure,
+    save_figure,
+    save_json,
+    save_markdown,
+)
 
 NAME = "replay_storage"
 FRAME = (64, 64, 3)
@@ -130,7 +136,6 @@ def main(argv: list[str] | None = None) -> int:
         NAME,
         {
             "headline": headline,
-            "command": command(),
             "machine": info,
             "settings": vars(args),
             "episodes": episodes,
@@ -164,20 +169,14 @@ def main(argv: list[str] | None = None) -> int:
         )
     save_markdown(NAME, "Replay storage on the learner's device", body, info)
 
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    fig, ax = plt.subplots(figsize=(5.5, 3.8))
+    fig, ax = new_figure(figsize=(5.5, 3.8))
     for i, vals in enumerate((host_ms, dev_ms)):
         ax.bar(i, statistics.median(vals), 0.6, color=f"C{i}")
         ax.scatter([i] * len(vals), vals, color="k", s=10, zorder=3)
     ax.set_xticks([0, 1], ["host (numpy)", f"device ({device})"])
     ax.set_ylabel("ms per batch (sample + move)")
     ax.set_title(f"batch {args.batch_size} of 64x64 frames, learner on {device}")
-    fig.tight_layout(rect=(0, 0.1, 1, 1))
-    save_figure(NAME, fig, info)
+    save_figure(NAME, fig, info, rect=(0, 0.1, 1, 1))
     return 0
 
 

@@ -23,7 +23,7 @@ import sys
 from pathlib import Path
 from typing import Any
 
-from benchmarks.common import command, machine, save_figure, save_json, save_markdown
+from benchmarks.common import machine, save_figure, save_json, save_markdown
 from benchmarks.protocol import check_single_policy, check_test_seed
 
 NAME = "robosuite-camera"
@@ -126,7 +126,6 @@ def main() -> None:
     info = machine()
     payload = {
         "headline": headline,
-        "command": command(),
         "machine": info,
         "targets": {**TARGETS, "wall_clock_s": WALL_AIM_S},
         "reached": reached,
@@ -175,7 +174,6 @@ def main() -> None:
     ax.set_xticks(range(len(FAMILIES)), FAMILIES)
     ax.set(ylim=(0, 1.02), ylabel="success")
     ax.legend(fontsize=7)
-    fig.tight_layout(rect=(0, 0.08, 1, 1))
     save_figure(NAME, fig, info)
     print(json.dumps(headline, indent=1))
 

@@ -409,6 +409,10 @@ def main(argv: list[str] | None = None) -> int:
     save_json(
         "robosuite_speed",
         {
+            "headline": {
+                "step_ratio": round(step_ratio, 2),
+                "resets_per_s": round(med["b_resets"], 1),
+            },
             "machine": info,
             "load_before": load_before,
             "load_after": load_after,

@@ -40,7 +40,7 @@ import torch
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt
 
-from benchmarks.common import command, machine, save_figure, save_json, save_markdown
+from benchmarks.common import machine, save_figure, save_json, save_markdown
 from lcrl.nets import NetConfig
 from train.configs.presets import PRESETS
 from train.training.loop import Trainer
@@ -218,7 +218,6 @@ def main(argv: list[str] | None = None) -> int:
             "headline": headline,
             "target": f"every ratio >= {TARGET}",
             "reached": reached,
-            "command": command(),
             "machine": info,
             "rates": rates,
             "median": med,
@@ -245,7 +244,7 @@ def main(argv: list[str] | None = None) -> int:
     ax.set_title("FetchReach-v4 SAC+HER: lcrl against SB3")
     ax.legend()
     fig.subplots_adjust(bottom=0.3)
-    save_figure("speed_vs_sb3", fig, info)
+    save_figure("speed_vs_sb3", fig, info, rect=None)
     print("saved benchmarks/results/speed_vs_sb3.{json,md,png}")
     return 0
 

@@ -18,7 +18,6 @@ is reported. Model loading is not timed. Results go to
 
 import datetime
 import itertools
-import json
 import os
 import platform
 import shlex
@@ -30,10 +29,10 @@ import time
 import numpy as np
 import torch
 
+from benchmarks.common import RESULTS_DIR, save_json
 from lcrl.text_encoder import DEFAULT_TEXT_ENCODER, FrozenTextEncoder
 
 REPEATS = 5
-RESULTS_DIR = os.path.join(os.path.dirname(os.path.abspath(__file__)), "results")
 
 
 def make_instructions() -> list[str]:
@@ -154,9 +153,10 @@ def main() -> None:
     print(table)
 
     os.makedirs(RESULTS_DIR, exist_ok=True)
-    with open(os.path.join(RESULTS_DIR, "text_encoder_speed.json"), "w") as fh:
-        json.dump(result, fh, indent=2)
-        fh.write("\n")
+    result["headline"] = {
+        f"{name}_texts_per_s": round(r["texts_per_second"]) for name, r in rows.items()
+    }
+    save_json("text_encoder_speed", result)
     machine_lines = "\n".join(f"- {k}: {v}" for k, v in info.items())
     md = (
         "# Text encoder speed\n\n"

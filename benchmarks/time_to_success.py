@@ -26,18 +26,17 @@ previous result file, marked ``kept_from`` with that file's date.
 from __future__ import annotations
 
 import argparse
-import csv
 import json
 import shlex
 import shutil
-import subprocess
-import sys
 from pathlib import Path
 
 from benchmarks.common import (
-    command,
-    die_with_parent,
+    LCRL,
+    curve,
     machine,
+    new_figure,
+    run_logged,
     save_figure,
     save_json,
     save_markdown,
@@ -55,7 +54,6 @@ NEW_OPTIONS = ["--collect.envs", "8", "--batch-size", "128"]
 BF16_OPTIONS = [*NEW_OPTIONS, "--agent.precision", "bf16"]
 OPTIONS = {"old": OLD_OPTIONS, "new": NEW_OPTIONS, "bf16": BF16_OPTIONS}
 TARGET_S = 480.0
-LCRL = [sys.executable, "-m", "train.commands.cli"]
 
 
 def run_args(args: argparse.Namespace, arm: str) -> list[str]:
@@ -65,12 +63,6 @@ def run_args(args: argparse.Namespace, arm: str) -> list[str]:
     cmd += ["--eval-episodes", str(args.eval_episodes), "--seed", str(args.seed)]
     cmd += ["--checkpoint-every", "0", "--overwrite", "--no-progress", "--no-tensorboard"]
     return cmd + OPTIONS[arm]
-
-
-def curve(run: Path) -> list[dict[str, float]]:
-    """The rows of a run's eval.csv."""
-    with open(run / "eval.csv") as f:
-        return [{k: float(v) for k, v in row.items() if v != ""} for row in csv.DictReader(f)]
 
 
 def first_success(rows: list[dict[str, float]], threshold: float) -> dict[str, float] | None:
@@ -99,15 +91,7 @@ def main(argv: list[str] | None = None) -> int:
             print(f"== {arm}: kept {run}", flush=True)
             continue
         shutil.rmtree(run, ignore_errors=True)
-        print("== " + shlex.join(cmd), flush=True)
-        with open(work / f"{arm}.log", "w") as log:
-            if (
-                subprocess.run(
-                    cmd, stdout=log, stderr=subprocess.STDOUT, preexec_fn=die_with_parent
-                ).returncode
-                != 0
-            ):
-                raise SystemExit(f"the {arm} run failed: see {log.name}")
+        run_logged(cmd, work / f"{arm}.log", arm)
         (run / "command.txt").write_text(shlex.join(cmd))
 
     info = machine()
@@ -161,7 +145,6 @@ def main(argv: list[str] | None = None) -> int:
             "headline": headline,
             "target": {"new_s": TARGET_S, "final_seen_new": "final_seen_old or above"},
             "reached": reached,
-            "command": command(),
             "machine": info,
             "settings": {
                 **vars(args),
@@ -205,12 +188,7 @@ def main(argv: list[str] | None = None) -> int:
         )
     save_markdown(NAME, "Time to 80% seen success on lang2d", body, info)
 
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    fig, ax = plt.subplots(figsize=(6.5, 4))
+    fig, ax = new_figure(figsize=(6.5, 4))
     colours = {"old": "tab:gray", "new": "tab:blue", "bf16": "tab:cyan"}
     for arm, colour in colours.items():
         if arm not in arms:
@@ -228,7 +206,6 @@ def main(argv: list[str] | None = None) -> int:
     ax.set(xlabel="training wall-clock (min)", ylabel="seen success", ylim=(0, 1.02))
     ax.set_title("lang2d: time to success")
     ax.legend(loc="lower right", fontsize=8)
-    fig.tight_layout(rect=(0, 0.08, 1, 1))
     save_figure(NAME, fig, info)
     return 0
 
