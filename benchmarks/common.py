@@ -378,13 +378,15 @@ def publish(
     body: str,
     fig: Any = None,
     tried: Sequence[str] = (),
+    rect: tuple[float, float, float, float] | None = (0, 0.08, 1, 1),
 ) -> None:
     """Write a result: ``results/<name>.json`` (:func:`save_json`), ``.md`` under ``title``
-    and, given a figure, ``.png`` (laid out above its caption); then say where they are."""
+    and, given a figure, ``.png`` (laid out in ``rect``, above its caption); then say where
+    they are."""
     save_json(name, payload, tried)
     save_markdown(name, title, body, payload["machine"], payload.get("command"))
     if fig is not None:
-        save_figure(name, fig, payload["machine"], payload.get("command"))
+        save_figure(name, fig, payload["machine"], payload.get("command"), rect)
     print(f"wrote benchmarks/results/{name}.{{json,md{',png' if fig is not None else ''}}}")
 
 

@@ -23,9 +23,7 @@ import time
 from benchmarks.common import (
     machine,
     new_figure,
-    save_figure,
-    save_json,
-    save_markdown,
+    publish,
 )
 from benchmarks.loop_bound import discard, trainer
 
@@ -103,15 +101,7 @@ def main(argv: list[str] | None = None) -> int:
     headline.update({f"bf16_speedup_{r['threads']}_threads": r["bf16_speedup"] for r in rows})
     headline.update({f"bf16_ms_{r['threads']}_threads": r["bf16_ms"] for r in rows})
     headline["compile_s"] = compile_s
-    save_json(
-        NAME,
-        {
-            "headline": headline,
-            "machine": info,
-            "settings": vars(args),
-            "rows": rows,
-        },
-    )
+    payload = {"headline": headline, "machine": info, "settings": vars(args), "rows": rows}
     lines = [
         "| torch threads | eager ms | compiled ms | speed-up | bf16 ms | speed-up |",
         "|---:|---:|---:|---:|---:|---:|",
@@ -126,7 +116,6 @@ def main(argv: list[str] | None = None) -> int:
         "`--agent.compile` and against `--agent.precision bf16` (bfloat16 autocast); "
         f"compiling took {compile_s:.0f} s (the first updates).\n\n" + "\n".join(lines)
     )
-    save_markdown(NAME, "torch.compile and bf16 on the CPU (lang2d update)", body, info)
 
     fig, ax = new_figure(figsize=(5, 3.5))
     x = range(len(rows))
@@ -136,7 +125,8 @@ def main(argv: list[str] | None = None) -> int:
     ax.set_xticks(list(x), [f"{r['threads']} thread(s)" for r in rows])
     ax.set(ylabel="ms per update", title="lang2d SAC update, CPU")
     ax.legend()
-    save_figure(NAME, fig, info, rect=(0, 0.1, 1, 1))
+    title = "torch.compile and bf16 on the CPU (lang2d update)"
+    publish(NAME, payload, title, body, fig, rect=(0, 0.1, 1, 1))
     return 0
 
 

@@ -29,9 +29,7 @@ import numpy as np
 from benchmarks.common import (
     machine,
     new_figure,
-    save_figure,
-    save_json,
-    save_markdown,
+    publish,
 )
 
 NAME = "replay_storage"
@@ -132,18 +130,15 @@ def main(argv: list[str] | None = None) -> int:
     }
     headline["speedup"] = headline["host_ms"] / headline["device_ms"]
     info = machine()
-    save_json(
-        NAME,
-        {
-            "headline": headline,
-            "machine": info,
-            "settings": vars(args),
-            "episodes": episodes,
-            "frames_gb": frames_gb,
-            "host_rounds_ms": host_ms,
-            "device_rounds_ms": dev_ms,
-        },
-    )
+    payload = {
+        "headline": headline,
+        "machine": info,
+        "settings": vars(args),
+        "episodes": episodes,
+        "frames_gb": frames_gb,
+        "host_rounds_ms": host_ms,
+        "device_rounds_ms": dev_ms,
+    }
     where = "this CPU" if device.type == "cpu" else f"the GPU ({device})"
     body = (
         f"A batch of {args.batch_size} transitions sampled with hindsight relabelling "
@@ -167,7 +162,6 @@ def main(argv: list[str] | None = None) -> int:
             "is on CUDA, where a batch of frames is gathered in GPU memory instead of "
             "being copied over the bus; run it with `--device cuda` on a GPU machine."
         )
-    save_markdown(NAME, "Replay storage on the learner's device", body, info)
 
     fig, ax = new_figure(figsize=(5.5, 3.8))
     for i, vals in enumerate((host_ms, dev_ms)):
@@ -176,7 +170,8 @@ def main(argv: list[str] | None = None) -> int:
     ax.set_xticks([0, 1], ["host (numpy)", f"device ({device})"])
     ax.set_ylabel("ms per batch (sample + move)")
     ax.set_title(f"batch {args.batch_size} of 64x64 frames, learner on {device}")
-    save_figure(NAME, fig, info, rect=(0, 0.1, 1, 1))
+    title = "Replay storage on the learner's device"
+    publish(NAME, payload, title, body, fig, rect=(0, 0.1, 1, 1))
     return 0
 
 
