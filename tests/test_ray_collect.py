@@ -85,3 +85,55 @@ def test_ray_backend_without_ray_names_the_extra(tmp_path, monkeypatch, capsys):
     )
     assert status != 0
     assert "pip install 'lcrl[ray]'" in error_line(capsys.readouterr().err)
+
+
+def test_workers_on_another_node_of_a_cluster_survive_that_node_dying(tmp_path, capsys):
+    """A real two-node Ray cluster on this machine: the learner's node (the head) and a
+    worker node. With ``--collect.placement other-nodes`` the rollout workers run on the
+    worker node; when that node dies mid-run, its workers are replaced beside the learner,
+    their episodes in flight are dropped, never half stored, and the run goes on."""
+    from ray.cluster_utils import Cluster
+
+    cluster = Cluster(
+        initialize_head=True, head_node_args={"num_cpus": 1, "include_dashboard": False}
+    )
+    try:
+        node = cluster.add_node(num_cpus=1)
+        cluster.wait_for_nodes()
+        cfg = _config(tmp_path, address=cluster.address, placement="other-nodes")
+        cfg.collect.workers = 1  # one worker process: a cluster at the smallest size
+        trainer = Trainer(cfg)
+        trainer.open_outputs()
+        try:
+            head = ray.get_runtime_context().get_node_id()
+            assert trainer.remote.nodes() == [node.node_id] != [head]
+            while trainer.step < 150:
+                trainer.advance()
+            _check_buffer(trainer)
+            stored = trainer.episodes
+            cluster.remove_node(node)
+            while trainer.remote.restarts < 1:
+                trainer.advance()
+            assert trainer.episodes >= stored
+            _check_buffer(trainer)
+            while trainer.step < trainer.cfg.total_steps:
+                trainer.advance()
+            _check_buffer(trainer)
+            assert trainer.remote.nodes() == [head]
+            assert trainer.agent.updates > 0 and trainer.remote.dropped >= 1
+            trainer.log()
+        finally:
+            trainer.close()
+    finally:
+        if ray.is_initialized():
+            ray.shutdown()
+        cluster.shutdown()
+    err = capsys.readouterr().err
+    assert "a Ray rollout worker died" in err and "no other Ray node is alive" in err
+
+
+def test_an_unknown_placement_is_a_clear_error():
+    from lcrl.errors import LcrlError
+
+    with pytest.raises(LcrlError, match="collect.placement must be one of"):
+        CollectionConfig(backend="ray", placement="moon").validate()

@@ -129,6 +129,8 @@ EPISODE_ENDS = ("limit", "learned")
 
 
 COLLECT_BACKENDS = ("local", "ray")
+#: Where Ray rollout workers go (``collect.placement``).
+WORKER_PLACEMENTS = ("any", "other-nodes")
 
 
 @dataclass
@@ -154,6 +156,10 @@ class CollectionConfig:
     local Ray on this machine."""
     sync_every: int = 100
     """Updates between weight syncs to the Ray workers."""
+    placement: str = "any"
+    """Where the Ray workers run: ``any`` (where Ray finds a free CPU, the learner's node
+    included) or ``other-nodes`` (on the cluster's other nodes, round robin, leaving the
+    learner's node to the learner; while no other node is alive, beside the learner)."""
 
     def validate(self) -> None:
         """Raise :class:`LcrlError` for settings that cannot collect."""
@@ -168,6 +174,11 @@ class CollectionConfig:
                 raise LcrlError(f"collect.workers must be at least 1, got {self.workers}")
             if self.sync_every < 1:
                 raise LcrlError(f"collect.sync_every must be at least 1, got {self.sync_every}")
+            if self.placement not in WORKER_PLACEMENTS:
+                raise LcrlError(
+                    f"collect.placement must be one of {WORKER_PLACEMENTS}, "
+                    f"got {self.placement!r}"
+                )
             if self.envs != 1:
                 raise LcrlError(
                     "collect.envs steps several environments in this process; with "

@@ -143,6 +143,12 @@ class RolloutWorker:
 
         return os.getpid()
 
+    def node(self) -> str:
+        """The id of the Ray node the worker runs on."""
+        import ray
+
+        return ray.get_runtime_context().get_node_id()
+
 
 @dataclasses.dataclass
 class _Slot:
@@ -197,14 +203,50 @@ class RayCollector:
         self._embeddings = None if embeddings is None else ray.put(np.asarray(embeddings))
         self.version = 0
         self._weights = ray.put(weights)
+        self._placed = 0
+        self._alone = False  # placement other-nodes found no other node alive
         self.slots = [self._new_slot() for _ in range(cfg.collect.workers)]
         self.restarts = 0
         self.dropped = 0
 
+    def _options(self) -> dict[str, Any]:
+        """Ray options that place the next worker (``collect.placement``): ``other-nodes``
+        pins it to a live node other than the learner's, round robin; with none alive it
+        runs beside the learner, said once on the console."""
+        if self.cfg.collect.placement != "other-nodes":
+            return {}
+        from ray.util.scheduling_strategies import NodeAffinitySchedulingStrategy
+
+        here = self.ray.get_runtime_context().get_node_id()
+        others = sorted(
+            n["NodeID"]
+            for n in self.ray.nodes()
+            if n.get("Alive") and n["NodeID"] != here and n.get("Resources", {}).get("CPU", 0)
+        )
+        if not others:
+            if not self._alone:
+                print(
+                    "lcrl: no other Ray node is alive: rollout workers run beside the learner",
+                    file=sys.stderr,
+                    flush=True,
+                )
+            self._alone = True
+            return {}
+        self._alone = False
+        node = others[self._placed % len(others)]
+        self._placed += 1
+        return {"scheduling_strategy": NodeAffinitySchedulingStrategy(node_id=node, soft=False)}
+
     def _new_slot(self) -> _Slot:
-        actor = self._remote.remote(self._config, self._table, self._embeddings)
+        options = self._options()
+        remote = self._remote.options(**options) if options else self._remote
+        actor = remote.remote(self._config, self._table, self._embeddings)
         actor.set_weights.remote(self._weights, self.version)
         return _Slot(actor)
+
+    def nodes(self) -> list[str]:
+        """The Ray node of each worker."""
+        return self.ray.get([slot.actor.node.remote() for slot in self.slots])
 
     def sync(self, weights: dict[str, Any]) -> None:
         """Send the learner's weights to every worker (applied before its next episode)."""
