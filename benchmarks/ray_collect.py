@@ -24,6 +24,7 @@ import os
 import tempfile
 import time
 from pathlib import Path
+from typing import Any
 
 from benchmarks.common import (
     LCRL,
@@ -50,16 +51,13 @@ def run_args(args: argparse.Namespace, arm: str) -> list[str]:
     return cmd
 
 
-def collection_rates(workers: int, seconds: float, seed: int) -> dict[str, float]:
-    """Steps/s of collection alone: one local environment, then ``workers`` Ray workers
-    kept busy (the policy acts; nothing is stored or updated)."""
+def collection_config(seed: int, **collect: Any) -> Any:
+    """``lang2d``'s config for timing collection alone (no updates), ``collect`` set."""
     from train.configs.config import CollectionConfig
     from train.configs.presets import PRESETS
-    from train.training.loop import Trainer
-    from train.training.ray_collect import RayCollector
 
     cfg = copy.deepcopy(PRESETS["lang2d"][1])
-    cfg = dataclasses.replace(
+    return dataclasses.replace(
         cfg,
         out=tempfile.mkdtemp(prefix="lcrl-collect-"),
         learning_starts=0,
@@ -67,19 +65,32 @@ def collection_rates(workers: int, seconds: float, seed: int) -> dict[str, float
         progress=False,
         tensorboard=False,
         seed=seed,
+        collect=CollectionConfig(**collect),
     )
+
+
+def local_rate(cfg: Any, seconds: float) -> tuple[float, Any, Any]:
+    """Steps/s of the local loop collecting alone for ``seconds``, with the policy's
+    weights and instruction table (for Ray workers to act the same policy)."""
+    from train.training.loop import Trainer
+
     t = Trainer(cfg)
     t.advance()  # warm up
     t0, s0 = time.perf_counter(), t.step
     while time.perf_counter() - t0 < seconds:
         t.advance()
-    local = (t.step - s0) / (time.perf_counter() - t0)
+    rate = (t.step - s0) / (time.perf_counter() - t0)
     weights = t._weights()
     table = (list(t.task.table), t.task.num_train)
     t.close()
+    return rate, weights, table
 
-    rcfg = dataclasses.replace(cfg, collect=CollectionConfig(backend="ray", workers=workers))
-    remote = RayCollector(rcfg, table, weights)
+
+def ray_rate(cfg: Any, table: Any, weights: Any, seconds: float) -> float:
+    """Steps/s of ``cfg.collect.workers`` Ray workers kept busy for ``seconds``."""
+    from train.training.ray_collect import RayCollector
+
+    remote = RayCollector(cfg, table, weights)
     try:
         index = 0
         for slot in remote.slots:  # warm up: every worker built and acting
@@ -94,10 +105,18 @@ def collection_rates(workers: int, seconds: float, seed: int) -> dict[str, float
                 index += 1
             _, result = remote.next()
             steps += result["steps"] if result else 0
-        rate = steps / (time.perf_counter() - t0)
+        return steps / (time.perf_counter() - t0)
     finally:
         remote.close()
-    return {"local_steps_per_s": local, "ray_steps_per_s": rate}
+
+
+def collection_rates(workers: int, seconds: float, seed: int) -> dict[str, float]:
+    """Steps/s of collection alone: one local environment, then ``workers`` Ray workers
+    kept busy (the policy acts; nothing is stored or updated)."""
+    cfg = collection_config(seed)
+    local, weights, table = local_rate(cfg, seconds)
+    rcfg = collection_config(seed, backend="ray", workers=workers)
+    return {"local_steps_per_s": local, "ray_steps_per_s": ray_rate(rcfg, table, weights, seconds)}
 
 
 def main(argv: list[str] | None = None) -> int:
