@@ -102,14 +102,16 @@ def job(preset: str, seed: int, total: int) -> tuple[str, list[str], Path] | Non
     if finished(out, total):
         return None
     record = commit_file(preset, seed)
-    if not record.is_file():  # the code that trains it
-        record.parent.mkdir(parents=True, exist_ok=True)
-        record.write_text(git_commit() + "\n")
+    record.parent.mkdir(parents=True, exist_ok=True)
     argv = [sys.executable, "-m", "train.commands.entry", "train", preset, "--out", str(out)]
     if (out / "latest.json").is_file():
         argv += ["--resume", "--total-steps", str(total)]
+        before = trained_by(preset, seed)
+        if before != git_commit():  # trained on by other code than the run began with
+            record.write_text(f"{before}, resumed at {git_commit()}\n")
     else:
         argv += ["--seed", str(seed), "--agent.seed", str(seed), "--overwrite"]
+        record.write_text(git_commit() + "\n")  # the code that trains it from the start
     argv += ["--no-progress"]
     return f"{preset} seed {seed}", argv, WORK / "logs" / f"{preset}-s{seed}.log"
 

@@ -183,7 +183,10 @@ def learner_interrupt(address: str, args: argparse.Namespace) -> dict[str, Any]:
         proc = subprocess.Popen(cmd, stdout=f, stderr=subprocess.STDOUT)
         start = time.time()
         while time.time() - start < 600:
-            rows = (out / "progress.csv").read_text().splitlines() if out.is_dir() else []
+            if proc.poll() is not None:
+                raise SystemExit(f"the interrupted run ended before its signal: see {log}")
+            log_file = out / "progress.csv"
+            rows = log_file.read_text().splitlines() if log_file.is_file() else []
             if len(rows) > 2 and workers_running() >= args.workers:
                 break
             time.sleep(2)
