@@ -275,6 +275,13 @@ def main(argv: list[str] | None = None) -> int:
         f"{'reached' if reached['seen_ratio'] else 'NOT reached'} |",
         f"| faults survived | {headline['faults_survived']} of 3 | 3 of 3: "
         f"{'reached' if reached['faults_survived'] else 'NOT reached'} |",
+    ]
+    lines += [
+        "",
+        "Both nodes of this cluster share one machine's cores, so the collection ratio is "
+        "the price of Ray's messages and of acting one episode at a time in each worker, "
+        "against a local loop that steps 8 environments with one batched forward pass: "
+        "more than 1 needs nodes with cores of their own.",
         "",
         "| fault | survived | what happened |",
         "|---|---|---|",
