@@ -135,5 +135,5 @@ def test_workers_on_another_node_of_a_cluster_survive_that_node_dying(tmp_path, 
 def test_an_unknown_placement_is_a_clear_error():
     from lcrl.errors import LcrlError
 
-    with pytest.raises(LcrlError, match="collect.placement must be one of"):
+    with pytest.raises(LcrlError, match=r"collect\.placement must be one of"):
         CollectionConfig(backend="ray", placement="moon").validate()
