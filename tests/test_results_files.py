@@ -82,8 +82,7 @@ def _windows(path: Path, size: int = 6) -> dict[tuple[str, ...], int]:
         if line.strip() and n not in skip and not line.strip().startswith("#")
     ]
     return {
-        tuple(s for _, s in lines[i : i + size]): lines[i][0]
-        for i in range(len(lines) - size + 1)
+        tuple(s for _, s in lines[i : i + size]): lines[i][0] for i in range(len(lines) - size + 1)
     }
 
 

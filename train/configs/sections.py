@@ -176,8 +176,7 @@ class CollectionConfig:
                 raise LcrlError(f"collect.sync_every must be at least 1, got {self.sync_every}")
             if self.placement not in WORKER_PLACEMENTS:
                 raise LcrlError(
-                    f"collect.placement must be one of {WORKER_PLACEMENTS}, "
-                    f"got {self.placement!r}"
+                    f"collect.placement must be one of {WORKER_PLACEMENTS}, got {self.placement!r}"
                 )
             if self.envs != 1:
                 raise LcrlError(
