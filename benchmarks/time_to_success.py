@@ -17,6 +17,9 @@ Writes ``benchmarks/results/time_to_success.{json,md,png}``. Headline: ``new_s``
 <= 480), ``old_s``, and ``final_seen_new`` / ``final_seen_old`` at the same step budget
 (the new run's must not be below the old one's).
 
+A fourth arm, ``preset``, is ``lcrl train lang2d`` exactly as shipped (no option added):
+``headline.preset_s`` (target <= 300) and ``headline.final_seen_preset``.
+
 A third arm, ``bf16``, is the new settings with ``--agent.precision bf16`` (updates under
 bfloat16 autocast); it reports ``headline.bf16_s`` and ``headline.final_seen_bf16``. An
 arm not trained in this invocation (``--arms``) whose run folder is gone is kept from the
@@ -52,8 +55,12 @@ OLD_OPTIONS = ["--collect.envs", "1", "--batch-size", "256"]
 NEW_OPTIONS = ["--collect.envs", "8", "--batch-size", "128"]
 #: The new settings with their updates under bfloat16 autocast.
 BF16_OPTIONS = [*NEW_OPTIONS, "--agent.precision", "bf16"]
-OPTIONS = {"old": OLD_OPTIONS, "new": NEW_OPTIONS, "bf16": BF16_OPTIONS}
+#: The preset exactly as shipped: no option added.
+PRESET_OPTIONS: list[str] = []
+OPTIONS = {"old": OLD_OPTIONS, "new": NEW_OPTIONS, "bf16": BF16_OPTIONS, "preset": PRESET_OPTIONS}
 TARGET_S = 480.0
+#: ``lcrl train lang2d`` as shipped, to 80% seen success.
+TARGET_PRESET_S = 300.0
 
 
 def run_args(args: argparse.Namespace, arm: str) -> list[str]:
@@ -105,7 +112,7 @@ def main(argv: list[str] | None = None) -> int:
                 kept.setdefault("kept_from", before["machine"]["date"])
                 arms[arm] = kept
                 print(f"{arm}: kept from {kept['kept_from']}", flush=True)
-            elif arm != "bf16":
+            elif arm not in ("bf16", "preset"):
                 raise SystemExit(f"no {arm} run in {work} and none in {previous}: train it")
             continue
         rows = curve(work / arm)
@@ -139,11 +146,20 @@ def main(argv: list[str] | None = None) -> int:
         "new_s": new["time_to_success_s"] is not None and new["time_to_success_s"] <= TARGET_S,
         "final_seen_new": new["final_seen"] >= old["final_seen"],
     }
+    if "preset" in arms:
+        preset_s = arms["preset"]["time_to_success_s"]
+        headline["preset_s"] = preset_s
+        headline["final_seen_preset"] = arms["preset"]["final_seen"]
+        reached["preset_s"] = preset_s is not None and preset_s <= TARGET_PRESET_S
     save_json(
         NAME,
         {
             "headline": headline,
-            "target": {"new_s": TARGET_S, "final_seen_new": "final_seen_old or above"},
+            "target": {
+                "new_s": TARGET_S,
+                "final_seen_new": "final_seen_old or above",
+                "preset_s": TARGET_PRESET_S,
+            },
             "reached": reached,
             "machine": info,
             "settings": {
@@ -174,7 +190,8 @@ def main(argv: list[str] | None = None) -> int:
         )
     verdicts = ", ".join(f"{k} {'reached' if v else 'NOT reached'}" for k, v in reached.items())
     body = (
-        f"Targets: new_s <= {TARGET_S:.0f} s; final seen of the new run not below the old "
+        f"Targets: new_s <= {TARGET_S:.0f} s; preset_s (`lcrl train lang2d` as shipped) <= "
+        f"{TARGET_PRESET_S:.0f} s; final seen of the new run not below the old "
         f"run's. **{verdicts}.**\n\nOld options: `{shlex.join(OLD_OPTIONS)}`; new options: "
         f"`{shlex.join(NEW_OPTIONS)}`; bf16: the new options and "
         "`--agent.precision bf16`.\n\n" + "\n".join(lines)
