@@ -98,3 +98,31 @@ def test_local_ray_workers_take_their_share_of_the_cores(monkeypatch):
     monkeypatch.setattr("train.runtime.machine.busy_cores", lambda: 0)
     assert default_threads(helpers=2) == 2
     assert default_threads(helpers=7) == 1
+
+
+@pytest.mark.parametrize(
+    ("busy_jiffies", "own_s", "expected"),
+    [(0, 0.0, 0), (100, 0.0, 1), (200, 0.0, 2), (100, 1.0, 0)],
+)
+def test_busy_cores_count_what_others_use_now_not_the_load_average(
+    monkeypatch, busy_jiffies, own_s, expected
+):
+    """Busy cores are read from the CPU time spent while watching, less this process's
+    own: a load average left by a run that has just ended does not count."""
+    import types
+
+    from train.runtime import machine as m
+
+    samples = iter([(1000, 5000), (1000 + busy_jiffies, 5200)])
+    monkeypatch.setattr(m, "_cpu_jiffies", lambda: next(samples))
+    monkeypatch.setattr(m.os, "cpu_count", lambda: 2)
+    monkeypatch.setattr(m.os, "getloadavg", lambda: (2.0, 2.0, 2.0))
+    monkeypatch.setattr(m.time, "sleep", lambda s: None)
+    times = iter([(0.0, 0.0, 0.0), (own_s, 0.0, 1.0)])
+
+    def fake_times():
+        user, system, elapsed = next(times)
+        return types.SimpleNamespace(user=user, system=system, elapsed=elapsed)
+
+    monkeypatch.setattr(m.os, "times", fake_times)
+    assert m.busy_cores() == expected

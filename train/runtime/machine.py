@@ -6,6 +6,7 @@ import datetime as dt
 import os
 import platform
 import sys
+import time
 from typing import Any
 
 import torch
@@ -48,13 +49,50 @@ def default_threads(helpers: int = 0) -> int:
     return max(1, min(share, available_cores() - busy_cores()))
 
 
-def busy_cores() -> int:
-    """Cores other processes keep busy now: the 1-minute load average, rounded (0 where
-    the platform has none). Read when a process starts, before it is busy itself."""
+#: How long :func:`busy_cores` watches the CPUs (seconds).
+BUSY_SAMPLE_S = 0.3
+
+
+def _cpu_jiffies() -> tuple[int, int] | None:
+    """(busy, total) jiffies over all CPUs since boot (``/proc/stat``); None where the
+    platform has no such file."""
     try:
-        return round(os.getloadavg()[0])
-    except (AttributeError, OSError):
+        with open("/proc/stat") as f:
+            fields = [int(x) for x in f.readline().split()[1:]]
+    except (OSError, ValueError):
+        return None
+    if len(fields) < 4:
+        return None
+    idle = fields[3] + (fields[4] if len(fields) > 4 else 0)  # idle + iowait
+    total = sum(fields[:8])  # guest time is already counted in user
+    return total - idle, total
+
+
+def busy_cores(sample_s: float = BUSY_SAMPLE_S) -> int:
+    """Cores other processes keep busy now: the CPU time spent outside this process while
+    watching ``/proc/stat`` for ``sample_s`` seconds, in cores, rounded. Where that file is
+    missing, the 1-minute load average, rounded (0 where the platform has neither).
+
+    The load average lags: a busy process that ended a minute ago still counts in it, and
+    a run started right after one would take one thread where it could have had all."""
+    first = _cpu_jiffies()
+    if first is None or sample_s <= 0:
+        try:
+            return round(os.getloadavg()[0])
+        except (AttributeError, OSError):
+            return 0
+    mine = os.times()
+    time.sleep(sample_s)
+    second = _cpu_jiffies()
+    mine_after = os.times()
+    if second is None or second[1] <= first[1]:
         return 0
+    busy, total = second[0] - first[0], second[1] - first[1]
+    cpus = os.cpu_count() or 1
+    own = (mine_after.user - mine.user) + (mine_after.system - mine.system)
+    elapsed = max(1e-6, mine_after.elapsed - mine.elapsed)
+    others = busy / total * cpus - own / elapsed
+    return max(0, min(cpus, round(others)))
 
 
 def set_threads(threads: int = 0, helpers: int = 0) -> int:
@@ -66,7 +104,7 @@ def set_threads(threads: int = 0, helpers: int = 0) -> int:
         full = max(1, available_cores() // (1 + max(0, helpers)))
         if n < full and not os.environ.get(PROCESSES_VARIABLE):
             print(
-                f"lcrl: note: other processes keep {busy_cores()} of {available_cores()} cores "
+                f"lcrl: note: other processes keep some of the {available_cores()} cores "
                 f"busy: {n} torch thread{'s' if n > 1 else ''} (--torch-threads sets it)",
                 file=sys.stderr,
             )
