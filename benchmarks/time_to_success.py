@@ -30,6 +30,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import re
 import shlex
 import shutil
 from pathlib import Path
@@ -44,6 +45,7 @@ from benchmarks.common import (
     save_json,
     save_markdown,
 )
+from train.runtime.machine import available_cores
 
 NAME = "time_to_success"
 PRESET = "lang2d"
@@ -70,6 +72,14 @@ def run_args(args: argparse.Namespace, arm: str) -> list[str]:
     cmd += ["--eval-episodes", str(args.eval_episodes), "--seed", str(args.seed)]
     cmd += ["--checkpoint-every", "0", "--overwrite", "--no-progress", "--no-tensorboard"]
     return cmd + OPTIONS[arm]
+
+
+def run_threads(log: Path) -> int:
+    """The torch threads a run took: the number its note names where the cores were busy
+    when it started (``lcrl: note: ... N torch thread``), otherwise all available cores."""
+    text = log.read_text() if log.is_file() else ""
+    found = re.search(r"(\d+) torch threads? \(--torch-threads", text)
+    return int(found.group(1)) if found else available_cores()
 
 
 def first_success(rows: list[dict[str, float]], threshold: float) -> dict[str, float] | None:
@@ -104,7 +114,8 @@ def main(argv: list[str] | None = None) -> int:
     info = machine()
     previous = Path(__file__).resolve().parent / "results" / f"{NAME}.json"
     before = json.loads(previous.read_text()) if previous.is_file() else {}
-    arms = {}
+    arms: dict[str, dict] = {}
+    replaced: list[str] = []
     for arm in OPTIONS:
         if arm not in args.arms and not (work / arm / "eval.csv").is_file():
             if arm in before.get("arms", {}):
@@ -128,8 +139,16 @@ def main(argv: list[str] | None = None) -> int:
             "final_seen": rows[-1]["train/success"],
             "final_step": int(rows[-1]["step"]),
             "train_s": rows[-1]["train_s"],
+            "torch_threads": run_threads(work / f"{arm}.log"),
             "curve": rows,
         }
+        earlier = before.get("arms", {}).get(arm)
+        if earlier and earlier.get("time_to_success_s") != arms[arm]["time_to_success_s"]:
+            replaced.append(
+                f"arm {arm} before this run ({before['machine']['date']}): "
+                f"{earlier['time_to_success_s']} s to {args.threshold}, final seen "
+                f"{earlier['final_seen']}, {earlier.get('torch_threads', '?')} torch thread(s)"
+            )
         print(f"{arm}: {arms[arm]['time_to_success_s']} s to {args.threshold}", flush=True)
     new, old = arms["new"], arms["old"]
     headline = {
@@ -170,21 +189,24 @@ def main(argv: list[str] | None = None) -> int:
                 "preset": PRESET,
             },
             "arms": arms,
+            "earlier_runs": [*before.get("earlier_runs", []), *replaced],
         },
+        tried=replaced,
     )
 
     def fmt(s: float | None) -> str:
         return "never" if s is None else f"{s:.0f} s ({s / 60:.1f} min)"
 
     lines = [
-        f"| run | envs | updates/step | batch | time to {args.threshold:.0%} seen | steps "
+        f"| run | envs | updates/step | batch | torch threads "
+        f"| time to {args.threshold:.0%} seen | steps "
         f"| final seen ({args.steps} steps) | training time |",
-        "|---|---:|---:|---:|---:|---:|---:|---:|",
+        "|---|---:|---:|---:|---:|---:|---:|---:|---:|",
     ]
     for arm, a in arms.items():
         lines.append(
             f"| {arm}{' (kept)' if 'kept_from' in a else ''} | {a['collect_envs']} | "
-            f"{a['updates_per_step']} | {a['batch_size']} | "
+            f"{a['updates_per_step']} | {a['batch_size']} | {a.get('torch_threads', '?')} | "
             f"{fmt(a['time_to_success_s'])} | {a['steps_to_success'] or '-'} | "
             f"{a['final_seen']:.2f} | {a['train_s']:.0f} s |"
         )
@@ -203,10 +225,17 @@ def main(argv: list[str] | None = None) -> int:
             "in this invocation."
             for arm, date in kept.items()
         )
+    earlier = [*before.get("earlier_runs", []), *replaced]
+    if earlier:
+        body += (
+            "\n\nEarlier runs of an arm, replaced by a later one (a run that started while the "
+            "machine looked busy takes fewer torch threads):\n\n"
+            + "\n".join(f"- {line}" for line in earlier)
+        )
     save_markdown(NAME, "Time to 80% seen success on lang2d", body, info)
 
     fig, ax = new_figure(figsize=(6.5, 4))
-    colours = {"old": "tab:gray", "new": "tab:blue", "bf16": "tab:cyan"}
+    colours = {"old": "tab:gray", "new": "tab:blue", "bf16": "tab:cyan", "preset": "tab:red"}
     for arm, colour in colours.items():
         if arm not in arms:
             continue
@@ -219,7 +248,11 @@ def main(argv: list[str] | None = None) -> int:
             label=f"{arm} ({fmt(arms[arm]['time_to_success_s'])})",
         )
     ax.axhline(args.threshold, c="k", lw=0.8, ls=":")
-    ax.axvline(TARGET_S / 60, c="tab:red", lw=0.8, ls="--", label="target 8 min")
+    ax.axvline(TARGET_S / 60, c="tab:gray", lw=0.8, ls="--", label="target of new: 8 min")
+    if "preset" in arms:
+        ax.axvline(
+            TARGET_PRESET_S / 60, c="tab:red", lw=0.8, ls=":", label="target of preset: 5 min"
+        )
     ax.set(xlabel="training wall-clock (min)", ylabel="seen success", ylim=(0, 1.02))
     ax.set_title("lang2d: time to success")
     ax.legend(loc="lower right", fontsize=8)
