@@ -135,3 +135,30 @@ def hold(folder: Path) -> subprocess.Popen:
     )
     assert proc.stdout.readline().strip() == "held"
     return proc
+
+
+def oracle_perception(dataset):
+    """Perception that reads the simulator's own state of each frame of a caption dataset
+    (what a perfect model would estimate)."""
+    import numpy as np
+
+    from captioner.dataset import CaptionDataset
+    from lcrl.perception import Perception, SlotLayout
+
+    with CaptionDataset(dataset) as data:
+        lookup = {f.tobytes(): s for f, s in zip(data.frames[:], data.state[:], strict=True)}
+        layout = SlotLayout.of(data.meta["slot_layout"])
+        shape = data.frame_shape
+
+    class Oracle(Perception):
+        def observation(self, frames, proprio, present=None):
+            out = np.stack([lookup[f.tobytes()] for f in np.asarray(frames, np.uint8)])
+            if present is not None:  # given flags replace the read ones, as the model's do
+                lay = self.layout
+                slots = out[:, lay.start : lay.dim].reshape(len(out), lay.count, lay.width)
+                flags = np.asarray(present, np.float32)
+                slots = np.concatenate([slots[..., :-1] * flags[..., None], flags[..., None]], -1)
+                out = np.concatenate([out[:, : lay.start], slots.reshape(len(out), -1)], 1)
+            return out
+
+    return Oracle(shape, layout)

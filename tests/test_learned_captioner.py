@@ -9,7 +9,7 @@ import json
 import numpy as np
 import pytest
 import torch
-from helpers import tiny
+from helpers import oracle_perception, tiny
 
 from captioner.dataset import CaptionDataset, CollectConfig
 from captioner.grammar import Instruction
@@ -623,30 +623,6 @@ def slots_dataset(tmp_path_factory):
     return path
 
 
-def _oracle(dataset):
-    """Perception that reads the simulator's own state of each dataset frame (what a
-    perfect model would estimate), saved as a perception checkpoint."""
-    from lcrl.perception import Perception, SlotLayout
-
-    with CaptionDataset(dataset) as data:
-        lookup = {f.tobytes(): s for f, s in zip(data.frames[:], data.state[:], strict=True)}
-        layout = SlotLayout.of(data.meta["slot_layout"])
-        shape = data.frame_shape
-
-    class Oracle(Perception):
-        def observation(self, frames, proprio, present=None):
-            out = np.stack([lookup[f.tobytes()] for f in np.asarray(frames, np.uint8)])
-            if present is not None:  # given flags replace the read ones, as the model's do
-                lay = self.layout
-                slots = out[:, lay.start : lay.dim].reshape(len(out), lay.count, lay.width)
-                flags = np.asarray(present, np.float32)
-                slots = np.concatenate([slots[..., :-1] * flags[..., None], flags[..., None]], -1)
-                out = np.concatenate([out[:, : lay.start], slots.reshape(len(out), -1)], 1)
-            return out
-
-    return Oracle(shape, layout)
-
-
 def test_models_over_perception_learn_from_the_slots(slots_dataset, tmp_path, monkeypatch, capsys):
     """``--model.encoder perception``: the models read perception's estimates of the first
     and current frame; given exact estimates (the simulator's state) they caption held-out
@@ -654,7 +630,7 @@ def test_models_over_perception_learn_from_the_slots(slots_dataset, tmp_path, mo
     from captioner.learned import saved, training
     from train.environments.perception import PerceptionTrainConfig, save_model
 
-    oracle = _oracle(slots_dataset)
+    oracle = oracle_perception(slots_dataset)
     save_model(tmp_path / "oracle", oracle, PerceptionTrainConfig(), {}, 0, [], np.zeros(0, int))
     for module in (training, saved):  # where the models are trained, and loaded again
         monkeypatch.setattr(module, "load_model", lambda path, device="cpu": (oracle, {}))
@@ -708,7 +684,7 @@ def test_first_presence_keeps_the_objects_the_arm_hides(slots_dataset):
     from captioner.learned import Vocabulary
     from captioner.learned.training import _perceive_dataset
 
-    oracle = _oracle(slots_dataset)
+    oracle = oracle_perception(slots_dataset)
     read = oracle.observation
     with CaptionDataset(slots_dataset) as data:
         firsts = {data.frames[int(a)].tobytes() for a in data.episode_start[:-1]}

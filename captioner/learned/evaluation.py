@@ -14,7 +14,14 @@ from captioner.dataset import CaptionDataset
 from captioner.grammar import try_parse
 from captioner.learned.data import _observations
 from captioner.learned.labeller import LearnedLabeller
-from captioner.learned.metrics import SLOT_GROUPS, bleu4, roc_auc, slot_matches
+from captioner.learned.metrics import (
+    SLOT_GROUPS,
+    auc_interval,
+    bleu4,
+    rate_interval,
+    roc_auc,
+    slot_matches,
+)
 from captioner.learned.saved import LearnedCaptioner
 from captioner.learned.training import _parse
 from captioner.learned.vocabulary import NEAR_WINDOW, NONE_TEXT
@@ -83,7 +90,7 @@ def evaluate_models(
         if len(items) > max_pairs:
             items = [items[i] for i in np.sort(rng.choice(len(items), max_pairs, replace=False))]
         res: dict[str, Any] = {"observations": len(items)}
-        if lc.captioner is not None and items:
+        if lc.has("captioner") and items:
             idx = [j for j, _ in items]
             captions = []
             for _, f, c, p0, p in batches(idx):
@@ -104,15 +111,23 @@ def evaluate_models(
                 for g, ok in best.items():
                     slots[g].append(ok)
             res["exact_match"] = float(np.mean(exact))
+            res["exact_match_ci"] = rate_interval(exact)["ci"]
             res["bleu4"] = float(np.mean(bleu))
             res["slot_accuracy"] = {g: float(np.mean(v)) for g, v in slots.items() if v}
+            res["slot_accuracy_ci"] = {g: rate_interval(v)["ci"] for g, v in slots.items() if v}
+            # per family of the observation's references (the first, where several)
+            fams: dict[str, list[bool]] = {}
+            for (_, lab), ok in zip(items, exact, strict=True):
+                refs = [t for t in lab if (t in heldout_names) == (name != "seen")]
+                fams.setdefault(refs[0].split()[0], []).append(ok)
+            res["exact_match_by_family"] = {f: rate_interval(v) for f, v in sorted(fams.items())}
             if name != "seen":
                 res["heldout_caption_rate"] = float(np.mean(made_heldout))
             res["examples"] = [
                 {"labels": lab[:4], "caption": text}
                 for (_, lab), (text, _) in list(zip(items, captions, strict=True))[:5]
             ]
-        if lc.reward is not None and items:
+        if lc.has("reward") and items:
             pos_idx, pos_txt, neg_idx, neg_txt = [], [], [], []
             pool = (
                 sorted(heldout_names)
@@ -195,9 +210,24 @@ def evaluate_models(
             res["recall"] = float(tp / max(int(y.sum()), 1))
             hard = np.concatenate([np.ones(len(pos_idx), bool), np.arange(len(neg_idx)) < n_hard])
             res["auc"] = roc_auc(sc[hard], y[hard])
+            res["auc_ci"] = auc_interval(sc[hard], y[hard], seed=seed)
+            # per family: each positive with the hard negative drawn for its frames
+            fam = [t.split()[0] for t in pos_txt] + [t.split()[0] for t in neg_txt[:n_hard]]
+            hs, hy = sc[hard], y[hard]
+            res["auc_by_family"] = {
+                f: {
+                    "auc": roc_auc(hs[m], hy[m]),
+                    "ci": auc_interval(hs[m], hy[m], seed=seed),
+                    "pairs": int(m.sum()),
+                }
+                for f in sorted(set(fam))
+                if (m := np.asarray([g == f for g in fam])).any()
+                and hy[m].any()
+                and not hy[m].all()
+            }
             res["auc_with_idle"] = roc_auc(sc, y)
         results[name] = res
-    if lc.captioner is not None and empty:
+    if lc.has("captioner") and empty:
         sample = (
             empty if len(empty) <= max_pairs else list(rng.choice(empty, max_pairs, replace=False))
         )
@@ -231,7 +261,7 @@ def relabel_agreement(
         recall, f1}, ...], "best_threshold"}`` (best: the highest F1).
     """
     lc.check_dataset(data)
-    if lc.captioner is None or lc.reward is None:
+    if not (lc.has("captioner") and lc.has("reward")):
         raise LcrlError(
             "relabelling agreement needs a checkpoint with a captioner and a reward model"
         )
@@ -340,6 +370,20 @@ def format_results(results: dict[str, Any]) -> str:
                 f"recall {r['recall']:.2f} ({r['reward_pairs']} pairs)"
             )
         lines.append("; ".join(parts))
+        if "exact_match_ci" in r:
+            lo, hi = r["exact_match_ci"]
+            lines.append(f"  exact match 95% interval [{lo:.2f}, {hi:.2f}]")
+        for f, v in r.get("exact_match_by_family", {}).items():
+            lo, hi = v["ci"]
+            auc = r.get("auc_by_family", {}).get(f)
+            extra = (
+                f", reward AUC {auc['auc']:.3f} [{auc['ci'][0]:.3f}, {auc['ci'][1]:.3f}]"
+                if auc
+                else ""
+            )
+            lines.append(
+                f"  {f}: exact match {v['rate']:.2f} [{lo:.2f}, {hi:.2f}] of {v['n']}{extra}"
+            )
     if "none_accuracy" in results:
         lines.append(f"'<none>' where nothing was achieved: {results['none_accuracy']:.2f}")
     return "\n".join(lines)

@@ -61,9 +61,9 @@ class LearnedLabeller:
         confirm: bool = False,
         reward_labels: bool = False,
     ) -> None:
-        if captioner and models.captioner is None:
+        if captioner and not models.has("captioner"):
             raise LcrlError("learned relabelling needs a checkpoint with a captioner")
-        if reward and models.reward is None:
+        if reward and not models.has("reward"):
             raise LcrlError("learned rewards need a checkpoint with a reward model")
         self.models = models
         self.table = list(table)

@@ -1,4 +1,4 @@
-"""Caption metrics: BLEU-4, ROC AUC, per-slot agreement with the label."""
+"""Caption metrics: BLEU-4, ROC AUC, per-slot agreement with the label, and intervals."""
 
 from __future__ import annotations
 
@@ -9,6 +9,7 @@ from collections.abc import Sequence
 import numpy as np
 
 from captioner.grammar import Instruction
+from lcrl.statistics import wilson_interval
 
 # --------------------------------------------------------------------------- metrics
 
@@ -84,3 +85,27 @@ def slot_matches(generated: Instruction | None, label: Instruction) -> dict[str,
         if all(k in want for k in keys):
             out[group] = all(got.get(k) == want[k] for k in keys)
     return out
+
+
+def rate_interval(hits: Sequence[bool]) -> dict[str, float | int | list[float]]:
+    """A rate with its 95% Wilson interval: ``{"rate", "ci", "n"}``."""
+    n, k = len(hits), int(sum(bool(h) for h in hits))
+    return {"rate": k / n if n else float("nan"), "ci": list(wilson_interval(k, n)), "n": n}
+
+
+def auc_interval(
+    scores: np.ndarray, labels: np.ndarray, rounds: int = 200, seed: int = 0
+) -> list[float]:
+    """95% bootstrap interval of :func:`roc_auc` (pairs resampled with replacement,
+    ``rounds`` times; NaN where one class is missing)."""
+    scores, labels = np.asarray(scores, float), np.asarray(labels, bool)
+    if labels.all() or not labels.any():
+        return [float("nan"), float("nan")]
+    rng = np.random.default_rng(seed)
+    values = []
+    for _ in range(rounds):
+        pick = rng.integers(len(scores), size=len(scores))
+        if labels[pick].all() or not labels[pick].any():
+            continue
+        values.append(roc_auc(scores[pick], labels[pick]))
+    return [float(np.quantile(values, 0.025)), float(np.quantile(values, 0.975))]

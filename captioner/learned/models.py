@@ -65,7 +65,22 @@ class CaptionModelConfig:
     models read a change that did not happen. Checkpoints saved before the option read
     without."""
 
+    head: str = "sequence"
+    """``sequence``: a GRU captioner writes the caption word by word and a reward model
+    reads the instruction's text embedding. ``factored`` (needs ``encoder=perception``):
+    one network scores every instruction of the grammar by its slots, a network shared by
+    every object for reach, push and lift and one shared by every pair of objects for put
+    and stack, so that a new combination of known words is read as a seen one
+    (:mod:`captioner.learned.factored`); ``hidden`` is its width."""
+
     def validate(self) -> None:
+        if self.head not in HEADS:
+            raise LcrlError(f"model.head must be one of {HEADS}, got {self.head!r}")
+        if self.head == "factored" and self.encoder != "perception":
+            raise LcrlError(
+                "model.head factored reads perception's object slots: pass "
+                "--model.encoder perception and --perception MODEL"
+            )
         if self.encoder not in ENCODERS:
             raise LcrlError(f"model.encoder must be one of {ENCODERS}, got {self.encoder!r}")
         if not self.channels or any(int(c) <= 0 for c in self.channels):
@@ -82,6 +97,7 @@ class CaptionModelConfig:
 
 
 ENCODERS: tuple[str, ...] = ("spatial", "flatten", "perception")
+HEADS: tuple[str, ...] = ("sequence", "factored")
 
 
 class FramePairEncoder(nn.Module):

@@ -12,9 +12,11 @@ import torch
 from torch import nn
 
 from captioner.dataset import CaptionDataset
+from captioner.grammar import try_parse
 from captioner.learned.data import _text_encoder
+from captioner.learned.factored import SlotPredicates, output_index, output_indices
 from captioner.learned.models import Captioner, CaptionModelConfig, RewardModel
-from captioner.learned.vocabulary import CHECKPOINT_KIND, Vocabulary
+from captioner.learned.vocabulary import CHECKPOINT_KIND, NONE_TEXT, Vocabulary
 from lcrl.checkpoint import CheckpointError, load_checkpoint, save_checkpoint
 from lcrl.errors import LcrlError
 from lcrl.perception import Perception, embedded_meta, load_model
@@ -53,6 +55,8 @@ class LearnedCaptioner:
         self.device = torch.device(device)
         self.captioner: Captioner | None = None
         self.reward: RewardModel | None = None
+        #: The factored models (``head=factored``): one network that captions and scores.
+        self.factored: SlotPredicates | None = None
         self._encoder: Any = None
         #: The frozen perception model both models read through (``encoder=perception``).
         self.perception: Perception | None = None
@@ -122,6 +126,30 @@ class LearnedCaptioner:
         return torch.as_tensor(self._encoder.encode(list(texts)), device=self.device)
 
     # -- inference
+    def has(self, model: str) -> bool:
+        """Whether this checkpoint can caption (``captioner``) or score instructions
+        (``reward``)."""
+        if self.factored is not None:
+            return True
+        return (self.captioner if model == "captioner" else self.reward) is not None
+
+    def _factored(self, *frames: Any) -> tuple[torch.Tensor, torch.Tensor]:
+        assert self.factored is not None
+        self.factored.eval()
+        return self.factored(*self._inputs(*frames))
+
+    def _caption_outputs(self) -> tuple[torch.Tensor, list[str]]:
+        """The factored outputs a caption may be (the checkpoint's instruction table) and
+        their texts."""
+        assert self.factored is not None
+        count = self.factored.layout.count
+        rows = [(output_index(ins, count), t) for t, ins in self._table() if ins is not None]
+        rows = [(i, t) for i, t in rows if i is not None]
+        return torch.as_tensor([i for i, _ in rows], device=self.device), [t for _, t in rows]
+
+    def _table(self) -> list[tuple[str, Any]]:
+        return [(t, try_parse(t)) for t in self.instructions]
+
     def _context(self, model: str, *frames: Any) -> torch.Tensor:
         net = self.captioner if model == "captioner" else self.reward
         if net is None:
@@ -145,6 +173,17 @@ class LearnedCaptioner:
         """Captions and their log-likelihoods per frame pair, best first: one greedy
         caption, or up to ``beam`` from a beam search (``beam > 1``). ``<none>``: nothing
         achieved."""
+        if self.factored is not None:
+            _, scores = self._factored(first, current, p0, p)
+            outputs, texts = self._caption_outputs()
+            none = self.factored.none_score.expand(scores.shape[0], 1)
+            logp = torch.log_softmax(torch.cat([scores[:, outputs], none], 1), 1)
+            texts = [*texts, NONE_TEXT]
+            top_lp, top_id = logp.topk(min(max(beam, 1), logp.shape[1]), 1)
+            return [
+                [(texts[i], float(lp)) for lp, i in zip(lps, ids, strict=True)]
+                for lps, ids in zip(top_lp.tolist(), top_id.tolist(), strict=True)
+            ]
         ctx = self._context("captioner", first, current, p0, p)
         assert self.captioner is not None
         if beam > 1:
@@ -184,6 +223,11 @@ class LearnedCaptioner:
         ``first[i]`` to ``current[i]``."""
         if len(texts) != len(first):
             raise LcrlError(f"{len(texts)} instructions for {len(first)} frame pairs")
+        if self.factored is not None:
+            idx = output_indices(texts, self.factored.layout.count)
+            logits, _ = self._factored(first, current, p0, p)
+            rows = torch.arange(len(idx), device=logits.device)
+            return torch.sigmoid(logits[rows, torch.as_tensor(idx)]).cpu().numpy()
         ctx = self._context("reward model", first, current, p0, p)
         return torch.sigmoid(self.reward(ctx, self.encode_texts(texts))).cpu().numpy()
 
@@ -198,6 +242,10 @@ class LearnedCaptioner:
     ) -> np.ndarray:
         """``(len(current), len(texts))`` probabilities: every instruction against every
         frame pair (the frames are encoded once)."""
+        if self.factored is not None:
+            idx = output_indices(texts, self.factored.layout.count)
+            logits, _ = self._factored(first, current, p0, p)
+            return torch.sigmoid(logits[:, torch.as_tensor(idx)]).cpu().numpy()
         ctx = self._context("reward model", first, current, p0, p)
         emb = self.encode_texts(texts)
         n, m = ctx.shape[0], emb.shape[0]
@@ -212,6 +260,8 @@ class LearnedCaptioner:
             modules["captioner"] = self.captioner
         if self.reward is not None:
             modules["reward"] = self.reward
+        if self.factored is not None:
+            modules["factored"] = self.factored
         if self.perception is not None:
             modules["perception"] = self.perception
         meta = {
@@ -291,6 +341,13 @@ class LearnedCaptioner:
                 )
                 ckpt.load_module("captioner", lc.captioner)
                 lc.captioner.to(lc.device)
+            if "factored" in meta["models"]:
+                assert lc.perception is not None
+                lc.factored = SlotPredicates(
+                    lc.perception, lc.proprio_dim, mcfg.hidden, mcfg.use_proprio
+                )
+                ckpt.load_module("factored", lc.factored)
+                lc.factored.to(lc.device)
             if "reward" in meta["models"]:
                 dim = int(meta["text_dim"])
                 lc.reward = RewardModel(lc.frame_shape, lc.proprio_dim, dim, mcfg, lc.perception)

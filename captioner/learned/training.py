@@ -15,6 +15,7 @@ from torch.nn import functional as F
 from captioner.dataset import CaptionDataset
 from captioner.grammar import Instruction, try_parse
 from captioner.learned.data import CaptionTrainConfig, _Pairs, _Sampler, onset_delays
+from captioner.learned.factored import SlotPredicates, train_factored
 from captioner.learned.models import Captioner, RewardModel, SlotPairEncoder
 from captioner.learned.saved import LearnedCaptioner
 from captioner.learned.vocabulary import NONE_TEXT, PAD, Vocabulary
@@ -69,7 +70,31 @@ def train_models(cfg: CaptionTrainConfig) -> Path:
         sampler = _Sampler(pairs, table, rng, cfg.near_window, onset_delays(cfg.onset_delay))
         pad = 0 if perception is not None else cfg.augment_pad  # slots are not shifted
         history: dict[str, list[float]] = {}
-        if "captioner" in cfg.models:
+        if mcfg.head == "factored":
+            assert perception is not None  # validated: the head needs encoder=perception
+            model_f = SlotPredicates(perception, lc.proprio_dim, mcfg.hidden, mcfg.use_proprio)
+            idx = np.concatenate([sampler.labelled_arr, sampler.empty_arr])
+            if len(idx) > 20_000:
+                idx = np.sort(sampler.rng.choice(idx, 20_000, replace=False))
+            with torch.no_grad():
+                model_f.fit(*pairs.tensors(idx, torch.device("cpu"))[:2])
+            model_f.to(device)
+            history["factored_loss"] = train_factored(
+                model_f,
+                pairs,
+                sampler,
+                table,
+                pairs.seen,
+                cfg.steps,
+                cfg.batch_size,
+                cfg.lr,
+                cfg.none_fraction,
+                cfg.near_negative_fraction,
+                device,
+                cfg.progress,
+            )
+            lc.factored = model_f
+        if "captioner" in cfg.models and mcfg.head == "sequence":
             tokens = torch.as_tensor(
                 [vocab.encode(t, mcfg.max_len) for t in data.instructions]
                 + [vocab.encode(NONE_TEXT, mcfg.max_len)],
@@ -102,7 +127,7 @@ def train_models(cfg: CaptionTrainConfig) -> Path:
                 bar.set_postfix_str(f"loss {np.mean(losses[-50:]):.3f}", refresh=False)
             lc.captioner = model
             history["captioner_loss"] = losses
-        if "reward" in cfg.models:
+        if "reward" in cfg.models and mcfg.head == "sequence":
             seen_texts = [
                 t
                 for t, s in zip(data.instructions, data.instruction_set, strict=True)

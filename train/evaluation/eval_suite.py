@@ -45,6 +45,11 @@ import gymnasium as gym
 import numpy as np
 
 from lcrl.errors import LcrlError
+from lcrl.statistics import (
+    Z95 as Z95,
+    rate_stats as rate_stats,
+    wilson_interval as wilson_interval,
+)
 from train.configs.config import TrainConfig
 from train.environments.simulators import env_spec
 from train.environments.tasks import (
@@ -60,11 +65,6 @@ from train.evaluation.eval_episodes import (
 from train.evaluation.instruction_files import (
     FileInstruction as FileInstruction,
     read_instruction_file as read_instruction_file,
-)
-from train.evaluation.statistics import (
-    Z95 as Z95,
-    rate_stats as rate_stats,
-    wilson_interval as wilson_interval,
 )
 
 #: Reset seed of the first evaluation episode (seed 0): far from the training episodes' seeds.

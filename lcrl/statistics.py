@@ -1,4 +1,4 @@
-"""Success rates with their 95% Wilson intervals."""
+"""Success rates with their 95% Wilson intervals (policies and captioners alike)."""
 
 from __future__ import annotations
 
