@@ -11,7 +11,7 @@ import pytest
 from helpers import oracle_perception
 
 from captioner.dataset import CaptionDataset, CollectConfig
-from captioner.grammar import FAMILIES, Instruction, parse
+from captioner.grammar import DIRECTIONS, FAMILIES, RELATIONS, Instruction, parse
 from captioner.learned import (
     CaptionModelConfig,
     CaptionTrainConfig,
@@ -40,16 +40,13 @@ def _every_instruction() -> list[Instruction]:
     out = []
     for family in FAMILIES:
         for colour, shape in OBJECT_KINDS:
-            for direction in ("left", "right", "forward", "backward") if family == "push" else [None]:
+            directions = DIRECTIONS if family == "push" else (None,)
+            for direction in directions:
                 if family in ("put", "stack"):
                     for tc, ts in OBJECT_KINDS:
                         if (tc, ts) == (colour, shape):
                             continue
-                        rels = (
-                            ("left of", "right of", "in front of", "behind")
-                            if family == "put"
-                            else (None,)
-                        )
+                        rels = RELATIONS if family == "put" else (None,)
                         for rel in rels:
                             out.append(Instruction(family, colour, shape, None, rel, tc, ts))
                 else:
@@ -77,9 +74,9 @@ def test_every_instruction_has_its_own_output_about_its_objects():
 
 
 def test_the_factored_head_needs_perception():
-    with pytest.raises(LcrlError, match="--model.encoder perception"):
+    with pytest.raises(LcrlError, match=r"--model\.encoder perception"):
         dataclasses.replace(TINY, encoder="spatial", head="factored").validate()
-    with pytest.raises(LcrlError, match="model.head"):
+    with pytest.raises(LcrlError, match=r"model\.head"):
         dataclasses.replace(TINY, head="tree").validate()
 
 
