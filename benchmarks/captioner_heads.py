@@ -18,9 +18,10 @@ repository root::
     python -m benchmarks.captioner_heads --env robosuite --report-only
 
 Datasets and checkpoints go to ``--work`` (default ``data/captioner-heads``); a stage whose
-output is there is not run again. Robosuite reads the kept perception model
-``benchmarks/models/perception-3k/model``; the 2D tabletop's is trained here on its
-training dataset (96 px frames). Writes ``benchmarks/results/captioner-<env>.{json,md,png}``
+output is there is not run again. Both read a kept perception model
+(``benchmarks/models/perception-3k`` for robosuite, ``perception-lang2d-96`` for the 2D
+tabletop, which this script trains on its training dataset when it is not there).
+Writes ``benchmarks/results/captioner-<env>.{json,md,png}``
 (the previous headline is kept under ``previous``).
 """
 
@@ -53,7 +54,10 @@ COLLECT = {
     "robosuite": {"image_size": 84, "episodes": (1200, 300), "steps": 80},
 }
 TEST_SEED = 1000
-KEPT_PERCEPTION = {"robosuite": "benchmarks/models/perception-3k/model"}
+KEPT_PERCEPTION = {
+    "robosuite": "benchmarks/models/perception-3k/model",
+    "lang2d": "benchmarks/models/perception-lang2d-96/model",  # what perception() trains
+}
 TARGETS = {
     "robosuite": {
         "exact_match": 0.90,
@@ -103,9 +107,9 @@ def datasets(args: Any) -> tuple[Path, Path]:
 
 
 def perception(args: Any, train: Path) -> Path:
-    """The perception model both heads read (trained on the 2D tabletop's dataset when it
-    is not there)."""
-    if args.env in KEPT_PERCEPTION:
+    """The perception model both heads read: the kept one, or one trained on the
+    training dataset when it is not there."""
+    if Path(KEPT_PERCEPTION[args.env]).is_dir():
         return Path(KEPT_PERCEPTION[args.env])
     out = Path(args.work) / f"perception-{args.env}"
     if not (out / "model" / "meta.json").is_file():

@@ -29,6 +29,38 @@ def test_a_kept_perception_model_reads_robosuite_frames(name):
     assert f"`{name}/`" in (MODELS / "README.md").read_text()
 
 
+def test_the_kept_2d_perception_model_reads_96_px_frames():
+    from lcrl.perception import load_model
+
+    model, meta = load_model(MODELS / "perception-lang2d-96" / "model")
+    assert meta["env"] == "lang2d" and model.frame_shape == (96, 96, 3)
+    frames = np.random.default_rng(0).integers(0, 256, (2, 96, 96, 3), dtype=np.uint8)
+    start = model.layout.start
+    estimate = model.observation(frames, np.zeros((2, start), np.float32))
+    assert estimate.shape == (2, model.layout.dim) and np.isfinite(estimate).all()
+    assert json.loads((MODELS / "perception-lang2d-96" / "eval.json").read_text())
+    assert "`perception-lang2d-96/`" in (MODELS / "README.md").read_text()
+
+
+def test_the_kept_factored_captioner_captions_and_scores_robosuite_frames():
+    from captioner.learned import LearnedCaptioner
+
+    lc = LearnedCaptioner.load(MODELS / "captioner-factored-robosuite" / "model")
+    assert lc.factored is not None and lc.cfg.head == "factored"
+    rng = np.random.default_rng(0)
+    frames = rng.integers(0, 256, (3, 84, 84, 3), dtype=np.uint8)
+    proprio = np.zeros((3, lc.proprio_dim), np.float32)
+    texts = ["pick up the yellow cube", "lift the yellow block", "reach the red cylinder"]
+    probs = lc.score_matrix(texts, frames, frames, proprio, proprio)
+    assert probs.shape == (3, 3) and ((probs >= 0) & (probs <= 1)).all()
+    np.testing.assert_allclose(probs[:, 0], probs[:, 1], atol=1e-6)  # one meaning
+    for text, logp in lc.caption(frames, frames, proprio, proprio):
+        assert (text in lc.instructions or text == "<none>") and logp <= 0
+    figures = json.loads((MODELS / "captioner-factored-robosuite" / "eval.json").read_text())
+    assert figures["heldout_combinations"]["exact_match"] >= 0.85
+    assert "`captioner-factored-robosuite/`" in (MODELS / "README.md").read_text()
+
+
 def test_the_kept_push_teacher_acts_on_the_privileged_state(one_thread):
     pytest.importorskip("robosuite")
     from train.evaluation.evaluate import resolve_checkpoint
