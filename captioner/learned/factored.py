@@ -47,6 +47,7 @@ from torch import nn
 from torch.nn import functional as F
 
 from captioner.grammar import DIRECTIONS, RELATIONS, Instruction, try_parse
+from captioner.learned.models import split_slots
 from envs.scene import OBJECT_KINDS, SHAPES
 from lcrl.errors import LcrlError
 from lcrl.perception import Perception
@@ -133,14 +134,8 @@ class SlotPredicates(nn.Module):
     ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
         """Per-slot inputs ``(B, K, 1 + 3d)``, pair offsets now and at the first frame
         ``(B, P, 2d)``, and presence ``(B, K)``, all unstandardised."""
-        lay, d = self.layout, self.layout.position_dims
-
-        def split(x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-            slots = x[:, lay.start : lay.dim].reshape(-1, lay.count, lay.width)
-            return x[:, :d], slots[..., :d], slots[..., d]
-
-        _, pos0, on0 = split(first.float())
-        g, pos, on = split(current.float())
+        _, pos0, on0 = split_slots(first.float(), self.layout)
+        g, pos, on = split_slots(current.float(), self.layout)
         both = on * on0
         rel = (pos - g[:, None]) * on[..., None]
         disp = (pos - pos0) * both[..., None]

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 import torch
@@ -198,6 +199,14 @@ class FramePairEncoder(nn.Module):
         return self.head(z)
 
 
+def split_slots(x: torch.Tensor, layout: Any) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """The gripper's position ``(B, d)``, the objects' positions ``(B, K, d)`` and their
+    presence ``(B, K)`` in perception's estimated observations ``(B, dim)``."""
+    d = layout.position_dims
+    slots = x[:, layout.start : layout.dim].reshape(-1, layout.count, layout.width)
+    return x[:, :d], slots[..., :d], slots[..., d]
+
+
 class SlotPairEncoder(nn.Module):
     """(first, current) object slots estimated by a frozen perception model -> features.
 
@@ -260,14 +269,8 @@ class SlotPairEncoder(nn.Module):
     ) -> tuple[torch.Tensor, torch.Tensor]:
         """Per-slot inputs ``(B, count, 1 + 2d)`` (unstandardised) of estimated observation
         pairs, and which slots hold an object in either frame ``(B, count)``."""
-        lay, d = self.layout, self.layout.position_dims
-
-        def split(x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-            slots = x[:, lay.start : lay.dim].reshape(-1, lay.count, lay.width)
-            return x[:, :d], slots[..., :d], slots[..., d]
-
-        _, pos0, on0 = split(first.float())
-        g, pos, on = split(current.float())
+        _, pos0, on0 = split_slots(first.float(), self.layout)
+        g, pos, on = split_slots(current.float(), self.layout)
         rel = (pos - g[:, None]) * on[..., None]
         disp = (pos - pos0) * (on * on0)[..., None]
         x = torch.cat([on[..., None], rel, disp], -1)
