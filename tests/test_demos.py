@@ -483,6 +483,10 @@ class _FakeModels:
     captioner = object()
     reward = None
     frame_shape = (32, 32, 3)
+
+    def has(self, model: str) -> bool:  # a captioner without a reward model
+        return model == "captioner"
+
     proprio_dim = 2
     text = "reach the red cube"
 
