@@ -57,6 +57,7 @@ class LearnedCaptioner:
         self.reward: RewardModel | None = None
         #: The factored models (``head=factored``): one network that captions and scores.
         self.factored: SlotPredicates | None = None
+        self._outputs: tuple[torch.Tensor, list[str]] | None = None  # see _caption_outputs
         self._encoder: Any = None
         #: The frozen perception model both models read through (``encoder=perception``).
         self.perception: Perception | None = None
@@ -140,15 +141,16 @@ class LearnedCaptioner:
 
     def _caption_outputs(self) -> tuple[torch.Tensor, list[str]]:
         """The factored outputs a caption may be (the checkpoint's instruction table) and
-        their texts."""
+        their texts, parsed once."""
         assert self.factored is not None
-        count = self.factored.layout.count
-        rows = [(output_index(ins, count), t) for t, ins in self._table() if ins is not None]
-        rows = [(i, t) for i, t in rows if i is not None]
-        return torch.as_tensor([i for i, _ in rows], device=self.device), [t for _, t in rows]
-
-    def _table(self) -> list[tuple[str, Any]]:
-        return [(t, try_parse(t)) for t in self.instructions]
+        if self._outputs is None:
+            count = self.factored.layout.count
+            parsed = ((t, try_parse(t)) for t in self.instructions)
+            rows = [(output_index(ins, count), t) for t, ins in parsed if ins is not None]
+            rows = [(i, t) for i, t in rows if i is not None]
+            index = torch.as_tensor([i for i, _ in rows], device=self.device)
+            self._outputs = (index, [t for _, t in rows])
+        return self._outputs
 
     def _context(self, model: str, *frames: Any) -> torch.Tensor:
         net = self.captioner if model == "captioner" else self.reward

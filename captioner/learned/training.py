@@ -73,11 +73,7 @@ def train_models(cfg: CaptionTrainConfig) -> Path:
         if mcfg.head == "factored":
             assert perception is not None  # validated: the head needs encoder=perception
             model_f = SlotPredicates(perception, lc.proprio_dim, mcfg.hidden, mcfg.use_proprio)
-            idx = np.concatenate([sampler.labelled_arr, sampler.empty_arr])
-            if len(idx) > 20_000:
-                idx = np.sort(sampler.rng.choice(idx, 20_000, replace=False))
-            with torch.no_grad():
-                model_f.fit(*pairs.tensors(idx, torch.device("cpu"))[:2])
+            _fit_encoder(model_f, pairs, sampler, device)
             model_f.to(device)
             history["factored_loss"] = train_factored(
                 model_f,
@@ -211,9 +207,9 @@ def _check_perception(model: Perception, data: CaptionDataset) -> None:
 
 
 def _fit_encoder(encoder: nn.Module, pairs: _Pairs, sampler: _Sampler, device: Any) -> None:
-    """Fit a slot-pair encoder's input standardisation on training pairs (frame
-    encoders need nothing)."""
-    if not isinstance(encoder, SlotPairEncoder):
+    """Fit the input standardisation of a model over perception's slots on training
+    pairs (frame encoders need nothing)."""
+    if not isinstance(encoder, SlotPairEncoder | SlotPredicates):
         return
     idx = np.concatenate([sampler.labelled_arr, sampler.empty_arr])
     if len(idx) > 20_000:
