@@ -313,3 +313,22 @@ def test_a_signal_at_any_instant_of_start_up_stops_the_console_script(tmp_path, 
     assert "Traceback" not in err and "Exception ignored" not in err
     said = [line for line in (stdout + err).splitlines() if sig.name in line]
     assert len(said) == 1 and said[0].startswith(("lcrl: interrupted", "interrupted at"))
+
+
+def test_a_signal_during_a_periodic_save_waits_for_it_and_prints_nothing(capsys):
+    """The first signal inside a checkpoint write is held silently and raised as the write
+    ends, so the run prints its one ``interrupted at`` line and nothing else; a second
+    signal during the final save is the only case that says more."""
+    from train.training.trainer import RunInterrupted, StopSignals
+
+    with StopSignals() as stops:
+        with pytest.raises(RunInterrupted) as raised, stops.holding():
+            os.kill(os.getpid(), signal.SIGINT)
+            time.sleep(0.05)
+            saved = True
+        assert saved and raised.value.signum == signal.SIGINT
+        assert capsys.readouterr().err == ""
+        with stops.holding():  # the final save, now that the run is stopping
+            os.kill(os.getpid(), signal.SIGTERM)
+            time.sleep(0.05)
+    assert "SIGTERM while the checkpoint is written" in capsys.readouterr().err

@@ -151,8 +151,9 @@ class StopSignals:
 
     Installed for the duration of a run (main thread only; elsewhere it does nothing). The
     first signal raises :class:`RunInterrupted` in the loop. Inside :meth:`holding` (a
-    checkpoint being written) a signal is remembered and reported instead, and raised once
-    the block ends, so no save is ever cut short.
+    checkpoint being written) a signal is remembered and raised once the block ends, so no
+    save is ever cut short; a second signal while the final save is written is reported in
+    one line and otherwise waits for it.
     """
 
     SIGNALS = (signal.SIGINT, signal.SIGTERM)
@@ -177,6 +178,8 @@ class StopSignals:
     def _handle(self, signum: int, frame: Any) -> None:
         if self._holding or self._stopping:
             self.pending = self.pending or signum
+            if not self._stopping:
+                return  # a periodic save ends in moments; the run's one line follows it
             print(
                 f"\nlcrl: {signal.Signals(signum).name} while the checkpoint is written: it "
                 "is completed first, then the run stops (kill -9 stops at once and keeps the "
