@@ -6,12 +6,15 @@ finished stages are kept, ``--stages`` reruns some, and the stages' names are ch
 from __future__ import annotations
 
 import csv
+import dataclasses
 import json
 
 import numpy as np
+import pytest
 from helpers import cli, error_line
 
 from lcrl.checkpoint import verify_checkpoint
+from lcrl.errors import LcrlError
 
 SMALL = [
     "--perception-episodes", "120",
@@ -75,3 +78,30 @@ def test_the_2d_camera_pipeline_builds_a_kept_student_stage_by_stage(tmp_path, c
     line = error_line(capsys.readouterr().err)
     assert "--stages teachers: the stages are perception-data perception teacher-reach" in line
     assert np.isfinite(rows[-1]["loss"])
+
+
+def test_scripted_families_have_no_teacher_stage_and_a_trained_teacher_is_the_base():
+    from train.commands.pipeline import SCRIPTED, robosuite_camera, stages
+
+    p = robosuite_camera()
+    names = [s.name for s in stages(p)]
+    assert "teacher-put" in names and "teacher-stack" in names
+    assert not any(n in names for n in ("teacher-reach", "teacher-push", "teacher-lift"))
+    (student,) = [s for s in stages(p) if s.name == "student"]
+    args = student.commands[0]
+    assert args[1].endswith("teachers/put")  # the first trained teacher is the base
+    given = args[args.index("--teacher-for") + 1 : args.index("--chain")]
+    assert given == [
+        "reach=scripted", "push=scripted", "lift=scripted", f"stack={p.out}/teachers/stack"
+    ]  # fmt: skip
+    assert args[args.index("--families") + 1 : args.index("--max-episode-steps")] == [
+        "reach", "push", "lift", "put", "stack"
+    ]  # fmt: skip
+    # put and stack share one file of demonstrations of every family
+    (put,) = [s for s in stages(p) if s.name == "teacher-put"]
+    assert put.commands[0][:4] == ["demos", "record", "--preset", "robosuite-manip"]
+    every_family_scripted = dataclasses.replace(
+        p, teachers=tuple(dataclasses.replace(t, preset=SCRIPTED) for t in p.teachers)
+    )
+    with pytest.raises(LcrlError, match="needs one trained teacher at least"):
+        stages(every_family_scripted)

@@ -50,13 +50,17 @@ class TeacherRecipe:
 
     family: str
     preset: str
-    """The ``lcrl train`` preset."""
+    """The ``lcrl train`` preset, or ``scripted``: the environment's scripted controller in
+    its memoryless form teaches the family (nothing to train)."""
     steps: int
     """Environment steps."""
     demos: int = 0
     """Scripted demonstrations recorded first and fine-tuned from (0: none)."""
     extra: tuple[str, ...] = ()
     """More ``lcrl train`` options."""
+    demo_preset: str = ""
+    """The preset whose families the demonstrations cover (empty: this family alone, with
+    ``preset``). Teachers that name the same one share one file, recorded once."""
 
 
 @dataclass
@@ -66,7 +70,8 @@ class CameraPipeline:
     env: str
     """The simulator of ``lcrl perception collect`` (``robosuite``, ``lang2d``)."""
     teachers: tuple[TeacherRecipe, ...]
-    """One recipe per family; the first family's teacher is the student's base."""
+    """One recipe per family; the first trained teacher is the student's base (its
+    networks and instruction table)."""
     out: str = "runs/camera"
     """The pipeline's folder."""
     stages: tuple[str, ...] = ()
@@ -127,8 +132,15 @@ class CameraPipeline:
     def families(self) -> tuple[str, ...]:
         return tuple(t.family for t in self.teachers)
 
+    @property
+    def trained(self) -> tuple[TeacherRecipe, ...]:
+        """The recipes with a teacher to train (not ``scripted``)."""
+        return tuple(t for t in self.teachers if t.preset != SCRIPTED)
+
 
 STAGE_DIR = "stages"
+#: A teacher recipe's preset that means "the scripted controller" (``--teacher-for F=scripted``).
+SCRIPTED = "scripted"
 
 
 @dataclass
@@ -144,6 +156,11 @@ class Stage:
 
 def _teacher_dir(p: CameraPipeline, family: str) -> Path:
     return Path(p.out) / "teachers" / family
+
+
+def _teacher_source(p: CameraPipeline, t: TeacherRecipe) -> str:
+    """What ``--teacher-for`` names for a family: its run, or ``scripted``."""
+    return SCRIPTED if t.preset == SCRIPTED else str(_teacher_dir(p, t.family))
 
 
 def _perception_model(p: CameraPipeline) -> str:
@@ -193,18 +210,29 @@ def stages(p: CameraPipeline) -> list[Stage]:
                 outputs=(_perception_model(p),),
             )
         )  # fmt: skip
-    for t in p.teachers:
+    if not p.trained:
+        raise LcrlError(
+            "the pipeline needs one trained teacher at least (the student's networks and "
+            "instruction table start from it): every family is scripted"
+        )
+    for t in p.trained:
         if p.teacher_steps:
             t = dataclasses.replace(t, steps=p.teacher_steps)
         run = _teacher_dir(p, t.family)
         commands = []
         train = ["train", t.preset, "--out", str(run), "--no-progress", *torch_threads]
         if t.demos:
-            demos = data / f"demos-{t.family}.h5"
+            source = t.demo_preset or t.family
+            demos = data / f"demos-{source}-{t.demos}.h5"
             if not demos.is_file():
+                which = (
+                    ["--preset", t.demo_preset]
+                    if t.demo_preset
+                    else ["--preset", t.preset, "--families", t.family]
+                )
                 commands.append(
                     [
-                        "demos", "record", "--preset", t.preset, "--families", t.family,
+                        "demos", "record", *which,
                         "--episodes", str(t.demos), "--seed", str(p.seed),
                         "--out", str(demos), "--overwrite",
                     ]
@@ -227,7 +255,8 @@ def stages(p: CameraPipeline) -> list[Stage]:
                 outputs=(str(run),),
             )
         )
-    base, *others = p.teachers
+    base = p.trained[0]
+    others = [t for t in p.teachers if t is not base]
     student = out / "student"
     distill = ["distill", str(_teacher_dir(p, base.family)), "--out", str(student)]
     distill += ["--no-progress", "--eval-every", "0", "--eval-sets", "train"]
@@ -241,12 +270,12 @@ def stages(p: CameraPipeline) -> list[Stage]:
             "--hidden", *map(str, p.student_hidden), "--slot-mode", "attributes",
             "--grounding", "1.0", "--seed", str(p.seed), "--overwrite",
             "--families", *p.families, "--max-episode-steps", str(p.max_episode_steps),
-            *(["--teacher-for", *(f"{t.family}={_teacher_dir(p, t.family)}" for t in others)]
+            *(["--teacher-for", *(f"{t.family}={_teacher_source(p, t)}" for t in others)]
               if others else []),
             *(["--chain", str(p.chain)] if p.chain else []),
             *p.extra_student,
         ]  # fmt: skip
-    teacher_needs = tuple(f"{_teacher_dir(p, t.family)}<teacher-{t.family}" for t in p.teachers)
+    teacher_needs = tuple(f"{_teacher_dir(p, t.family)}<teacher-{t.family}" for t in p.trained)
     perception_need = () if p.perception else (f"{_perception_model(p)}<perception",)
     found.append(
         Stage(
@@ -499,18 +528,34 @@ def run_pipeline(p: CameraPipeline) -> dict[str, Any]:
 
 
 def robosuite_camera() -> CameraPipeline:
-    """The robosuite tabletop's five families from the agentview camera."""
+    """The robosuite tabletop's five families from the agentview camera.
+
+    The teachers are those of the best privileged-state student measured
+    (``docs/training.md``, one policy from per-family teachers): the memoryless scripted
+    controller for reach, push and lift and for every chained instruction, SAC teachers
+    for put and stack (grounded slots, from 2,000 scripted demonstrations); the student
+    learns over chains of up to three instructions, with the teacher acting the first
+    instruction of half the episodes (roll-in)."""
+    bf16 = ("--agent.precision", "bf16")
     return CameraPipeline(
         env="robosuite",
         out="runs/robosuite-camera",
         teachers=(
-            TeacherRecipe("reach", "robosuite-reach", 30_000),
-            TeacherRecipe("push", "robosuite-push", 15_000, demos=600),
-            TeacherRecipe("lift", "robosuite-lift", 15_000, demos=600),
-            TeacherRecipe("put", "robosuite-put", 30_000, demos=2000),
-            TeacherRecipe("stack", "robosuite-stack", 30_000, demos=2000),
+            TeacherRecipe("reach", SCRIPTED, 0),
+            TeacherRecipe("push", SCRIPTED, 0),
+            TeacherRecipe("lift", SCRIPTED, 0),
+            TeacherRecipe("put", "robosuite-put", 150_000, 2000, bf16, "robosuite-manip"),
+            TeacherRecipe("stack", "robosuite-stack", 40_000, 2000, bf16, "robosuite-manip"),
         ),
-    )
+        rounds=50,
+        episodes_per_round=30,
+        updates_per_round=1000,
+        chain=1.0,
+        extra_student=(
+            "--chain-length", "3", "--chain-teacher", SCRIPTED, "--roll-in", "0.5",
+            "--batch-size", "512", "--lr", "3e-4", "--beta-decay", "0.7",
+        ),
+    )  # fmt: skip
 
 
 def lang2d_camera() -> CameraPipeline:
