@@ -222,6 +222,13 @@ def main(argv: list[str] | None = None) -> int:
         help="several seeds, one pair of runs each under WORK/seedS, one pair at a time; the "
         "headline pools their evaluations (default: --seed alone, runs under WORK)",
     )
+    parser.add_argument(
+        "--validation-only",
+        action="store_true",
+        help="train the runs and report their last periodic evaluations (at the training "
+        "seed: the validation figures variants are chosen on) in WORK/validation.json; no "
+        "evaluation at --eval-seed",
+    )
     args = parser.parse_args(argv)
     if args.env == "robosuite" and not args.perception:
         parser.error("--env robosuite trains the image policy: pass --perception MODEL")
@@ -243,6 +250,9 @@ def main(argv: list[str] | None = None) -> int:
         seconds[str(ns.seed)] = train_pair(ns, reused)
     sets = ("train", "heldout", "paraphrase")
     runs = ("rule", "learned")
+    if args.validation_only:
+        report_validation(args, per_seed, runs, sets)
+        return 0
     final = {
         str(ns.seed): {
             n: evaluate(Path(ns.work) / n, args.final_episodes, sets, seed=args.eval_seed)
@@ -335,6 +345,16 @@ def main(argv: list[str] | None = None) -> int:
         f"{args.eval_seed}, which no choice used; figures pooled over the seeds "
         "(95% Wilson intervals).",
         "",
+        f"The learned run: `--relabel.captioner {args.labels} --relabel.reward learned "
+        f"--relabel.checkpoint {args.captioner}` with reward threshold {args.threshold}"
+        + (f", per family {' '.join(args.family_thresholds)}" if args.family_thresholds else "")
+        + (
+            ", a caption kept only where the reward model agrees (`--relabel.confirm`)"
+            if args.confirm
+            else ""
+        )
+        + "; the rule captioner judges the evaluations only.",
+        "",
         f"| relabelling | seen | {' | '.join(fams)} | held-out combinations | paraphrases |",
         "|---|---:|" + "---:|" * len(fams) + "---:|---:|",
     ]
@@ -394,7 +414,7 @@ def main(argv: list[str] | None = None) -> int:
             if "gap_interval" in headline
             else ""
         )
-        + ").",
+        + ".",
     ]
     title = f"Learned relabelling over perception vs the rule captioner ({args.env})"
     save_markdown(name, title, "\n".join(lines), info)
@@ -417,6 +437,23 @@ def main(argv: list[str] | None = None) -> int:
     save_figure(name, fig, info)
     print(json.dumps(headline, indent=1))
     return 0
+
+
+def report_validation(
+    args: argparse.Namespace, per_seed: list, runs: tuple[str, ...], sets: tuple[str, ...]
+) -> dict:
+    """The runs' last periodic evaluations (validation: the training seed's episodes),
+    per seed and as the mean over seeds; written to ``WORK/validation.json``."""
+    last = {str(ns.seed): {n: curve(Path(ns.work) / n)[-1] for n in runs} for ns in per_seed}
+    mean = {
+        n: {k: sum(r[n][f"{k}/success"] for r in last.values()) / len(last) for k in sets}
+        for n in runs
+    }
+    doc = {"settings": vars(args), "last_evaluation": last, "mean": mean}
+    Path(args.work, "validation.json").write_text(json.dumps(doc, indent=1))
+    for n in runs:
+        print(f"validation {n}: " + ", ".join(f"{k} {v:.3f}" for k, v in mean[n].items()))
+    return doc
 
 
 def seed_args(args: argparse.Namespace, seed: int, multi: bool) -> argparse.Namespace:
