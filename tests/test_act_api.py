@@ -386,3 +386,65 @@ def test_readme_example_runs(lang_ckpt, capsys, monkeypatch):
     assert re.search(r"^'go to the red cube': success \d\.\d\d over 3 episodes$", out, re.M)
     assert "batched actions: (2, 2)" in out
     assert len(re.findall(r"^[01]\.\d\d  reach the \w+ \w+$", out, re.M)) == 3
+
+
+class SucceedEvery(gym.Wrapper):
+    """Reports success on every ``n``-th step since the last success (the chain's
+    mechanics are then exercised on a policy that has not learned yet)."""
+
+    def __init__(self, env: gym.Env, n: int) -> None:
+        super().__init__(env)
+        self.n, self.count = n, 0
+
+    def step(self, action):
+        obs, reward, terminated, truncated, info = self.env.step(action)
+        self.count += 1
+        info = {**info, "is_success": self.count % self.n == 0}
+        return obs, reward, terminated, truncated, info
+
+
+def test_a_chain_of_typed_instructions_goes_on_in_the_same_scene(policy, tmp_path, capsys):
+    from train.commands.act import ActSession
+    from train.environments.tasks import find_language_wrapper
+
+    made = policy.make_env(render=True)  # success faked under the time limit
+    env = gym.wrappers.TimeLimit(SucceedEvery(made.env, 3), made._max_episode_steps)
+    session = ActSession(policy, env, episodes=2, seed=0, fps=5, hold=0.4)
+    gif = tmp_path / "chain.gif"
+    chains = session.run_chain(["touch the red block", "reach the blue cube"], gif)
+    out = capsys.readouterr().out
+    assert chains == [[True, True], [True, True]]
+    assert "chain 0: 'touch the red block' success in 3 steps, then 'reach the blue cube' " in out
+    assert "2 in a row: 1.00 over 2 chains" in out
+    lang = find_language_wrapper(env)
+    assert lang.meaning.text == "reach the blue cube"  # switched, without a reset
+    from PIL import Image, ImageSequence
+
+    with Image.open(gif) as im:
+        durations = [f.info["duration"] for f in ImageSequence.Iterator(im)]
+    # per chain: 1 + 3 frames and a short pause, then 1 + 3 frames held 0.4 s
+    assert sum(durations) == 2 * ((4 + 2) + (4 + 2)) * 200
+
+
+def test_a_chain_that_fails_stops_and_is_counted(policy, capsys):
+    from train.commands.act import ActSession
+
+    made = policy.make_env()
+    env = gym.wrappers.TimeLimit(SucceedEvery(made.env, 10**6), made._max_episode_steps)
+    session = ActSession(policy, env, episodes=2, seed=0)
+    assert session.run_chain(["reach the red cube", "reach the blue cube"]) == [[False], [False]]
+    out = capsys.readouterr().out
+    assert "1 in a row: 0.00 over 2 chains" in out and "then" not in out.split("chain 0:")[1]
+
+
+def test_cli_chain_errors(lang_ckpt, capsys):
+    for args, message in [
+        (("--then", "reach the blue cube"), "--then continues an --instruction"),
+        (("--instruction", "reach the red cube", "--then", "wiggle about"), "cannot parse"),
+    ]:
+        assert cli("act", str(lang_ckpt), *args) == 2
+        err = capsys.readouterr().err
+        assert message in err and "Traceback" not in err
+    assert cli("act", str(lang_ckpt), "--instruction", "reach the red cube", "--then",
+               "reach the blue cube", "--episodes", "1") == 0  # fmt: skip
+    assert "1 in a row:" in capsys.readouterr().out

@@ -293,6 +293,82 @@ class ActSession:
             self._print(f"routed as {family}: {who} acts")
         return self._run_episodes(result, meaning, vector, text, video)
 
+    def run_chain(self, texts: Sequence[str], video: Path | None = None) -> list[list[bool]]:
+        """Run :attr:`episodes` chains: each starts on ``texts[0]`` and, once an instruction
+        is achieved, goes on with the next in the same scene (as ``lcrl eval --chain``: the
+        scene then is the reference that success is judged against, and the displacement
+        features restart). Each instruction has the env's step limit; a chain stops at its
+        first failure. Returns, per chain, the success of each instruction attempted.
+
+        Raises:
+            LcrlError: an instruction the captioner cannot check here (a chain goes on only
+                where success is known), or a policy that reads no text.
+        """
+        from train.environments.task_base import features_wrapper
+        from train.environments.tasks import find_language_wrapper
+
+        if self.policy.takes_task_ids:
+            raise LcrlError("a chain of instructions needs a policy that reads text")
+        texts = [check_instruction(t) for t in texts]
+        if video is not None:
+            check_video_path(video)
+        meanings = []
+        for text in texts:
+            meaning, line = self.reading(text)
+            if meaning is None:
+                raise LcrlError(f"{line}; a chain (--then) goes on only where it is checked")
+            meanings.append(meaning)
+            self._print(line)
+        vectors = [self.policy.embed(t)[0] for t in texts]
+        env = self.env
+        budget = self.policy.cfg.env.max_episode_steps  # per instruction, counted here
+        inner = env.env if isinstance(env, gym.wrappers.TimeLimit) else env
+        lang, features = find_language_wrapper(env), features_wrapper(env)
+        task, agent = self.policy.task, self.policy.agent
+        chains: list[list[bool]] = []
+        frames: list[np.ndarray] = []
+        for i in range(self.episodes):
+            seed = self._feasible_layout(meanings[0], i)
+            obs, _ = inner.reset(seed=seed, options={"instruction": meanings[0].text})
+            done: list[bool] = []
+            said = []
+            for k, (text, vector) in enumerate(zip(texts, vectors, strict=True)):
+                if k:
+                    if lang.switch_instruction(meanings[k].text) is None:
+                        break
+                    obs = dict(obs)
+                    obs["instruction"] = meanings[k].text
+                    if features is not None:
+                        obs["observation"] = features.restart_displacements()
+                raw = [env.render()] if video is not None else None
+                first, steps, success = obs, 0, False
+                while steps < budget:
+                    o = {key: v[None] for key, v in task.storage_obs(obs, first).items()}
+                    a = agent.act(o, vector[None], deterministic=self.deterministic, embedded=True)
+                    obs, _, terminated, _, info = inner.step(task.scale_action(a[0]))
+                    steps += 1
+                    if raw is not None:
+                        raw.append(env.render())
+                    success = bool(info.get("is_success", False))
+                    if success or terminated:
+                        break
+                done.append(success)
+                status = "success" if success else "failure"
+                said.append(f"{text!r} {status} in {steps} steps")
+                if raw is not None:
+                    hold = self.hold_frames if not success or k == len(texts) - 1 else 2
+                    frames += annotate_episode(raw, text, status, hold, f"{steps} steps")
+                if not success:
+                    break
+            chains.append(done)
+            self._print(f"chain {i}: " + ", then ".join(said))
+        for k in range(1, len(texts) + 1):
+            rate = np.mean([len(c) >= k and all(c[:k]) for c in chains])
+            self._print(f"{k} in a row: {rate:.2f} over {len(chains)} chains")
+        if video is not None:
+            self._save(video, frames)
+        return chains
+
     def run_task(self, task: int | str, video: Path | None = None) -> InstructionResult:
         """Run :attr:`episodes` episodes of one task of the policy's fixed task set, given
         by its id (``3`` or ``"3"``) or its text; print and return the outcome.

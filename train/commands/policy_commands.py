@@ -299,6 +299,10 @@ class ActCommand:
     """Frames per second of the video."""
     hold: float = 1.0
     """Seconds each episode's last frame stays in the video, with its outcome."""
+    then: tuple[str, ...] = ()
+    """Instructions that follow ``--instruction`` in the same scene, each once the one
+    before it is achieved (a chain, as ``lcrl eval --chain`` runs them):
+    ``--then "lift the blue cylinder"``."""
     canonical_reader: bool = False
     """Read instructions through a canonical reader (as ``lcrl eval --canonical-reader``):
     each instruction reaches the policy as the canonical sentence of the meaning the reader
@@ -323,6 +327,8 @@ class ActCommand:
         ]
         if len(given) > 1:
             raise LcrlError(f"give either {given[0]} or {given[1]}, not both")
+        if self.then and not self.instruction.strip():
+            raise LcrlError("--then continues an --instruction: give the first with --instruction")
         overrides = None
         if self.canonical_reader:
             saved = run_meta(load_checkpoint(resolve_checkpoint(self.checkpoint))).config.env
@@ -361,6 +367,8 @@ class ActCommand:
             raise LcrlError(
                 "this is a language checkpoint: give an --instruction (or --interactive)"
             )
+        elif self.then:
+            session.run_chain([self.instruction, *self.then], video)
         else:
             session.run_text(self.instruction, video)
         env.close()
