@@ -105,3 +105,13 @@ def test_scripted_families_have_no_teacher_stage_and_a_trained_teacher_is_the_ba
     )
     with pytest.raises(LcrlError, match="needs one trained teacher at least"):
         stages(every_family_scripted)
+
+
+def test_stages_writing_to_a_log_update_their_bars_twice_a_minute(monkeypatch):
+    from train.commands.pipeline import LOG_BAR_INTERVAL, child_env
+
+    monkeypatch.delenv("TQDM_MININTERVAL", raising=False)
+    assert "TQDM_MININTERVAL" not in child_env(terminal=True)
+    assert child_env(terminal=False)["TQDM_MININTERVAL"] == str(LOG_BAR_INTERVAL)
+    monkeypatch.setenv("TQDM_MININTERVAL", "2")  # a user's own setting stays
+    assert child_env(terminal=False)["TQDM_MININTERVAL"] == "2"

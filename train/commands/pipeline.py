@@ -407,6 +407,22 @@ class _Signals:
             self.proc.send_signal(signum)
 
 
+#: Seconds between progress-bar updates of a stage whose output goes to a file or pipe
+#: (a log then holds one line per half minute, not one per step).
+LOG_BAR_INTERVAL = 30
+
+
+def child_env(terminal: bool) -> dict[str, str]:
+    """The stages' environment: this one, with progress bars slowed down when the output
+    is not a terminal (``TQDM_MININTERVAL``)."""
+    import os
+
+    env = dict(os.environ)
+    if not terminal:
+        env.setdefault("TQDM_MININTERVAL", str(LOG_BAR_INTERVAL))
+    return env
+
+
 def run_command(args: list[str], signals: _Signals) -> float:
     """Run ``lcrl ARGS`` in a child process; its seconds.
 
@@ -417,7 +433,7 @@ def run_command(args: list[str], signals: _Signals) -> float:
     argv = [sys.executable, "-m", "train.commands.entry", *args]
     print(f"  $ lcrl {shlex.join(args)}", flush=True)
     t0 = time.perf_counter()
-    signals.proc = subprocess.Popen(argv)
+    signals.proc = subprocess.Popen(argv, env=child_env(sys.stdout.isatty()))
     status = signals.proc.wait()
     signals.proc = None
     if signals.signum is not None:
