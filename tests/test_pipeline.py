@@ -80,10 +80,10 @@ def test_the_2d_camera_pipeline_builds_a_kept_student_stage_by_stage(tmp_path, c
     assert np.isfinite(rows[-1]["loss"])
 
 
-def test_scripted_families_have_no_teacher_stage_and_a_trained_teacher_is_the_base():
+def test_scripted_families_have_no_teacher_stage_and_a_trained_teacher_is_the_base(tmp_path):
     from train.commands.pipeline import SCRIPTED, robosuite_camera, stages
 
-    p = robosuite_camera()
+    p = dataclasses.replace(robosuite_camera(), out=str(tmp_path / "camera"))
     names = [s.name for s in stages(p)]
     assert "teacher-put" in names and "teacher-stack" in names
     assert not any(n in names for n in ("teacher-reach", "teacher-push", "teacher-lift"))
@@ -115,3 +115,18 @@ def test_stages_writing_to_a_log_update_their_bars_twice_a_minute(monkeypatch):
     assert child_env(terminal=False)["TQDM_MININTERVAL"] == str(LOG_BAR_INTERVAL)
     monkeypatch.setenv("TQDM_MININTERVAL", "2")  # a user's own setting stays
     assert child_env(terminal=False)["TQDM_MININTERVAL"] == "2"
+
+
+def test_a_signal_stops_the_pipeline_with_its_own_status():
+    """A stage's command ended by SIGTERM stops the pipeline as SIGTERM (status 143),
+    not as a Ctrl-C."""
+    import signal
+
+    from train.commands.pipeline import _Signals, run_command
+    from train.training.trainer import RunInterrupted
+
+    signals = _Signals()
+    signals.signum = signal.SIGTERM  # as the handler records it while a stage runs
+    with pytest.raises(RunInterrupted) as stopped:
+        run_command(["--help"], signals)
+    assert stopped.value.exit_status == 143 and stopped.value.args[0] == "SIGTERM"

@@ -428,7 +428,7 @@ def run_command(args: list[str], signals: _Signals) -> float:
 
     Raises:
         LcrlError: the command failed (its status and the command are named).
-        KeyboardInterrupt: the pipeline was stopped by a signal.
+        RunInterrupted: the pipeline was stopped by a signal (its status is the signal's).
     """
     argv = [sys.executable, "-m", "train.commands.entry", *args]
     print(f"  $ lcrl {shlex.join(args)}", flush=True)
@@ -437,7 +437,9 @@ def run_command(args: list[str], signals: _Signals) -> float:
     status = signals.proc.wait()
     signals.proc = None
     if signals.signum is not None:
-        raise KeyboardInterrupt(signal.Signals(signals.signum).name)
+        from train.training.trainer import RunInterrupted
+
+        raise RunInterrupted(signals.signum)
     if status != 0:
         raise LcrlError(f"the command `lcrl {shlex.join(args)}` failed (status {status})")
     return time.perf_counter() - t0
@@ -520,8 +522,19 @@ def run_pipeline(p: CameraPipeline) -> dict[str, Any]:
                     raise LcrlError(f"the stage {name} needs {path}: run the stage {maker} first")
             print(head, flush=True)
             seconds = 0.0
-            for args in stage.commands:
-                seconds += run_command(args, signals)
+            try:
+                for args in stage.commands:
+                    seconds += run_command(args, signals)
+            except KeyboardInterrupt as e:  # RunInterrupted: the stage saved what it could
+                e.reported = True  # type: ignore[attr-defined]
+                print(
+                    f"lcrl: the pipeline stopped in the stage {name} "
+                    f"({e.args[0] if e.args else 'interrupted'}): the same command goes on "
+                    "from there",
+                    file=sys.stderr,
+                    flush=True,
+                )
+                raise
             if name == "keep":
                 seconds += keep_policy(p, signals)
             record = {
