@@ -97,6 +97,11 @@ def test_scripted_families_have_no_teacher_stage_and_a_trained_teacher_is_the_ba
     assert args[args.index("--families") + 1 : args.index("--max-episode-steps")] == [
         "reach", "push", "lift", "put", "stack"
     ]  # fmt: skip
+    threaded = dataclasses.replace(p, threads=1)  # every training stage on one thread
+    for stage in stages(threaded):
+        for cmd in stage.commands:
+            if cmd[0] in ("train", "distill"):
+                assert cmd[cmd.index("--torch-threads") + 1] == "1", stage.name
     # put and stack share one file of demonstrations of every family
     (put,) = [s for s in stages(p) if s.name == "teacher-put"]
     assert put.commands[0][:4] == ["demos", "record", "--preset", "robosuite-manip"]

@@ -259,7 +259,7 @@ def stages(p: CameraPipeline) -> list[Stage]:
     others = [t for t in p.teachers if t is not base]
     student = out / "student"
     distill = ["distill", str(_teacher_dir(p, base.family)), "--out", str(student)]
-    distill += ["--no-progress", "--eval-every", "0", "--eval-sets", "train"]
+    distill += ["--no-progress", "--eval-every", "0", "--eval-sets", "train", *torch_threads]
     if _running(student):
         distill += ["--resume", "--rounds", str(p.rounds), "--perception", _perception_model(p)]
     else:
@@ -334,7 +334,7 @@ def stages(p: CameraPipeline) -> list[Stage]:
             [
                 [
                     "distill", str(_teacher_dir(p, base.family)), "--out", str(student),
-                    "--resume", "--rounds", str(total), "--no-progress",
+                    "--resume", "--rounds", str(total), "--no-progress", *torch_threads,
                     "--perception", str(out / "perception-ft" / "model"),
                     "--new-perception", str(out / "perception-ft" / "model"),
                 ]
