@@ -61,6 +61,26 @@ def test_the_kept_factored_captioner_captions_and_scores_robosuite_frames():
     assert "`captioner-factored-robosuite/`" in (MODELS / "README.md").read_text()
 
 
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_the_kept_2d_factored_captioners_score_frames_and_match_their_figures(seed):
+    """The captioners that relabelled learned-her-lang2d.json's runs (seed s: training
+    seed s), self-contained with their perception model."""
+    from captioner.learned import LearnedCaptioner
+
+    folder = MODELS / "captioner-factored-lang2d" / f"seed{seed}"
+    lc = LearnedCaptioner.load(folder / "model")
+    assert lc.factored is not None and lc.cfg.head == "factored"
+    frames = np.random.default_rng(seed).integers(0, 256, (2, 96, 96, 3), dtype=np.uint8)
+    proprio = np.zeros((2, lc.proprio_dim), np.float32)
+    texts = ["push the red cube left", "shove the red block to the left"]
+    probs = lc.score_matrix(texts, frames, frames, proprio, proprio)
+    assert probs.shape == (2, 2) and ((probs >= 0) & (probs <= 1)).all()
+    np.testing.assert_allclose(probs[:, 0], probs[:, 1], atol=1e-6)  # one meaning
+    figures = json.loads((folder / "eval.json").read_text())
+    assert figures["heldout_combinations"]["exact_match"] >= 0.85
+    assert "`captioner-factored-lang2d/`" in (MODELS / "README.md").read_text()
+
+
 def test_the_kept_push_teacher_acts_on_the_privileged_state(one_thread):
     pytest.importorskip("robosuite")
     from train.evaluation.evaluate import resolve_checkpoint
