@@ -28,6 +28,22 @@ def _stop(signum: int, frame: Any) -> None:
     raise StartupInterrupted(signum)
 
 
+def _handled_interrupt() -> None:
+    """Clear CPython's mark of an unhandled Ctrl-C.
+
+    A ``KeyboardInterrupt`` that passes through Python code run from C (``PyRun_*``, as
+    some extension modules do while they import) marks the interpreter, and at exit it
+    then kills itself with SIGINT (status -2, no message) even though the interrupt was
+    handled and the status chosen (130). The interrupt is handled here, so the mark goes.
+    """
+    try:
+        import ctypes
+
+        ctypes.c_int.in_dll(ctypes.pythonapi, "_Py_UnhandledKeyboardInterrupt").value = 0
+    except (AttributeError, OSError, ValueError):  # another interpreter: nothing to clear
+        pass
+
+
 def main(argv: Sequence[str] | None = None) -> None:
     """Install the stop handlers, import the command line and run it."""
     for sig in (signal.SIGINT, signal.SIGTERM):
@@ -38,7 +54,12 @@ def main(argv: Sequence[str] | None = None) -> None:
         cli_main(argv)  # installs the commands' own handlers first thing
     except StartupInterrupted as e:
         print(f"lcrl: interrupted by {e.args[0]} while starting", file=sys.stderr)
+        _handled_interrupt()
         sys.exit(128 + e.signum)
+    except SystemExit as e:
+        if e.code in (128 + signal.SIGINT, 128 + signal.SIGTERM):  # a stop, said and handled
+            _handled_interrupt()
+        raise
 
 
 if __name__ == "__main__":
