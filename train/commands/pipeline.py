@@ -41,6 +41,7 @@ from pathlib import Path
 from typing import Any
 
 from lcrl.errors import LcrlError
+from train.configs.sections import SCRIPTED
 from train.runtime.run_lock import lock_run, unlock_run
 
 
@@ -139,8 +140,6 @@ class CameraPipeline:
 
 
 STAGE_DIR = "stages"
-#: A teacher recipe's preset that means "the scripted controller" (``--teacher-for F=scripted``).
-SCRIPTED = "scripted"
 
 
 @dataclass

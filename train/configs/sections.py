@@ -398,6 +398,12 @@ class FinetuneConfig:
         return self.bc_weight * max(0.0, 1.0 - step / self.decay_steps)
 
 
+#: ``--teacher-for FAMILY=scripted``: the env's scripted controller teaches that family
+#: (its memoryless form, :attr:`train.environments.simulators.EnvSpec.teacher`, where it has one: a
+#: student that sees only the current state can imitate it).
+SCRIPTED = "scripted"
+
+
 @dataclass
 class DistillConfig:
     """Teacher -> student distillation with DAgger (``lcrl distill TEACHER_RUN``): a student

@@ -57,6 +57,7 @@ from train.configs.config import (
     TrainConfig,
     family_teachers,
 )
+from train.configs.sections import SCRIPTED
 from train.environments.tasks import ScriptedActor, find_language_wrapper, make_env, switch_in_place
 from train.evaluation.evaluate import LoadedPolicy, build_agent, build_task, resolve_checkpoint
 from train.policies.loading import load_policy
@@ -65,10 +66,6 @@ from train.training.trainer import BaseTrainer, open_run
 
 #: Seeds of the collection episodes: round r, episode e of a run with seed s.
 EPISODE_SEED = 1_000_003
-#: ``--teacher-for FAMILY=scripted``: the env's scripted controller teaches that family
-#: (its memoryless form, :attr:`train.environments.simulators.EnvSpec.teacher`, where it has one: a
-#: student that sees only the current state can imitate it).
-SCRIPTED = "scripted"
 
 
 def student_config(
