@@ -133,3 +133,22 @@ def test_a_mistyped_preset_is_named_first(capsys):
     ]
     assert cli("train", "nothing-like-it") == 2
     assert "did you mean" not in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("command", ["eval", "act"])
+def test_eval_and_act_take_torch_threads_and_refuse_a_negative_count(lang_run, command, capsys):
+    import torch
+
+    code = cli(command, str(lang_run), "--torch-threads", "-1", "--episodes", "1")
+    assert code == 2
+    assert error_line(capsys.readouterr().err) == (
+        "lcrl: error: --torch-threads must be >= 0 (0: automatic), got -1"
+    )
+    before = torch.get_num_threads()
+    try:
+        extra = ["--instruction", "reach the red cube"] if command == "act" else []
+        code = cli(command, str(lang_run), "--torch-threads", "2", "--episodes", "1", *extra)
+        assert code == 0
+        assert torch.get_num_threads() == 2
+    finally:
+        torch.set_num_threads(before)

@@ -121,16 +121,12 @@ class DistillCommand:
         from train.configs.presets import SLOT_ATTRIBUTES
         from train.configs.run_meta import run_meta
         from train.evaluation.evaluate import resolve_checkpoint
-        from train.runtime.machine import set_threads
+        from train.runtime.machine import apply_threads
         from train.training.distill import DistillTrainer, student_config
 
         if self.rounds <= 0:
             raise LcrlError("--rounds must be positive")
-        if self.torch_threads < 0:
-            raise LcrlError(
-                f"--torch-threads must be >= 0 (0: automatic), got {self.torch_threads}"
-            )
-        set_threads(self.torch_threads)
+        apply_threads(self.torch_threads)
         teacher = run_meta(load_checkpoint(resolve_checkpoint(self.teacher))).config
         distill = DistillConfig(
             teacher=self.teacher,

@@ -96,6 +96,9 @@ class EvalCommand:
     """Also write every figure to this JSON file."""
     progress: bool = True
     """Show a progress bar over episodes."""
+    torch_threads: int = 0
+    """Torch threads of the policy's forward passes (0: automatic, fewer where other
+    processes keep cores busy)."""
 
     def run(self) -> None:
         from lcrl.checkpoint import load_checkpoint
@@ -111,6 +114,9 @@ class EvalCommand:
         )
         from train.evaluation.evaluate import resolve_checkpoint
         from train.policies.loading import load_policy
+        from train.runtime.machine import apply_threads
+
+        apply_threads(self.torch_threads)
 
         if self.episodes <= 0:
             raise LcrlError("--episodes must be positive")
@@ -307,6 +313,9 @@ class ActCommand:
     """Read instructions through a canonical reader (as ``lcrl eval --canonical-reader``):
     each instruction reaches the policy as the canonical sentence of the meaning the reader
     reads, printed before its episodes (a checkpoint trained with one always does)."""
+    torch_threads: int = 0
+    """Torch threads of the policy's forward passes (0: automatic, fewer where other
+    processes keep cores busy)."""
 
     def run(self) -> None:
         from lcrl.checkpoint import load_checkpoint
@@ -314,6 +323,9 @@ class ActCommand:
         from train.configs.run_meta import run_meta
         from train.evaluation.evaluate import resolve_checkpoint
         from train.policies.policy import load
+        from train.runtime.machine import apply_threads
+
+        apply_threads(self.torch_threads)
 
         video = check_video_path(self.video) if self.video else None
         given = [

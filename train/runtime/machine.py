@@ -113,6 +113,16 @@ def set_threads(threads: int = 0, helpers: int = 0) -> int:
     return n
 
 
+def apply_threads(threads: int) -> int:
+    """``--torch-threads`` of a command: refused in one line when negative, else
+    :func:`set_threads` (0: automatic). Returns the number set."""
+    from lcrl.errors import LcrlError
+
+    if isinstance(threads, bool) or not isinstance(threads, int) or threads < 0:
+        raise LcrlError(f"--torch-threads must be >= 0 (0: automatic), got {threads}")
+    return set_threads(threads)
+
+
 def cpu_name() -> str:
     """The CPU's model name (``/proc/cpuinfo``), else what the platform says."""
     try:
