@@ -5,9 +5,9 @@ Run from the repository root (needs ``pip install -e '.[bench]'``)::
     python benchmarks/speed_vs_sb3.py            # 2 rounds of 1,500 timed steps, 1 and 2 threads
 
 Both train SAC with hindsight relabelling (``future``, k=4) on gymnasium-robotics
-``FetchReach-v4`` with the same networks (two hidden layers of 256 for actor and
-critics), batch size 256, one gradient update per environment step, and 1,000 steps of
-random actions first. What is timed is environment steps per second *after* learning
+``FetchReach-v4`` from one environment each, with the same networks (two hidden layers of
+256 for actor and critics), batch size 256, one gradient update per environment step, and
+1,000 steps of random actions first. What is timed is environment steps per second *after* learning
 starts: acting, stepping, storing, sampling with relabelling and updating. The two
 libraries alternate (lcrl in float32, lcrl with ``--agent.precision bf16``, SB3, ...) in
 one process so that all see the same machine load; the ratio of medians is reported at
@@ -63,6 +63,7 @@ def time_lcrl(steps: int, seed: int, precision: str = "fp32") -> float:
         total_steps=WARMUP + steps,
         learning_starts=WARMUP,
         batch_size=BATCH,
+        collect=dataclasses.replace(base.collect, envs=1),  # one environment, as SB3's
         updates_per_step=1.0,
         progress=False,
         tensorboard=False,
