@@ -116,10 +116,29 @@ def test_the_report_takes_medians_over_seeds_and_marks_a_missed_run_as_a_bound(
 
     monkeypatch.setattr(race, "publish", publish)
     monkeypatch.setattr(race, "run_logged", lambda *a: pytest.fail("a finished run ran again"))
-    assert race.main(["--envs", "fetch_reach", "--work", str(tmp_path)]) == 0
+    argv = ["--envs", "fetch_reach", "--work", str(tmp_path), "--libraries", "lcrl", "sb3"]
+    assert race.main(argv) == 0
     head = written["payload"]["headline"]
     assert head["lcrl_s_fetch_reach"] == 20.0 and head["sb3_s_fetch_reach"] == 50.0
     assert head["ratio_fetch_reach"] == 2.5
     assert head["ratio_fetch_reach_exact"] is False  # SB3's seed 2 never got there
     assert written["payload"]["reached"] == {"ratio_fetch_reach": False}
     assert "90+" in written["body"] and "NOT reached" in written["body"]
+
+
+def test_the_headline_peer_is_sb3s_faster_configuration_with_lcrls_networks(tmp_path, monkeypatch):
+    times = {"lcrl": 10.0, "sb3": 60.0, "sb3-raw": 40.0, "sb3-zoo": 20.0}
+    for lib, seconds in times.items():
+        for seed in (0, 1, 2):
+            rows = [(1000, 0.1, 1.0), (2000, 0.95, seconds + seed)]
+            _finished(tmp_path / f"tabletop2d-{lib}-s{seed}", lib.split("-")[0], rows)
+    written = {}
+    monkeypatch.setattr(race, "publish", lambda name, payload, *a, **k: written.update(payload))
+    assert race.main(["--envs", "tabletop2d", "--work", str(tmp_path)]) == 0
+    head = written["headline"]
+    # SB3 without VecNormalize was the faster like-for-like peer; the Zoo's smaller networks
+    # are reported beside it but never taken as the headline peer
+    assert head["ratio_tabletop2d_peer"] == "sb3-raw"
+    assert head["ratio_tabletop2d"] == head["ratio_tabletop2d_sb3_raw"] == round(41 / 11, 2)
+    assert head["ratio_tabletop2d_sb3_zoo"] == round(21 / 11, 2)
+    assert head["ratio_tabletop2d_exact"] is True
