@@ -379,7 +379,7 @@ def markdown(
     lines = [
         f"Training seconds to {args.threshold:.0%} success (evaluations excluded), "
         f"{len(args.seeds)} seeds, {args.threads} torch thread(s) each, all in float32, "
-        "the libraries alternating on one machine. The headline ratio is SB3's median over "
+        "on one machine (the order of the runs is below). The headline ratio is SB3's median over "
         "lcrl's, SB3 in the faster of its configurations with lcrl's network sizes. "
         f"Targets: >= {TARGET_RATIO:g} on each task: {verdict(reached)}.",
         "",
@@ -421,7 +421,7 @@ def markdown(
     ]
     if args.note:
         lines += ["", f"Machine load: {args.note}"]
-    lines += ["", "Tried (validation seeds, before the headline runs):", ""]
+    lines += ["", "Tried, and the order of the runs:", ""]
     lines += [f"- {t}" for t in TRIED]
     return "\n".join(lines)
 
