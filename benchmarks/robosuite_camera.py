@@ -23,7 +23,7 @@ import sys
 from pathlib import Path
 from typing import Any
 
-from benchmarks.common import machine, save_figure, save_json, save_markdown
+from benchmarks.common import die_with_parent, machine, save_figure, save_json, save_markdown
 from benchmarks.protocol import check_single_policy, check_test_seed
 
 NAME = "robosuite-camera"
@@ -43,7 +43,9 @@ WALL_AIM_S = 8 * 3600
 
 def lcrl(*args: str) -> None:
     """Run ``lcrl ARGS`` as a user would; stop the benchmark if it fails."""
-    done = subprocess.run([sys.executable, "-m", "train.commands.entry", *args])
+    # stopping the benchmark stops the build too (SIGTERM: it saves and resumes later)
+    cmd = [sys.executable, "-m", "train.commands.entry", *args]
+    done = subprocess.run(cmd, preexec_fn=die_with_parent)
     if done.returncode != 0:
         raise SystemExit(f"lcrl {' '.join(args)} failed ({done.returncode})")
 

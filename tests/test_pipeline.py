@@ -135,3 +135,23 @@ def test_a_signal_stops_the_pipeline_with_its_own_status():
     with pytest.raises(RunInterrupted) as stopped:
         run_command(["--help"], signals)
     assert stopped.value.exit_status == 143 and stopped.value.args[0] == "SIGTERM"
+
+
+def test_stopping_the_camera_benchmark_stops_its_build(monkeypatch):
+    """The benchmark's build runs as a child that receives SIGTERM when the benchmark dies
+    (it then saves and goes on next time), never training on alone."""
+    import subprocess
+
+    from benchmarks import robosuite_camera
+    from benchmarks.common import die_with_parent
+
+    seen = {}
+
+    def run(cmd, **kwargs):
+        seen.update(cmd=cmd, **kwargs)
+        return subprocess.CompletedProcess(cmd, 0)
+
+    monkeypatch.setattr(robosuite_camera.subprocess, "run", run)
+    robosuite_camera.lcrl("train", "robosuite-camera", "--out", "W")
+    assert seen["cmd"][-4:] == ["train", "robosuite-camera", "--out", "W"]
+    assert seen["preexec_fn"] is die_with_parent
