@@ -36,6 +36,7 @@ TINY = [
     "--log-every", "50",
     "--buffer.capacity", "2000",
     "--agent.net.hidden", "16", "16",
+    "--collect.envs", "1",  # one environment: checkpoints land on the steps named
     "--no-progress",
     "--no-tensorboard",
 ]  # fmt: skip
