@@ -57,6 +57,7 @@ TINY = [
     "--log-every", "50",
     "--buffer.capacity", "20000",
     "--agent.net.hidden", "16", "16",
+    "--collect.envs", "1",  # one environment: the steps named are the steps stopped at
     "--no-progress",
     "--no-tensorboard",
 ]  # fmt: skip
