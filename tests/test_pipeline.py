@@ -102,9 +102,17 @@ def test_scripted_families_have_no_teacher_stage_and_a_trained_teacher_is_the_ba
         for cmd in stage.commands:
             if cmd[0] in ("train", "distill"):
                 assert cmd[cmd.index("--torch-threads") + 1] == "1", stage.name
-    # put and stack share one file of demonstrations of every family
-    (put,) = [s for s in stages(p) if s.name == "teacher-put"]
-    assert put.commands[0][:4] == ["demos", "record", "--preset", "robosuite-manip"]
+    # put and stack share one file of demonstrations of every family, recorded by a stage
+    # of its own before them
+    assert names[names.index("teacher-put") - 1] == "demos-robosuite-manip"
+    (demos,) = [s for s in stages(p) if s.name == "demos-robosuite-manip"]
+    assert demos.commands[0][:4] == ["demos", "record", "--preset", "robosuite-manip"]
+    made = demos.outputs[0]
+    for name in ("teacher-put", "teacher-stack"):
+        (teacher,) = [s for s in stages(p) if s.name == name]
+        assert teacher.needs == (f"{made}<demos-robosuite-manip",)
+        assert [c[0] for c in teacher.commands] == ["train"]
+        assert teacher.commands[0][teacher.commands[0].index("--finetune.demos") + 1] == made
     every_family_scripted = dataclasses.replace(
         p, teachers=tuple(dataclasses.replace(t, preset=SCRIPTED) for t in p.teachers)
     )
@@ -155,3 +163,87 @@ def test_stopping_the_camera_benchmark_stops_its_build(monkeypatch):
     robosuite_camera.lcrl("train", "robosuite-camera", "--out", "W")
     assert seen["cmd"][-4:] == ["train", "robosuite-camera", "--out", "W"]
     assert seen["preexec_fn"] is die_with_parent
+
+
+def _fake_stages(monkeypatch, fail: str = ""):
+    """Stage commands that sleep a moment and make their ``--out`` (and its ``model``),
+    logging when each ran; ``fail`` names a command word that fails."""
+    import threading
+    import time
+    from pathlib import Path
+
+    from train.commands import pipeline
+
+    log, lock = [], threading.Lock()
+
+    def run_command(args, signals):
+        t0 = time.monotonic()
+        time.sleep(0.15)
+        if fail and fail in args:
+            raise LcrlError(f"the command `lcrl {args[0]}` failed (status 1)")
+        out = Path(args[args.index("--out") + 1])
+        (out / "model").mkdir(parents=True, exist_ok=True)
+        with lock:
+            log.append((args, t0, time.monotonic()))
+        return 0.15
+
+    monkeypatch.setattr(pipeline, "run_command", run_command)
+    monkeypatch.setattr(pipeline, "keep_policy", lambda p, signals: 0.0)
+    monkeypatch.setattr(pipeline.os, "cpu_count", lambda: 4)
+    return log
+
+
+def test_jobs_run_stages_side_by_side_where_none_needs_another(tmp_path, monkeypatch, capsys):
+    from train.commands.pipeline import robosuite_camera, run_pipeline, stages, wall_clock
+
+    log = _fake_stages(monkeypatch)
+    p = dataclasses.replace(robosuite_camera(), out=str(tmp_path / "camera"), jobs=2)
+    records = run_pipeline(p)
+    names = [s.name for s in stages(p)]
+    assert all(records[n] is not None for n in names)
+    span = {n: records[n]["span"] for n in names if n != "keep"}
+    overlap = lambda a, b: span[a][0] < span[b][1] and span[b][0] < span[a][1]  # noqa: E731
+    # the perception lane beside the teachers' lane, never more than two at once
+    assert overlap("perception-data", "demos-robosuite-manip")
+    assert any(overlap("perception", t) for t in ("teacher-put", "teacher-stack"))
+    for n in span:
+        beside = [m for m in span if m != n and overlap(n, m)]
+        assert len(beside) <= 1, (n, beside)
+    # a stage starts after the stages that make what it needs
+    assert span["teacher-put"][0] >= span["demos-robosuite-manip"][1]
+    assert span["teacher-stack"][0] >= span["demos-robosuite-manip"][1]
+    assert span["perception"][0] >= span["perception-data"][1]
+    last_maker = max(span[n][1] for n in ("perception", "teacher-put", "teacher-stack"))
+    assert span["student"][0] >= last_maker
+    # each training stage on its share of the (four) cores
+    for args, _, _ in log:
+        if args[0] in ("train", "distill"):
+            assert args[args.index("--torch-threads") + 1] == "2"
+    # side by side, the clock counts less than the sum of the stages
+    kept = list(records.values())
+    assert wall_clock(kept) < sum(r["span"][1] - r["span"][0] for r in kept) - 0.2
+    assert "s on the clock" in capsys.readouterr().out
+
+
+def test_a_failed_stage_stops_the_pipeline_and_starts_nothing_after_it(tmp_path, monkeypatch):
+    from train.commands.pipeline import finished, robosuite_camera, run_pipeline
+
+    log = _fake_stages(monkeypatch, fail="record")
+    p = dataclasses.replace(robosuite_camera(), out=str(tmp_path / "camera"), jobs=2)
+    with pytest.raises(LcrlError, match=r"lcrl demos. failed"):
+        run_pipeline(p)
+    ran = {args[0] for args, _, _ in log}
+    assert "distill" not in ran and "train" not in ran  # no teacher without its demos
+    assert finished(p, "demos-robosuite-manip") is None
+
+
+def test_the_clock_counts_stages_side_by_side_once():
+    from train.commands.pipeline import wall_clock
+
+    records = [
+        {"seconds": 10, "span": [0, 10]},
+        {"seconds": 6, "span": [4, 10]},  # beside the first
+        {"seconds": 5, "span": [12, 17]},
+        {"seconds": 7},  # from before spans were recorded: its seconds
+    ]
+    assert wall_clock(records) == 10 + 5 + 7

@@ -5,8 +5,10 @@ goes), each writing into the pipeline's folder (``--out``)::
 
     perception-data   lcrl perception collect: random and scripted frames, labelled
     perception        lcrl perception train: frames -> object slots
-    teacher-FAMILY    per family: scripted demonstrations (lcrl demos record), then a
-                      privileged-state SAC teacher fine-tuned from them (lcrl train)
+    demos-PRESET      scripted demonstrations (lcrl demos record), shared by the teachers
+                      that start from them
+    teacher-FAMILY    per family: a privileged-state SAC teacher (lcrl train), fine-tuned
+                      from the demonstrations where its recipe has them
     student           lcrl distill: one student of every teacher (DAgger over chains),
                       acting from the camera through perception, slots picked by colour
                       and shape
@@ -23,17 +25,25 @@ for the training stages; the collection and perception stages start again, writi
 files atomically). ``--stages`` runs some of them only; a stage whose inputs are missing
 says which stage makes them. Ctrl-C and SIGTERM stop the stage in hand (it saves what it
 can) and the pipeline, with the status of the signal.
+
+``--jobs 2`` runs stages side by side where neither needs what the other makes (the
+perception stages beside the teachers), each on its share of the cores: on two cores the
+build from nothing takes the longer of the two lanes instead of their sum. A stage that
+fails stops the others (they save, as on SIGTERM).
 """
 
 from __future__ import annotations
 
 import dataclasses
 import json
+import os
+import queue
 import shlex
 import shutil
 import signal
 import subprocess
 import sys
+import threading
 import time
 from collections.abc import Sequence
 from dataclasses import dataclass
@@ -128,6 +138,9 @@ class CameraPipeline:
     it, and the kept policy has it on by default, fitted and kept beside it."""
     extra_student: tuple[str, ...] = ()
     """More ``lcrl distill`` options."""
+    jobs: int = 1
+    """Stages run at once where one does not need another's output; each gets
+    ``cores // jobs`` torch threads unless ``--threads`` is given."""
 
     @property
     def families(self) -> tuple[str, ...]:
@@ -214,28 +227,39 @@ def stages(p: CameraPipeline) -> list[Stage]:
             "the pipeline needs one trained teacher at least (the student's networks and "
             "instruction table start from it): every family is scripted"
         )
+    recorded: set[str] = set()
     for t in p.trained:
         if p.teacher_steps:
             t = dataclasses.replace(t, steps=p.teacher_steps)
         run = _teacher_dir(p, t.family)
-        commands = []
         train = ["train", t.preset, "--out", str(run), "--no-progress", *torch_threads]
+        needs: tuple[str, ...] = ()
         if t.demos:
             source = t.demo_preset or t.family
             demos = data / f"demos-{source}-{t.demos}.h5"
-            if not demos.is_file():
+            maker = f"demos-{source}"
+            if maker not in recorded:  # one stage per file, before its first teacher
+                recorded.add(maker)
                 which = (
                     ["--preset", t.demo_preset]
                     if t.demo_preset
                     else ["--preset", t.preset, "--families", t.family]
                 )
-                commands.append(
-                    [
-                        "demos", "record", *which,
-                        "--episodes", str(t.demos), "--seed", str(p.seed),
-                        "--out", str(demos), "--overwrite",
-                    ]
+                found.append(
+                    Stage(
+                        maker,
+                        f"{t.demos:,} scripted demonstrations ({which[1]}) for the teachers",
+                        [
+                            [
+                                "demos", "record", *which,
+                                "--episodes", str(t.demos), "--seed", str(p.seed),
+                                "--out", str(demos), "--overwrite",
+                            ]
+                        ],
+                        outputs=(str(demos),),
+                    )
                 )  # fmt: skip
+            needs = (f"{demos}<{maker}",)
             train += ["--finetune.demos", str(demos), "--sac.demo-bc", "1.0"]
         if _running(run):
             train += ["--resume", "--total-steps", str(t.steps)]
@@ -244,13 +268,13 @@ def stages(p: CameraPipeline) -> list[Stage]:
                 "--env.families", t.family, "--total-steps", str(t.steps),
                 "--seed", str(p.seed), "--agent.seed", str(p.seed), *t.extra,
             ]  # fmt: skip
-        commands.append(train)
         found.append(
             Stage(
                 f"teacher-{t.family}",
                 f"the privileged-state teacher of {t.family} ({t.preset}, {t.steps:,} steps"
                 + (f", from {t.demos} scripted demonstrations)" if t.demos else ")"),
-                commands,
+                [train],
+                needs=needs,
                 outputs=(str(run),),
             )
         )
@@ -374,6 +398,18 @@ def stages(p: CameraPipeline) -> list[Stage]:
     return found
 
 
+def wall_clock(records: Sequence[dict[str, Any]]) -> float:
+    """Seconds the stages of ``records`` took on the clock: stages that ran side by side
+    count once (their spans are merged); a record without a span counts its seconds."""
+    spans = sorted(tuple(r["span"]) for r in records if r.get("span"))
+    total = sum(float(r["seconds"]) for r in records if not r.get("span"))
+    end = float("-inf")
+    for a, b in spans:
+        total += max(0.0, b - max(a, end))
+        end = max(end, b)
+    return total
+
+
 def stage_names(p: CameraPipeline) -> list[str]:
     return [s.name for s in stages(p)]
 
@@ -394,16 +430,21 @@ def finished(p: CameraPipeline, name: str) -> dict[str, Any] | None:
 
 
 class _Signals:
-    """SIGINT and SIGTERM passed on to the stage's process; the pipeline stops after it."""
+    """SIGINT and SIGTERM passed on to the stages' processes; the pipeline stops after them."""
 
     def __init__(self) -> None:
-        self.proc: subprocess.Popen | None = None
+        self.procs: set[subprocess.Popen] = set()
         self.signum: int | None = None
 
     def handle(self, signum: int, frame: Any) -> None:
         self.signum = self.signum or signum
-        if self.proc is not None and self.proc.poll() is None:
-            self.proc.send_signal(signum)
+        self.stop(signum)
+
+    def stop(self, signum: int) -> None:
+        """Send ``signum`` to every stage's process still running."""
+        for proc in list(self.procs):
+            if proc.poll() is None:
+                proc.send_signal(signum)
 
 
 #: Seconds between progress-bar updates of a stage whose output goes to a file or pipe
@@ -432,9 +473,12 @@ def run_command(args: list[str], signals: _Signals) -> float:
     argv = [sys.executable, "-m", "train.commands.entry", *args]
     print(f"  $ lcrl {shlex.join(args)}", flush=True)
     t0 = time.perf_counter()
-    signals.proc = subprocess.Popen(argv, env=child_env(sys.stdout.isatty()))
-    status = signals.proc.wait()
-    signals.proc = None
+    proc = subprocess.Popen(argv, env=child_env(sys.stdout.isatty()))
+    signals.procs.add(proc)
+    try:
+        status = proc.wait()
+    finally:
+        signals.procs.discard(proc)
     if signals.signum is not None:
         from train.training.trainer import RunInterrupted
 
@@ -478,6 +522,119 @@ def keep_policy(p: CameraPipeline, signals: _Signals) -> float:
     return time.perf_counter() - t0
 
 
+def _stage_threads(p: CameraPipeline) -> CameraPipeline:
+    """``p`` with each stage's torch threads: its share of the cores when stages run side
+    by side (``--jobs``), unless ``--threads`` names a count."""
+    if p.jobs <= 1 or p.threads:
+        return p
+    return dataclasses.replace(p, threads=max(1, (os.cpu_count() or 1) // p.jobs))
+
+
+def _run_stage(p: CameraPipeline, stage: Stage, signals: _Signals) -> None:
+    """Run one stage's commands and record it as finished."""
+    seconds, started = 0.0, time.time()
+    for args in stage.commands:
+        seconds += run_command(args, signals)
+    if stage.name == "keep":
+        seconds += keep_policy(p, signals)
+    record = {
+        "stage": stage.name,
+        "seconds": round(seconds, 1),
+        "commands": ["lcrl " + shlex.join(a) for a in stage.commands],
+        "outputs": list(stage.outputs),
+        "finished": time.strftime("%Y-%m-%dT%H:%M:%S"),
+        "span": [round(started, 1), round(time.time(), 1)],  # wall clock, side by side
+    }
+    (_record(p) / f"{stage.name}.json").write_text(json.dumps(record, indent=1))
+
+
+def _makers(stage: Stage) -> list[tuple[str, str]]:
+    return [(path, maker) for path, _, maker in (n.rpartition("<") for n in stage.needs)]
+
+
+def _before(p: CameraPipeline, name: str) -> set[str]:
+    """The earlier stages that ``name`` waits for: those that make, or write again, what
+    it needs (the student's later rounds before its evaluation)."""
+    every = stages(p)
+    i = next(k for k, s in enumerate(every) if s.name == name)
+    needs = _makers(every[i])
+    paths, makers = {path for path, _ in needs}, {maker for _, maker in needs}
+    return {s.name for s in every[:i] if s.name in makers or paths & set(s.outputs)}
+
+
+def _schedule(p: CameraPipeline, names: list[str], wanted: list[str], signals: _Signals) -> None:
+    """Run the wanted stages not done yet in order, up to ``p.jobs`` at once: a stage
+    starts when every stage that makes what it needs has finished."""
+    run = _stage_threads(p)
+    todo: list[str] = []
+    for i, name in enumerate(names, 1):
+        if name not in wanted:
+            continue
+        done = finished(p, name)
+        if done is not None and not p.stages:
+            what = next(s for s in stages(run) if s.name == name).what
+            print(f"[{i}/{len(names)}] {name}: {what} -- done ({done['seconds']:.0f} s), kept")
+            continue
+        todo.append(name)
+    sys.stdout.flush()
+    running: dict[str, threading.Thread] = {}
+    ended: queue.Queue[tuple[str, BaseException | None]] = queue.Queue()
+    failure: BaseException | None = None
+
+    def work(stage: Stage) -> None:
+        try:
+            _run_stage(run, stage, signals)
+        except BaseException as e:  # handed to the main thread
+            ended.put((stage.name, e))
+        else:
+            ended.put((stage.name, None))
+
+    while (todo and failure is None and signals.signum is None) or running:
+        for name in list(todo) if failure is None and signals.signum is None else []:
+            if len(running) >= max(1, p.jobs):
+                break
+            stage = next(s for s in stages(run) if s.name == name)  # commands as of now
+            waiting = [m for m in (*todo, *running) if m in _before(run, name)]
+            if waiting:
+                if p.jobs <= 1:
+                    break  # in order, one at a time
+                continue
+            for path, maker in _makers(stage):
+                if not Path(path).exists():
+                    raise LcrlError(f"the stage {name} needs {path}: run the stage {maker} first")
+            todo.remove(name)
+            print(f"[{names.index(name) + 1}/{len(names)}] {name}: {stage.what}", flush=True)
+            thread = threading.Thread(target=work, args=(stage,), name=name, daemon=True)
+            running[name] = thread
+            thread.start()
+        if not running:
+            break
+        try:
+            name, error = ended.get(timeout=0.5)
+        except queue.Empty:
+            continue
+        running.pop(name).join()
+        if error is None:
+            if p.jobs > 1:
+                print(f"{name}: done ({finished(p, name)['seconds']:.0f} s)", flush=True)
+            continue
+        if failure is None:
+            failure = error
+            if isinstance(error, KeyboardInterrupt):  # RunInterrupted: it saved what it could
+                error.reported = True  # type: ignore[attr-defined]
+                print(
+                    f"lcrl: the pipeline stopped in the stage {name} "
+                    f"({error.args[0] if error.args else 'interrupted'}): the same command "
+                    "goes on from there",
+                    file=sys.stderr,
+                    flush=True,
+                )
+            else:  # the stages beside it save and stop too
+                signals.stop(signal.SIGTERM)
+    if failure is not None:
+        raise failure
+
+
 def run_pipeline(p: CameraPipeline) -> dict[str, Any]:
     """Run the stages not done yet (or ``p.stages``); returns the stage records."""
     every = stages(p)
@@ -504,54 +661,19 @@ def run_pipeline(p: CameraPipeline) -> dict[str, Any]:
     (out / "pipeline.json").write_text(json.dumps(dataclasses.asdict(p), indent=1))
     signals = _Signals()
     previous = {sig: signal.signal(sig, signals.handle) for sig in (signal.SIGINT, signal.SIGTERM)}
-    wanted = list(p.stages) or names
     try:
-        for i, name in enumerate(names, 1):
-            if name not in wanted:
-                continue
-            stage = next(s for s in stages(p) if s.name == name)  # commands as of now
-            done = finished(p, name)
-            head = f"[{i}/{len(names)}] {name}: {stage.what}"
-            if done is not None and not p.stages:
-                print(f"{head} -- done ({done['seconds']:.0f} s), kept", flush=True)
-                continue
-            for need in stage.needs:
-                path, _, maker = need.rpartition("<")
-                if not Path(path).exists():
-                    raise LcrlError(f"the stage {name} needs {path}: run the stage {maker} first")
-            print(head, flush=True)
-            seconds = 0.0
-            try:
-                for args in stage.commands:
-                    seconds += run_command(args, signals)
-            except KeyboardInterrupt as e:  # RunInterrupted: the stage saved what it could
-                e.reported = True  # type: ignore[attr-defined]
-                print(
-                    f"lcrl: the pipeline stopped in the stage {name} "
-                    f"({e.args[0] if e.args else 'interrupted'}): the same command goes on "
-                    "from there",
-                    file=sys.stderr,
-                    flush=True,
-                )
-                raise
-            if name == "keep":
-                seconds += keep_policy(p, signals)
-            record = {
-                "stage": name,
-                "seconds": round(seconds, 1),
-                "commands": ["lcrl " + shlex.join(a) for a in stage.commands],
-                "outputs": list(stage.outputs),
-                "finished": time.strftime("%Y-%m-%dT%H:%M:%S"),
-            }
-            (_record(p) / f"{name}.json").write_text(json.dumps(record, indent=1))
+        _schedule(p, names, list(p.stages) or names, signals)
     finally:
         for sig, handler in previous.items():
             signal.signal(sig, handler)
         unlock_run(_record(p))
     records = {n: finished(p, n) for n in names}
-    total = sum(r["seconds"] for r in records.values() if r)
-    done = sum(1 for r in records.values() if r)
-    print(f"pipeline {out}: {done}/{len(names)} stages done, {total:.0f} s of stages")
+    kept = [r for r in records.values() if r]
+    total = sum(r["seconds"] for r in kept)
+    print(
+        f"pipeline {out}: {len(kept)}/{len(names)} stages done, {total:.0f} s of stages, "
+        f"{wall_clock(kept):.0f} s on the clock"
+    )
     return records
 
 
@@ -634,4 +756,12 @@ def pipeline_cli(name: str, argv: Sequence[str]) -> CameraPipeline:
     )
 
 
-__all__ = ["PIPELINES", "CameraPipeline", "TeacherRecipe", "pipeline_cli", "run_pipeline", "stages"]
+__all__ = [
+    "PIPELINES",
+    "CameraPipeline",
+    "TeacherRecipe",
+    "pipeline_cli",
+    "run_pipeline",
+    "stages",
+    "wall_clock",
+]
