@@ -92,12 +92,15 @@ def evaluate_models(
         res: dict[str, Any] = {"observations": len(items)}
         if lc.has("captioner") and items:
             idx = [j for j, _ in items]
+            # intervals over episodes: an episode's frames are not independent draws
+            episode = data.episode_of(np.asarray(idx, np.int64)).tolist()
             captions = []
             for _, f, c, p0, p in batches(idx):
                 captions += lc.caption(f, c, p0, p, beam=beam)
             exact, bleu, slots = [], [], {g: [] for g in SLOT_GROUPS}
+            slot_episodes: dict[str, list[int]] = {g: [] for g in SLOT_GROUPS}
             made_heldout = []
-            for (_, lab), (text, _) in zip(items, captions, strict=True):
+            for (_, lab), (text, _), e in zip(items, captions, episode, strict=True):
                 # the references: the labels of the group's kind (seen or held-out)
                 refs = [t for t in lab if (t in heldout_names) == (name != "seen")]
                 exact.append(text in lab)
@@ -110,18 +113,25 @@ def evaluate_models(
                 )
                 for g, ok in best.items():
                     slots[g].append(ok)
+                    slot_episodes[g].append(e)
             res["exact_match"] = float(np.mean(exact))
-            res["exact_match_ci"] = rate_interval(exact)["ci"]
+            res["exact_match_ci"] = rate_interval(exact, episode)["ci"]
+            res["episodes_observed"] = len(set(episode))
             res["bleu4"] = float(np.mean(bleu))
             res["slot_accuracy"] = {g: float(np.mean(v)) for g, v in slots.items() if v}
-            res["slot_accuracy_ci"] = {g: rate_interval(v)["ci"] for g, v in slots.items() if v}
+            res["slot_accuracy_ci"] = {
+                g: rate_interval(v, slot_episodes[g])["ci"] for g, v in slots.items() if v
+            }
             # per family of the observation's most demanding reference (a lift also
             # reaches its object; a stack also lifts it)
-            fams: dict[str, list[bool]] = {}
-            for (_, lab), ok in zip(items, exact, strict=True):
+            fams: dict[str, tuple[list[bool], list[int]]] = {}
+            for (_, lab), ok, e in zip(items, exact, episode, strict=True):
                 refs = [t for t in lab if (t in heldout_names) == (name != "seen")]
-                fams.setdefault(family_of(refs), []).append(ok)
-            res["exact_match_by_family"] = {f: rate_interval(v) for f, v in sorted(fams.items())}
+                hits, eps = fams.setdefault(family_of(refs), ([], []))
+                hits.append(ok), eps.append(e)
+            res["exact_match_by_family"] = {
+                f: rate_interval(v, eps) for f, (v, eps) in sorted(fams.items())
+            }
             if name != "seen":
                 res["heldout_caption_rate"] = float(np.mean(made_heldout))
             res["examples"] = [
@@ -211,14 +221,16 @@ def evaluate_models(
             res["recall"] = float(tp / max(int(y.sum()), 1))
             hard = np.concatenate([np.ones(len(pos_idx), bool), np.arange(len(neg_idx)) < n_hard])
             res["auc"] = roc_auc(sc[hard], y[hard])
-            res["auc_ci"] = auc_interval(sc[hard], y[hard], seed=seed)
+            # resampled by episode: a positive and its hard negative share their frames
+            pair_episode = data.episode_of(np.asarray(pos_idx + neg_idx[:n_hard], np.int64))
+            res["auc_ci"] = auc_interval(sc[hard], y[hard], seed=seed, clusters=pair_episode)
             # per family: each positive with the hard negative drawn for its frames
             fam = [t.split()[0] for t in pos_txt] + [t.split()[0] for t in neg_txt[:n_hard]]
             hs, hy = sc[hard], y[hard]
             res["auc_by_family"] = {
                 f: {
                     "auc": roc_auc(hs[m], hy[m]),
-                    "ci": auc_interval(hs[m], hy[m], seed=seed),
+                    "ci": auc_interval(hs[m], hy[m], seed=seed, clusters=pair_episode[m]),
                     "pairs": int(m.sum()),
                 }
                 for f in sorted(set(fam))

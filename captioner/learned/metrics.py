@@ -87,24 +87,58 @@ def slot_matches(generated: Instruction | None, label: Instruction) -> dict[str,
     return out
 
 
-def rate_interval(hits: Sequence[bool]) -> dict[str, float | int | list[float]]:
-    """A rate with its 95% Wilson interval: ``{"rate", "ci", "n"}``."""
+def rate_interval(
+    hits: Sequence[bool], clusters: Sequence[int] | None = None
+) -> dict[str, float | int | list[float]]:
+    """A rate with its 95% Wilson interval: ``{"rate", "ci", "n"}`` (and ``"clusters"``,
+    ``"effective_n"``).
+
+    Without ``clusters`` the observations are independent. With them (each observation's
+    episode), the frames of one episode move together, as consecutive frames do: the
+    interval is Wilson's at the effective sample size, ``n`` shrunk by the design effect
+    that the spread of the episodes' own rates shows (between the number of episodes and
+    ``n``; the number of episodes where every observation agrees)."""
     n, k = len(hits), int(sum(bool(h) for h in hits))
-    return {"rate": k / n if n else float("nan"), "ci": list(wilson_interval(k, n)), "n": n}
+    out: dict[str, float | int | list[float]] = {"rate": k / n if n else float("nan"), "n": n}
+    if clusters is None or n == 0:
+        out["ci"] = list(wilson_interval(k, n))
+        return out
+    ids, inverse = np.unique(np.asarray(clusters), return_inverse=True)
+    c = len(ids)
+    per_k = np.bincount(inverse, weights=np.asarray(hits, float), minlength=c)
+    per_n = np.bincount(inverse, minlength=c).astype(float)
+    r = k / n
+    # the ratio estimator's variance over clusters
+    var = c / max(c - 1, 1) * float(np.sum((per_k - r * per_n) ** 2)) / n**2
+    n_eff = float(c) if var <= 0 or r in (0.0, 1.0) else r * (1 - r) / var
+    n_eff = float(min(max(n_eff, c), n))
+    out["ci"] = list(wilson_interval(r * n_eff, n_eff))  # type: ignore[arg-type]
+    out["clusters"], out["effective_n"] = c, round(n_eff, 1)
+    return out
 
 
 def auc_interval(
-    scores: np.ndarray, labels: np.ndarray, rounds: int = 200, seed: int = 0
+    scores: np.ndarray,
+    labels: np.ndarray,
+    rounds: int = 200,
+    seed: int = 0,
+    clusters: Sequence[int] | None = None,
 ) -> list[float]:
-    """95% bootstrap interval of :func:`roc_auc` (pairs resampled with replacement,
-    ``rounds`` times; NaN where one class is missing)."""
+    """95% bootstrap interval of :func:`roc_auc`, ``rounds`` resamples with replacement:
+    of the pairs, or of whole ``clusters`` (each pair's episode: its frames and their
+    negatives move together) where given. NaN where one class is missing."""
     scores, labels = np.asarray(scores, float), np.asarray(labels, bool)
     if labels.all() or not labels.any():
         return [float("nan"), float("nan")]
     rng = np.random.default_rng(seed)
+    if clusters is None:
+        groups = [np.asarray([i]) for i in range(len(scores))]
+    else:
+        ids, inverse = np.unique(np.asarray(clusters), return_inverse=True)
+        groups = [np.flatnonzero(inverse == c) for c in range(len(ids))]
     values = []
     for _ in range(rounds):
-        pick = rng.integers(len(scores), size=len(scores))
+        pick = np.concatenate([groups[g] for g in rng.integers(len(groups), size=len(groups))])
         if labels[pick].all() or not labels[pick].any():
             continue
         values.append(roc_auc(scores[pick], labels[pick]))
