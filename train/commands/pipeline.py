@@ -51,6 +51,7 @@ from pathlib import Path
 from typing import Any
 
 from lcrl.errors import LcrlError
+from train.commands.pipeline_parts import export_parts, import_parts
 from train.configs.sections import SCRIPTED
 from train.runtime.run_lock import lock_run, unlock_run
 
@@ -138,6 +139,13 @@ class CameraPipeline:
     it, and the kept policy has it on by default, fitted and kept beside it."""
     extra_student: tuple[str, ...] = ()
     """More ``lcrl distill`` options."""
+    parts: str = ""
+    """Start from the parts a build kept (``--export-parts``): the stages they hold are
+    done, their artefacts copied into ``--out`` (a stage whose data file a later stage
+    reads runs again)."""
+    export_parts: str = ""
+    """Write the finished stages before the student (records, weights and configs; no
+    data) to this folder, and stop."""
     jobs: int = 1
     """Stages run at once where one does not need another's output; each gets
     ``cores // jobs`` torch threads unless ``--threads`` is given."""
@@ -344,7 +352,10 @@ def stages(p: CameraPipeline) -> list[Stage]:
                     "--seed", str(p.seed), "--out", str(out / "perception-ft"), *threads,
                 ]
             ],
-            needs=(f"{frames}<student-frames",),
+            needs=(
+                f"{frames}<student-frames",
+                *(() if p.perception else (f"{data / 'perception.h5'}<perception-data",)),
+            ),
             outputs=(str(out / "perception-ft" / "model"),),
         )
     )  # fmt: skip
@@ -651,6 +662,10 @@ def run_pipeline(p: CameraPipeline) -> dict[str, Any]:
             for args in stage.commands:
                 print(f"  $ lcrl {shlex.join(args)}")
         return {s.name: finished(p, s.name) for s in every}
+    if p.export_parts:
+        written = export_parts(out, every, Path(p.export_parts))
+        print(f"parts of {out} written to {p.export_parts}: {' '.join(written)}")
+        return {s.name: finished(p, s.name) for s in every}
     if not p.resume and _record(p).is_dir() and any(_record(p).iterdir()):
         raise LcrlError(f"{out} holds a pipeline already: leave out --no-resume to continue it")
     # one pipeline per folder: its stage records are locked (the stages lock their own
@@ -659,6 +674,9 @@ def run_pipeline(p: CameraPipeline) -> dict[str, Any]:
     if note:
         print(f"lcrl: {note}", file=sys.stderr)
     (out / "pipeline.json").write_text(json.dumps(dataclasses.asdict(p), indent=1))
+    if p.parts:
+        taken = import_parts(out, every, Path(p.parts))
+        print(f"from {p.parts}: {' '.join(taken) or 'nothing new'}", flush=True)
     signals = _Signals()
     previous = {sig: signal.signal(sig, signals.handle) for sig in (signal.SIGINT, signal.SIGTERM)}
     try:
