@@ -306,3 +306,18 @@ def test_parts_of_a_build_are_kept_and_taken_up_by_another(tmp_path, monkeypatch
     bad = dataclasses.replace(second, out=str(tmp_path / "c"), parts=str(tmp_path))
     with pytest.raises(LcrlError, match="no stages/ folder"):
         run_pipeline(bad)
+
+
+@pytest.mark.parametrize(
+    ("args", "said"),
+    [
+        (["--jobs", "0"], "--jobs 0: run one stage at a time at least"),
+        (["--parts", "P", "--export-parts", "Q"], "take parts up or write them, not both"),
+        (["--parts", "nowhere"], "--parts nowhere: no stages/ folder"),
+    ],
+)
+def test_bad_pipeline_options_are_refused_in_one_line(tmp_path, capsys, args, said):
+    out = tmp_path / "camera"
+    assert cli("train", "lang2d-camera", "--out", str(out), *args) == 2
+    assert said in error_line(capsys.readouterr().err)
+    assert not out.exists()  # a refused build leaves nothing behind

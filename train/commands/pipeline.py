@@ -51,7 +51,7 @@ from pathlib import Path
 from typing import Any
 
 from lcrl.errors import LcrlError
-from train.commands.pipeline_parts import export_parts, import_parts
+from train.commands.pipeline_parts import check_parts, export_parts, import_parts
 from train.configs.sections import SCRIPTED
 from train.runtime.run_lock import lock_run, unlock_run
 
@@ -648,6 +648,12 @@ def _schedule(p: CameraPipeline, names: list[str], wanted: list[str], signals: _
 
 def run_pipeline(p: CameraPipeline) -> dict[str, Any]:
     """Run the stages not done yet (or ``p.stages``); returns the stage records."""
+    if p.jobs < 1:
+        raise LcrlError(f"--jobs {p.jobs}: run one stage at a time at least (--jobs 1)")
+    if p.parts and p.export_parts:
+        raise LcrlError("--parts and --export-parts: take parts up or write them, not both")
+    if p.parts:
+        check_parts(Path(p.parts))
     every = stages(p)
     names = [s.name for s in every]
     unknown = [s for s in p.stages if s not in names]

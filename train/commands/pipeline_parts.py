@@ -86,12 +86,17 @@ def export_parts(out: Path, every: Sequence[StageLike], dest: Path) -> list[str]
     return written
 
 
+def check_parts(parts: Path) -> None:
+    """Refuse a folder that holds no parts."""
+    if not (parts / "stages").is_dir():
+        raise LcrlError(f"--parts {parts}: no stages/ folder (write one with --export-parts)")
+
+
 def import_parts(out: Path, every: Sequence[StageLike], parts: Path) -> list[str]:
     """Take up the stages that ``parts`` holds and ``out`` has not finished: copy their
     artefacts into ``out`` and their records; the names taken up. A stage whose output is
     not in ``parts`` while a stage still to run needs it is left to run again."""
-    if not (parts / "stages").is_dir():
-        raise LcrlError(f"--parts {parts}: no stages/ folder (write one with --export-parts)")
+    check_parts(parts)
     held = {f.stem: f for f in (parts / "stages").glob("*.json")}
     known = {s.name for s in every}
     unknown = sorted(set(held) - known)
@@ -119,4 +124,4 @@ def import_parts(out: Path, every: Sequence[StageLike], parts: Path) -> list[str
     return taken
 
 
-__all__ = ["export_parts", "import_parts"]
+__all__ = ["check_parts", "export_parts", "import_parts"]
