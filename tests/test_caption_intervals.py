@@ -46,3 +46,14 @@ def test_auc_intervals_resample_whole_episodes():
     lo, hi = auc_interval(scores, labels, seed=1)
     clo, chi = auc_interval(scores, labels, seed=1, clusters=episode)
     assert clo <= chi and chi - clo > 2 * (hi - lo)
+
+
+def test_a_long_episode_weighs_as_its_length_says():
+    # one episode of 100 frames, every one read; 100 episodes of one frame, none read
+    hits = [True] * 100 + [False] * 100
+    episode = [0] * 100 + list(range(1, 101))
+    out = rate_interval(hits, clusters=episode)
+    # about four independent draws' worth, not the 101 episodes
+    assert out["effective_n"] < 10
+    lo, hi = out["ci"]
+    assert hi - lo > 0.4

@@ -121,7 +121,7 @@ def test_scripted_families_have_no_teacher_stage_and_a_trained_teacher_is_the_ba
 
 
 def test_stages_writing_to_a_log_update_their_bars_twice_a_minute(monkeypatch):
-    from train.commands.pipeline import LOG_BAR_INTERVAL, child_env
+    from train.commands.pipeline_steps import LOG_BAR_INTERVAL, child_env
 
     monkeypatch.delenv("TQDM_MININTERVAL", raising=False)
     assert "TQDM_MININTERVAL" not in child_env(terminal=True)
@@ -135,10 +135,10 @@ def test_a_signal_stops_the_pipeline_with_its_own_status():
     not as a Ctrl-C."""
     import signal
 
-    from train.commands.pipeline import _Signals, run_command
+    from train.commands.pipeline_steps import Signals, run_command
     from train.training.trainer import RunInterrupted
 
-    signals = _Signals()
+    signals = Signals()
     signals.signum = signal.SIGTERM  # as the handler records it while a stage runs
     with pytest.raises(RunInterrupted) as stopped:
         run_command(["--help"], signals)
@@ -232,10 +232,14 @@ def test_jobs_run_stages_side_by_side_where_none_needs_another(tmp_path, monkeyp
     assert span["perception"][0] >= span["perception-data"][1]
     last_maker = max(span[n][1] for n in ("perception", "teacher-put", "teacher-stack"))
     assert span["student"][0] >= last_maker
-    # each training stage on its share of the (four) cores
-    for args, _, _ in log:
-        if args[0] in ("train", "distill"):
-            assert args[args.index("--torch-threads") + 1] == "2"
+    # each training stage on its share of the (four) cores: the teachers beside another
+    # stage on two, the student alone on all four
+    threads = {a[0]: a[a.index("--torch-threads") + 1] for a, _, _ in log if "--torch-threads" in a}
+    assert threads == {"train": "2", "distill": "4"}
+    # stages that write one folder never run at once, even when named alone
+    active["most"] = 0
+    run_pipeline(dataclasses.replace(p, stages=("student", "student-frames", "student-ft")))
+    assert active["most"] == 1
     # side by side, the clock counts less than the sum of the stages
     kept = list(records.values())
     assert wall_clock(kept) < sum(r["span"][1] - r["span"][0] for r in kept) - 0.5
@@ -280,6 +284,8 @@ def test_parts_of_a_build_are_kept_and_taken_up_by_another(tmp_path, monkeypatch
     run_pipeline(first)
     with pytest.raises(LcrlError, match="no finished stage before the student"):
         run_pipeline(dataclasses.replace(first, out=str(tmp_path / "x"), export_parts="p"))
+    with pytest.raises(LcrlError, match="give a folder outside the build"):
+        run_pipeline(dataclasses.replace(first, export_parts=str(tmp_path / "a" / "parts")))
     parts = tmp_path / "parts"
     run_pipeline(dataclasses.replace(first, stages=(), export_parts=str(parts)))
     assert sorted(f.stem for f in (parts / "stages").glob("*.json")) == sorted(before)
@@ -321,3 +327,15 @@ def test_bad_pipeline_options_are_refused_in_one_line(tmp_path, capsys, args, sa
     assert cli("train", "lang2d-camera", "--out", str(out), *args) == 2
     assert said in error_line(capsys.readouterr().err)
     assert not out.exists()  # a refused build leaves nothing behind
+
+
+def test_a_missing_input_stops_the_stages_beside_it(tmp_path, monkeypatch):
+    from train.commands.pipeline import robosuite_camera, run_pipeline
+
+    log, _ = _fake_stages(monkeypatch)
+    p = dataclasses.replace(
+        robosuite_camera(), out=str(tmp_path / "camera"), jobs=2, stages=("perception-data", "eval")
+    )
+    with pytest.raises(LcrlError, match=r"the stage eval needs .*student: run the stage student"):
+        run_pipeline(p)
+    assert [a[0] for a, _, _ in log] == ["perception"]  # it ran to its end, and no more

@@ -96,8 +96,9 @@ def rate_interval(
     Without ``clusters`` the observations are independent. With them (each observation's
     episode), the frames of one episode move together, as consecutive frames do: the
     interval is Wilson's at the effective sample size, ``n`` shrunk by the design effect
-    that the spread of the episodes' own rates shows (between the number of episodes and
-    ``n``; the number of episodes where every observation agrees)."""
+    that the spread of the episodes' own rates shows: between the effective number of
+    whole episodes (Kish's, which weighs long episodes more) and ``n``, and that number of
+    episodes where every observation agrees."""
     n, k = len(hits), int(sum(bool(h) for h in hits))
     out: dict[str, float | int | list[float]] = {"rate": k / n if n else float("nan"), "n": n}
     if clusters is None or n == 0:
@@ -110,8 +111,11 @@ def rate_interval(
     r = k / n
     # the ratio estimator's variance over clusters
     var = c / max(c - 1, 1) * float(np.sum((per_k - r * per_n) ** 2)) / n**2
-    n_eff = float(c) if var <= 0 or r in (0.0, 1.0) else r * (1 - r) / var
-    n_eff = float(min(max(n_eff, c), n))
+    # at least the sample of whole episodes (Kish's n^2 / sum n_i^2: the number of
+    # episodes when they are of one length), at most every observation
+    floor = n**2 / float(np.sum(per_n**2))
+    n_eff = floor if var <= 0 or r in (0.0, 1.0) else r * (1 - r) / var
+    n_eff = float(min(max(n_eff, floor), n))
     out["ci"] = list(wilson_interval(r * n_eff, n_eff))  # type: ignore[arg-type]
     out["clusters"], out["effective_n"] = c, round(n_eff, 1)
     return out

@@ -39,9 +39,7 @@ import json
 import os
 import queue
 import shlex
-import shutil
 import signal
-import subprocess
 import sys
 import threading
 import time
@@ -52,6 +50,11 @@ from typing import Any
 
 from lcrl.errors import LcrlError
 from train.commands.pipeline_parts import check_parts, export_parts, import_parts
+from train.commands.pipeline_steps import (
+    Signals,
+    keep_policy,
+    run_command,
+)
 from train.configs.sections import SCRIPTED
 from train.runtime.run_lock import lock_run, unlock_run
 
@@ -354,7 +357,14 @@ def stages(p: CameraPipeline) -> list[Stage]:
             ],
             needs=(
                 f"{frames}<student-frames",
-                *(() if p.perception else (f"{data / 'perception.h5'}<perception-data",)),
+                *(
+                    ()
+                    if p.perception
+                    else (
+                        f"{data / 'perception.h5'}<perception-data",
+                        f"{_perception_model(p)}<perception",
+                    )
+                ),
             ),
             outputs=(str(out / "perception-ft" / "model"),),
         )
@@ -440,114 +450,23 @@ def finished(p: CameraPipeline, name: str) -> dict[str, Any] | None:
         return None
 
 
-class _Signals:
-    """SIGINT and SIGTERM passed on to the stages' processes; the pipeline stops after them."""
-
-    def __init__(self) -> None:
-        self.procs: set[subprocess.Popen] = set()
-        self.signum: int | None = None
-
-    def handle(self, signum: int, frame: Any) -> None:
-        self.signum = self.signum or signum
-        self.stop(signum)
-
-    def stop(self, signum: int) -> None:
-        """Send ``signum`` to every stage's process still running."""
-        for proc in list(self.procs):
-            if proc.poll() is None:
-                proc.send_signal(signum)
-
-
-#: Seconds between progress-bar updates of a stage whose output goes to a file or pipe
-#: (a log then holds one line per half minute, not one per step).
-LOG_BAR_INTERVAL = 30
-
-
-def child_env(terminal: bool) -> dict[str, str]:
-    """The stages' environment: this one, with progress bars slowed down when the output
-    is not a terminal (``TQDM_MININTERVAL``)."""
-    import os
-
-    env = dict(os.environ)
-    if not terminal:
-        env.setdefault("TQDM_MININTERVAL", str(LOG_BAR_INTERVAL))
-    return env
-
-
-def run_command(args: list[str], signals: _Signals) -> float:
-    """Run ``lcrl ARGS`` in a child process; its seconds.
-
-    Raises:
-        LcrlError: the command failed (its status and the command are named).
-        RunInterrupted: the pipeline was stopped by a signal (its status is the signal's).
-    """
-    argv = [sys.executable, "-m", "train.commands.entry", *args]
-    print(f"  $ lcrl {shlex.join(args)}", flush=True)
-    t0 = time.perf_counter()
-    proc = subprocess.Popen(argv, env=child_env(sys.stdout.isatty()))
-    signals.procs.add(proc)
-    try:
-        status = proc.wait()
-    finally:
-        signals.procs.discard(proc)
-    if signals.signum is not None:
-        from train.training.trainer import RunInterrupted
-
-        raise RunInterrupted(signals.signum)
-    if status != 0:
-        raise LcrlError(f"the command `lcrl {shlex.join(args)}` failed (status {status})")
-    return time.perf_counter() - t0
-
-
-def keep_policy(p: CameraPipeline, signals: _Signals) -> float:
-    """Copy the final student's latest checkpoint (weights and configs, no replay data or
-    optimiser state) with the canonical reader on by default, fit its reader if needed,
-    and seal it: a folder ``lcrl act`` / ``lcrl eval`` / ``lcrl.load`` take."""
-    from lcrl.checkpoint import find_latest, seal_checkpoint
-    from train.environments.text_reading import READER_CACHE
-
-    t0 = time.perf_counter()
-    latest = find_latest(Path(p.out) / "student")
-    if latest is None:
-        raise LcrlError(f"no student in {p.out}/student: run the stage student first")
-    dest = Path(p.keep or Path(p.out) / "kept")
-    tmp = dest.with_name(f".{dest.name}.tmp")
-    shutil.rmtree(tmp, ignore_errors=True)
-    tmp.mkdir(parents=True)
-    for f in latest.iterdir():
-        if f.is_file() and f.name not in ("arrays.npz", "state.json", "state.safetensors"):
-            shutil.copy2(f, tmp / f.name)
-    meta = json.loads((tmp / "meta.json").read_text())
-    meta["config"]["env"]["canonical_reader"] = p.reader  # free text by default
-    meta.pop("checksums", None), meta.pop("meta_checksum", None)
-    (tmp / "meta.json").write_text(json.dumps(meta, indent=1))
-    if (latest / READER_CACHE).is_dir():
-        shutil.copytree(latest / READER_CACHE, tmp / READER_CACHE)
-    seal_checkpoint(tmp)
-    shutil.rmtree(dest, ignore_errors=True)
-    tmp.rename(dest)
-    if p.reader and not (dest / READER_CACHE).is_dir():  # fitted once, kept beside it
-        run_command(
-            ["act", str(dest), "--instruction", "reach the red cube", "--episodes", "1"], signals
-        )
-    return time.perf_counter() - t0
-
-
-def _stage_threads(p: CameraPipeline) -> CameraPipeline:
-    """``p`` with each stage's torch threads: its share of the cores when stages run side
-    by side (``--jobs``), unless ``--threads`` names a count."""
+def _stage_threads(p: CameraPipeline, beside: int) -> CameraPipeline:
+    """``p`` with the torch threads of a stage that starts with ``beside`` stages running
+    (itself included): its share of the cores, unless ``--threads`` names a count. A
+    stage that runs alone (``--jobs 1``) chooses its own."""
     if p.jobs <= 1 or p.threads:
         return p
-    return dataclasses.replace(p, threads=max(1, (os.cpu_count() or 1) // p.jobs))
+    return dataclasses.replace(p, threads=max(1, (os.cpu_count() or 1) // max(1, beside)))
 
 
-def _run_stage(p: CameraPipeline, stage: Stage, signals: _Signals) -> None:
+def _run_stage(p: CameraPipeline, stage: Stage, signals: Signals) -> None:
     """Run one stage's commands and record it as finished."""
     seconds, started = 0.0, time.time()
     for args in stage.commands:
         seconds += run_command(args, signals)
     if stage.name == "keep":
         seconds += keep_policy(p, signals)
+    signals.check()  # stopped after its last command: not finished
     record = {
         "stage": stage.name,
         "seconds": round(seconds, 1),
@@ -563,36 +482,41 @@ def _makers(stage: Stage) -> list[tuple[str, str]]:
     return [(path, maker) for path, _, maker in (n.rpartition("<") for n in stage.needs)]
 
 
-def _before(p: CameraPipeline, name: str) -> set[str]:
-    """The earlier stages that ``name`` waits for: those that make, or write again, what
-    it needs (the student's later rounds before its evaluation)."""
-    every = stages(p)
-    i = next(k for k, s in enumerate(every) if s.name == name)
-    needs = _makers(every[i])
-    paths, makers = {path for path, _ in needs}, {maker for _, maker in needs}
-    return {s.name for s in every[:i] if s.name in makers or paths & set(s.outputs)}
+def _waits_for(every: list[Stage]) -> dict[str, set[str]]:
+    """For each stage, the earlier stages it waits for, directly or through others: those
+    that make what it needs, and those that write what it reads or writes (the student's
+    later rounds before its evaluation; two runs of one folder never at once)."""
+    before: dict[str, set[str]] = {}
+    for i, stage in enumerate(every):
+        needs = _makers(stage)
+        reads = {path for path, _ in needs}
+        touched = reads | set(stage.outputs)
+        makers = {maker for _, maker in needs}
+        direct = {e.name for e in every[:i] if e.name in makers or touched & set(e.outputs)}
+        before[stage.name] = direct.union(*(before[d] for d in direct))
+    return before
 
 
-def _schedule(p: CameraPipeline, names: list[str], wanted: list[str], signals: _Signals) -> None:
+def _schedule(p: CameraPipeline, names: list[str], wanted: list[str], signals: Signals) -> None:
     """Run the wanted stages not done yet in order, up to ``p.jobs`` at once: a stage
-    starts when every stage that makes what it needs has finished."""
-    run = _stage_threads(p)
+    starts when every earlier stage it waits for (:func:`_waits_for`) has finished."""
     todo: list[str] = []
-    for i, name in enumerate(names, 1):
-        if name not in wanted:
+    for i, stage in enumerate(stages(p), 1):
+        if stage.name not in wanted:
             continue
-        done = finished(p, name)
+        done = finished(p, stage.name)
         if done is not None and not p.stages:
-            what = next(s for s in stages(run) if s.name == name).what
-            print(f"[{i}/{len(names)}] {name}: {what} -- done ({done['seconds']:.0f} s), kept")
+            took = f"done ({done['seconds']:.0f} s), kept"
+            print(f"[{i}/{len(names)}] {stage.name}: {stage.what} -- {took}")
             continue
-        todo.append(name)
+        todo.append(stage.name)
     sys.stdout.flush()
+    waits = _waits_for(stages(p))
     running: dict[str, threading.Thread] = {}
     ended: queue.Queue[tuple[str, BaseException | None]] = queue.Queue()
     failure: BaseException | None = None
 
-    def work(stage: Stage) -> None:
+    def work(stage: Stage, run: CameraPipeline) -> None:
         try:
             _run_stage(run, stage, signals)
         except BaseException as e:  # handed to the main thread
@@ -600,24 +524,39 @@ def _schedule(p: CameraPipeline, names: list[str], wanted: list[str], signals: _
         else:
             ended.put((stage.name, None))
 
-    while (todo and failure is None and signals.signum is None) or running:
-        for name in list(todo) if failure is None and signals.signum is None else []:
-            if len(running) >= max(1, p.jobs):
-                break
-            stage = next(s for s in stages(run) if s.name == name)  # commands as of now
-            waiting = [m for m in (*todo, *running) if m in _before(run, name)]
-            if waiting:
-                if p.jobs <= 1:
-                    break  # in order, one at a time
-                continue
-            for path, maker in _makers(stage):
-                if not Path(path).exists():
-                    raise LcrlError(f"the stage {name} needs {path}: run the stage {maker} first")
-            todo.remove(name)
-            print(f"[{names.index(name) + 1}/{len(names)}] {name}: {stage.what}", flush=True)
-            thread = threading.Thread(target=work, args=(stage,), name=name, daemon=True)
-            running[name] = thread
-            thread.start()
+    def fail(error: BaseException) -> None:
+        nonlocal failure
+        if failure is None:
+            failure = error
+            with signals.lock:  # the stages beside it save and stop, and start nothing
+                signals.stopping = True
+                signals.stop(signal.SIGTERM)
+
+    while todo or running:
+        if failure is None and signals.signum is None:
+            ready = [n for n in todo if not waits[n] & {*todo, *running}]
+            if p.jobs <= 1:  # in order, one at a time
+                ready = ready[:1] if todo and ready and ready[0] == todo[0] else []
+            ready = ready[: max(0, p.jobs - len(running))]
+            try:
+                for name in ready:
+                    stage = next(s for s in stages(p) if s.name == name)
+                    for path, maker in _makers(stage):
+                        if not Path(path).exists():
+                            raise LcrlError(
+                                f"the stage {name} needs {path}: run the stage {maker} first"
+                            )
+            except LcrlError as e:
+                fail(e)
+                ready = []
+            run = _stage_threads(p, len(running) + len(ready))
+            for name in ready:
+                stage = next(s for s in stages(run) if s.name == name)  # commands as of now
+                todo.remove(name)
+                print(f"[{names.index(name) + 1}/{len(names)}] {name}: {stage.what}", flush=True)
+                thread = threading.Thread(target=work, args=(stage, run), name=name, daemon=True)
+                running[name] = thread
+                thread.start()
         if not running:
             break
         try:
@@ -629,21 +568,22 @@ def _schedule(p: CameraPipeline, names: list[str], wanted: list[str], signals: _
             if p.jobs > 1:
                 print(f"{name}: done ({finished(p, name)['seconds']:.0f} s)", flush=True)
             continue
-        if failure is None:
-            failure = error
-            if isinstance(error, KeyboardInterrupt):  # RunInterrupted: it saved what it could
-                error.reported = True  # type: ignore[attr-defined]
-                print(
-                    f"lcrl: the pipeline stopped in the stage {name} "
-                    f"({error.args[0] if error.args else 'interrupted'}): the same command "
-                    "goes on from there",
-                    file=sys.stderr,
-                    flush=True,
-                )
-            else:  # the stages beside it save and stop too
-                signals.stop(signal.SIGTERM)
+        if isinstance(error, KeyboardInterrupt) and failure is None:  # RunInterrupted
+            error.reported = True  # type: ignore[attr-defined]
+            print(
+                f"lcrl: the pipeline stopped in the stage {name} "
+                f"({error.args[0] if error.args else 'interrupted'}): the same command "
+                "goes on from there",
+                file=sys.stderr,
+                flush=True,
+            )
+        fail(error)
     if failure is not None:
         raise failure
+    if signals.signum is not None:  # between two stages: nothing was running to stop
+        from train.training.trainer import RunInterrupted
+
+        raise RunInterrupted(signals.signum)
 
 
 def run_pipeline(p: CameraPipeline) -> dict[str, Any]:
@@ -683,7 +623,7 @@ def run_pipeline(p: CameraPipeline) -> dict[str, Any]:
     if p.parts:
         taken = import_parts(out, every, Path(p.parts))
         print(f"from {p.parts}: {' '.join(taken) or 'nothing new'}", flush=True)
-    signals = _Signals()
+    signals = Signals()
     previous = {sig: signal.signal(sig, signals.handle) for sig in (signal.SIGINT, signal.SIGTERM)}
     try:
         _schedule(p, names, list(p.stages) or names, signals)

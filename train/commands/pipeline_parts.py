@@ -36,7 +36,7 @@ class StageLike(Protocol):
 
 def _relative(out: Path, path: str) -> Path:
     try:
-        return Path(path).relative_to(out)
+        return Path(path).resolve().relative_to(out.resolve())
     except ValueError:
         raise LcrlError(f"{path} is outside the pipeline's folder {out}") from None
 
@@ -57,11 +57,20 @@ def _copy_run(src: Path, dest: Path) -> None:
             continue  # an earlier checkpoint
         (dest / rel).parent.mkdir(parents=True, exist_ok=True)
         shutil.copy2(f, dest / rel)
+    if keep is not None and (dest / keep / "meta.json").is_file():
+        from lcrl.checkpoint import seal_checkpoint
+
+        seal_checkpoint(dest / keep)  # its checksums name the files it now has
 
 
 def export_parts(out: Path, every: Sequence[StageLike], dest: Path) -> list[str]:
     """Write the finished stages before the student (records and artefacts, no data) to
     ``dest``; the names of the stages written."""
+    out, dest = out.resolve(), dest.resolve()
+    if dest == out or out.is_relative_to(dest) or dest.is_relative_to(out):
+        raise LcrlError(f"--export-parts {dest}: give a folder outside the build's {out}")
+    if dest.exists() and not (dest / "stages").is_dir():
+        raise LcrlError(f"--export-parts {dest}: the folder exists and holds no parts")
     names = [s.name for s in every]
     cut = names.index(FIRST_NOT_A_PART) if FIRST_NOT_A_PART in names else len(names)
     written = []
