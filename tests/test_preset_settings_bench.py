@@ -1,0 +1,56 @@
+"""benchmarks.preset_settings: how a preset's settings are chosen from time to success."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+from benchmarks import preset_settings as ps
+
+
+def _curve(out, rows):
+    out.mkdir(parents=True, exist_ok=True)
+    lines = ["step,train/success,train_s"] + [f"{s},{v},{t}" for s, v, t in rows]
+    (out / "eval.csv").write_text("\n".join(lines) + "\n")
+    (out / "report.md").write_text("done")
+
+
+def test_the_soonest_arm_that_keeps_the_final_success_is_chosen(tmp_path, monkeypatch):
+    calls = []
+
+    def run_logged(cmd, log, what):
+        calls.append(cmd)
+        out = Path(cmd[cmd.index("--out") + 1])
+        fast = "--collect.envs" in cmd
+        seed = int(cmd[cmd.index("--seed") + 1])
+        # 8 environments get there in half the time; on seed 101 one environment never does
+        slow_rows = [(1000, 0.5, 40), (2000, 0.9 if seed == 100 else 0.7, 80)]
+        _curve(out, [(1000, 0.85, 20), (2000, 0.9, 40)] if fast else slow_rows)
+        return 1.0
+
+    monkeypatch.setattr(ps, "run_logged", run_logged)
+    import benchmarks.common as common
+
+    monkeypatch.setattr(common, "RESULTS_DIR", tmp_path / "results")
+    assert ps.main(["lang2d-quick", "--work", str(tmp_path / "work")]) == 0
+    doc = json.loads((tmp_path / "results" / "preset-settings-lang2d-quick.json").read_text())
+    head = doc["headline"]
+    assert head["chosen"] == "--collect.envs 8"
+    assert head["--collect.envs 8_s"] == 20 and head["as shipped_s"] == 80
+    assert doc["arms"]["as shipped"]["all_reached"] is False  # seed 101 never got there
+    # the arms alternate within each seed, one thread each, the same evaluation schedule
+    arms = [("--collect.envs" in c, c[c.index("--seed") + 1]) for c in calls]
+    assert arms == [(False, "100"), (True, "100"), (False, "101"), (True, "101")]
+    for c in calls:
+        assert c[c.index("--torch-threads") + 1] == "1"
+        assert c[c.index("--eval-every") + 1] == "1000"
+
+
+def test_no_arm_is_chosen_that_ends_lower_than_the_shipped_one():
+    arms = {
+        "as shipped": {"seconds": 80, "final_seen": 0.95, "all_reached": True},
+        "--collect.envs 8": {"seconds": 20, "final_seen": 0.90, "all_reached": True},
+    }
+    assert ps.choose(arms) == "as shipped"
+    arms["--collect.envs 8"]["final_seen"] = 0.94
+    assert ps.choose(arms) == "--collect.envs 8"
