@@ -23,7 +23,15 @@ import sys
 from pathlib import Path
 from typing import Any
 
-from benchmarks.common import die_with_parent, machine, save_figure, save_json, save_markdown
+from benchmarks.common import (
+    LCRL,
+    die_with_parent,
+    machine,
+    run_jobs,
+    save_figure,
+    save_json,
+    save_markdown,
+)
 from benchmarks.protocol import check_single_policy, check_test_seed
 from train.commands.pipeline import wall_clock
 
@@ -51,20 +59,29 @@ def lcrl(*args: str) -> None:
         raise SystemExit(f"lcrl {' '.join(args)} failed ({done.returncode})")
 
 
-def evaluate(model: str, seed: int, episodes: int, work: Path) -> dict[str, Any]:
-    """The kept model's evaluations on ``seed``: sets, chains of two, the true state."""
-    out: dict[str, Any] = {}
-    base = ["eval", model, "--episodes", str(episodes), "--seed", str(seed), "--no-progress"]
-    for name, extra in (
-        ("sets", []),
-        ("chain2", ["--chain", "2", "--sets", "train"]),
-        ("true_state", ["--true-state"]),
-    ):
+EVALUATIONS = (
+    ("sets", []),
+    ("chain2", ["--chain", "2", "--sets", "train"]),
+    ("true_state", ["--true-state"]),
+)
+
+
+def evaluate(model: str, seed: int, episodes: int, work: Path, parallel: int = 2) -> dict[str, Any]:
+    """The kept model's evaluations on ``seed``: sets, chains of two, the true state; run
+    ``parallel`` at a time, each on its share of the cores (an evaluation already done is
+    read)."""
+    base = [*LCRL, "eval", model, "--episodes", str(episodes), "--seed", str(seed)]
+    jobs = []
+    for name, extra in EVALUATIONS:
         path = work / f"test-seed{seed}-{name}.json"
         if not path.is_file():
-            lcrl(*base, *extra, "--json", str(path))
-        out[name] = json.loads(path.read_text())
-    return out
+            argv = [*base, "--no-progress", *extra, "--json", str(path)]
+            jobs.append((f"eval {name}", argv, work / f"test-seed{seed}-{name}.log"))
+    run_jobs(jobs, parallel=parallel)
+    return {
+        name: json.loads((work / f"test-seed{seed}-{name}.json").read_text())
+        for name, _ in EVALUATIONS
+    }
 
 
 def pooled(doc: dict[str, Any], name: str) -> tuple[float, int]:

@@ -339,3 +339,26 @@ def test_a_missing_input_stops_the_stages_beside_it(tmp_path, monkeypatch):
     with pytest.raises(LcrlError, match=r"the stage eval needs .*student: run the stage student"):
         run_pipeline(p)
     assert [a[0] for a, _, _ in log] == ["perception"]  # it ran to its end, and no more
+
+
+def test_the_camera_benchmark_evaluates_side_by_side_and_reads_what_is_done(tmp_path, monkeypatch):
+    from benchmarks import robosuite_camera
+
+    seen = []
+
+    def run_jobs(jobs, parallel):
+        seen.append((jobs, parallel))
+        for _, argv, _ in jobs:
+            path = argv[argv.index("--json") + 1]
+            with open(path, "w") as f:
+                json.dump({"argv": argv}, f)
+
+    monkeypatch.setattr(robosuite_camera, "run_jobs", run_jobs)
+    (tmp_path / "test-seed7-sets.json").write_text('{"kept": true}')
+    out = robosuite_camera.evaluate("M", 7, 100, tmp_path)
+    ((jobs, parallel),) = seen
+    assert parallel == 2 and [name for name, _, _ in jobs] == ["eval chain2", "eval true_state"]
+    assert out["sets"] == {"kept": True}
+    chain = out["chain2"]["argv"]
+    assert chain[chain.index("eval") + 1 :][:5] == ["M", "--episodes", "100", "--seed", "7"]
+    assert "--chain" in chain and "--true-state" in out["true_state"]["argv"]
