@@ -194,12 +194,14 @@ def _fake_stages(monkeypatch, fail: str = "", seconds: float = 0.15):
         else:
             (out / "model").mkdir(parents=True, exist_ok=True)
             (out / "model" / "weights.safetensors").write_bytes(b"w")
+            (out / "model" / "state.json").write_text("{}")
         if args[0] == "train":  # a run: two checkpoints, the latest named
             for step in ("step_1", "step_2"):
                 ckpt = out / "checkpoints" / step
                 ckpt.mkdir(parents=True, exist_ok=True)
                 (ckpt / "weights.safetensors").write_bytes(b"w")
                 (ckpt / "arrays.npz").write_bytes(b"replay")
+                (ckpt / "state.json").write_text("{}")
             (out / "latest.json").write_text('{"checkpoint": "checkpoints/step_2"}')
             (out / "tb").mkdir(exist_ok=True)
         with lock:
@@ -294,7 +296,8 @@ def test_parts_of_a_build_are_kept_and_taken_up_by_another(tmp_path, monkeypatch
     assert (put / "checkpoints" / "step_2" / "weights.safetensors").is_file()
     assert not (put / "checkpoints" / "step_1").exists() and not (put / "tb").exists()
     assert not list(parts.rglob("*.npz")) and not list(parts.rglob("*.h5"))
-    assert (parts / "perception" / "model").is_dir()
+    assert (parts / "perception" / "model" / "state.json").is_file()  # a model keeps it
+    assert not (put / "checkpoints" / "step_2" / "state.json").exists()  # a run does not
     del log[:]
     second = dataclasses.replace(robosuite_camera(), out=str(tmp_path / "b"), parts=str(parts))
     records = run_pipeline(second)

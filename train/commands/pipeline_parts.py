@@ -21,9 +21,11 @@ from typing import Any, Protocol
 
 from lcrl.errors import LcrlError
 
-#: Files of a training run that a kept part leaves out (data and optimiser state; its
-#: TensorBoard events in ``tb/`` stay out too).
-LEFT_OUT = ("arrays.npz", "state.json", "state.safetensors", ".lock")
+#: Files a kept part leaves out: data and locks everywhere; a training run's checkpoint
+#: also leaves out its state (optimiser, counters), and its TensorBoard events in ``tb/``
+#: stay out too. A model folder (perception's) keeps its small state files.
+LEFT_OUT = ("arrays.npz", ".lock")
+RUN_STATE = ("state.json", "state.safetensors")
 #: The first stage that is never a part (it and every stage after it are the student's).
 FIRST_NOT_A_PART = "student"
 
@@ -51,6 +53,8 @@ def _copy_run(src: Path, dest: Path) -> None:
     for f in sorted(src.rglob("*")):
         rel = f.relative_to(src)
         if f.is_dir() or f.name in LEFT_OUT or f.suffix == ".h5" or rel.parts[0] == "tb":
+            continue
+        if keep is not None and f.name in RUN_STATE:
             continue
         earlier = rel.parts[0] == "checkpoints" and not str(rel).startswith(f"{keep}/")
         if keep is not None and earlier:
