@@ -112,3 +112,49 @@ def test_every_kept_checkpoint_carries_checksums_that_hold():
         ckpt = verify_checkpoint(folder)
         files = {p.name for p in folder.iterdir() if p.is_file() and p.name != "meta.json"}
         assert set(ckpt.checksums) == files, folder
+
+
+PARTS = MODELS / "robosuite-camera-parts"
+
+
+def test_the_camera_builds_parts_are_kept_and_a_build_takes_them_up(tmp_path, one_thread):
+    """The perception model and the put and stack teachers of the robosuite-camera build,
+    with their stage records: its perception reads frames, its teachers act on the
+    privileged state, and ``--parts`` copies them into a new build's folder."""
+    pytest.importorskip("robosuite")
+    from lcrl.perception import load_model
+    from train.commands.pipeline import robosuite_camera, stages
+    from train.commands.pipeline_parts import import_parts
+    from train.evaluation.evaluate import resolve_checkpoint
+    from train.policies.loading import load_policy
+
+    records = {f.stem: json.loads(f.read_text()) for f in (PARTS / "stages").glob("*.json")}
+    assert set(records) == {
+        "perception-data", "perception", "demos-robosuite-manip", "teacher-put", "teacher-stack"
+    }  # fmt: skip
+    assert all(r["seconds"] > 0 and len(r["span"]) == 2 for r in records.values())
+    model, meta = load_model(PARTS / "perception" / "model")
+    assert meta["env"] == "robosuite" and model.frame_shape == (84, 84, 3)
+    frames = np.random.default_rng(0).integers(0, 256, (2, 84, 84, 3), dtype=np.uint8)
+    assert np.isfinite(model.observation(frames, np.zeros((2, 4), np.float32))).all()
+    for family in ("put", "stack"):
+        policy = load_policy(resolve_checkpoint(str(PARTS / "teachers" / family)))
+        try:
+            assert policy.cfg.env.families == (family,)
+            assert not list(policy.checkpoint.path.glob("arrays.npz"))  # weights only
+            obs, _ = policy.env.reset(seed=0)
+            goal = np.asarray([policy.task.goal(obs, policy.env)])
+            view = policy.task.storage_obs(obs, obs)
+            act = policy.agent.act({k: v[None] for k, v in view.items()}, goal, deterministic=True)
+            assert act.shape == (1, policy.task.problem().action_dim)
+        finally:
+            policy.env.close()
+    out = tmp_path / "camera"
+    import dataclasses
+
+    p = dataclasses.replace(robosuite_camera(), out=str(out))
+    taken = import_parts(out, stages(p), PARTS)
+    # perception's data is not kept (perception-ft reads it again): that stage runs again
+    assert taken == ["perception", "demos-robosuite-manip", "teacher-put", "teacher-stack"]
+    assert (out / "teachers" / "put" / "latest.json").is_file()
+    assert "`robosuite-camera-parts/`" in (MODELS / "README.md").read_text()
