@@ -487,3 +487,20 @@ def test_a_distillation_into_a_folder_another_process_holds_is_refused(
     finally:
         proc.stdin.close()
         proc.wait(timeout=30)
+
+
+def test_a_student_of_more_families_than_its_base_teacher_has_their_table(teacher, tmp_path):
+    """The base teacher follows reach only; a student of reach and push (``--families``)
+    gets the instruction table of its own families, the base labelling reach through its
+    own ids and the scripted controller push."""
+    out = tmp_path / "wider"
+    args = ["distill", str(teacher), "--state", "--out", str(out), "--families", "reach", "push"]
+    args += ["--teacher-for", "push=scripted", "--rounds", "1", "--episodes-per-round", "6"]
+    args += ["--updates-per-round", "5", "--batch-size", "16", "--eval-every", "0"]
+    args += ["--eval-episodes", "1", "--no-progress", "--no-tensorboard"]
+    assert cli(*args) == 0
+    import lcrl
+
+    table = lcrl.load(out).task.table
+    assert any(t.startswith("push ") for t in table) and any(t.startswith("reach ") for t in table)
+    assert _rows(out / "progress.csv")[0]["rows"] > 0

@@ -356,13 +356,17 @@ class DistillTrainer(BaseTrainer):
         self._source = "privileged" if "privileged" in space.spaces else "observation"
         self._check_teacher(teacher)
         self._check_family_teachers()
-        table = (list(teacher.task.table), teacher.task.num_train)  # the teacher's ids
+        # the teacher's ids, unless the student follows other families (--families): a
+        # student of several family teachers has the table of its own families
+        same = tuple(cfg.env.families) == tuple(teacher.cfg.env.families)
+        table = (list(teacher.task.table), teacher.task.num_train) if same else None
         self.task = build_task(cfg, self.env, ckpt, table=None if ckpt else table)
-        if list(self.task.table) != list(teacher.task.table):
+        if same and list(self.task.table) != list(teacher.task.table):
             raise LcrlError(
                 "the student's instruction table differs from the teacher's: resume with the "
                 "run's own config"
             )
+        self._teacher_ids = list(self.task.table) == list(teacher.task.table)
         self.problem = self.task.problem()
         if self.problem.privileged:
             raise LcrlError("the student is a policy: it reads no privileged state")
@@ -471,9 +475,15 @@ class DistillTrainer(BaseTrainer):
             teacher = None
         else:
             teacher = self.family_teachers.get(family, self.teacher)
-        if teacher is None or teacher is self.teacher:  # the student's own ids
-            return teacher, np.asarray([goal])
-        return teacher, np.asarray([teacher.task.ids[self.task.table[goal]]])
+        if teacher is None or (teacher is self.teacher and self._teacher_ids):
+            return teacher, np.asarray([goal])  # the student's own ids
+        text = self.task.table[goal]
+        if text not in teacher.task.ids:
+            raise LcrlError(
+                f"the teacher {teacher.checkpoint.path} has no instruction {text!r}: give "
+                f"{family} a teacher of its own (--teacher-for {family}=RUN or =scripted)"
+            )
+        return teacher, np.asarray([teacher.task.ids[text]])
 
     def _label(
         self,
