@@ -2,6 +2,9 @@
 
     python -m benchmarks.robosuite_camera                 # build (resumable), then evaluate
     python -m benchmarks.robosuite_camera --analyse       # evaluate the kept model only
+    python -m benchmarks.robosuite_camera --jobs 2        # two stages at a time where they can
+    python -m benchmarks.robosuite_camera --parts benchmarks/models/robosuite-camera-parts
+                                                          # from the kept perception and teachers
 
 Builds the policy with ``lcrl train robosuite-camera --out WORK --keep MODEL`` (every stage,
 from nothing; a stopped build goes on where it stopped), then evaluates the kept model
