@@ -91,11 +91,12 @@ def main(argv: list[str] | None = None) -> int:
             if not (out / "report.md").is_file():
                 cmd = run_command(args.preset, opts, seed, out, args)
                 run_logged(cmd, out.with_suffix(".log"), f"{args.preset} {arm_name(opts)} s{seed}")
+            rows = curve(out)
             runs[f"{arm_name(opts)} s{seed}"] = {
                 "arm": arm_name(opts),
                 "seed": seed,
-                "curve": curve(out),
-                **summarise(curve(out), args.threshold),
+                "curve": rows,
+                **summarise(rows, args.threshold),
             }
     arms: dict[str, dict[str, Any]] = {}
     for opts in options:
