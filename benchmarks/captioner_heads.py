@@ -81,9 +81,10 @@ TRIED = (
 )
 CAVEATS = (
     "Intervals in the table are the range over the 3 training seeds. `lcrl caption eval` "
-    "also gives each figure a 95% Wilson (exact match) or bootstrap (AUC) interval over "
-    "observations (in each checkpoint's `eval-test.json`); observations of one episode are "
-    "correlated, so those intervals are narrower than independent episodes would give. "
+    "also gives each figure a 95% interval by episode (in each checkpoint's "
+    "`eval-test.json`): exact match uses Wilson's interval at the effective number of "
+    "episodes (observations of one episode are correlated), and reward AUCs resample "
+    "whole episodes. "
     "Exact match counts a caption that is any of the instructions the observation "
     "satisfies; per family, an observation counts under its most demanding instruction "
     "(a lift also reaches its object). The datasets are random and scripted episodes of "

@@ -92,6 +92,24 @@ def pooled(doc: dict[str, Any], name: str) -> tuple[float, int]:
     return (float(s["success"]), int(s["episodes"])) if s else (float("nan"), 0)
 
 
+def ratio_interval(
+    num: tuple[float, int], den: tuple[float, int], draws: int = 20_000, seed: int = 0
+) -> list[float]:
+    """95% interval of ``num`` / ``den`` (each a success rate and its episodes), from
+    binomial draws of both rates (a parametric bootstrap)."""
+    import numpy as np
+
+    (a, n), (b, m) = num, den
+    if not n or not m or a != a or b != b:
+        return [float("nan"), float("nan")]
+    rng = np.random.default_rng(seed)
+    top = rng.binomial(n, a, draws) / n
+    bottom = rng.binomial(m, b, draws) / m
+    ok = bottom > 0
+    ratio = top[ok] / bottom[ok]
+    return [float(np.quantile(ratio, 0.025)), float(np.quantile(ratio, 0.975))]
+
+
 def summarise(ev: dict[str, Any]) -> dict[str, Any]:
     sets = ev["sets"]
     seen = sets["sets"]["train"]["families"]
@@ -100,10 +118,18 @@ def summarise(ev: dict[str, Any]) -> dict[str, Any]:
     true = ev["true_state"]["sets"]["train"]["families"]
     chain = ev["chain2"]["sets"]["train"]["chain"]["success"]
     two = next((c["success"] for c in chain if c["length"] == 2), float("nan"))
-    seen_all, _ = pooled(sets, "train")
-    held_all, _ = pooled(sets, "heldout")
-    para_all, _ = pooled(sets, "paraphrase")
+    seen_all, n_seen = pooled(sets, "train")
+    held_all, n_held = pooled(sets, "heldout")
+    para_all, n_para = pooled(sets, "paraphrase")
+    pair = next((c["ci"] for c in chain if c["length"] == 2), [float("nan")] * 2)
+    intervals = {
+        **{f: seen.get(f, {}).get("ci") for f in FAMILIES},
+        "chain2": pair,
+        "heldout_ratio": ratio_interval((held_all, n_held), (seen_all, n_seen)),
+        "paraphrase_ratio": ratio_interval((para_all, n_para), (seen_all, n_seen)),
+    }
     return {
+        "intervals": intervals,
         **{f: seen.get(f, {}).get("success", float("nan")) for f in FAMILIES},
         "chain2": two,
         "heldout_ratio": held_all / seen_all if seen_all else float("nan"),
@@ -119,6 +145,21 @@ def summarise(ev: dict[str, Any]) -> dict[str, Any]:
         },
         "pooled": {"seen": seen_all, "heldout": held_all, "paraphrase": para_all},
     }
+
+
+def validation(work: Path) -> dict[str, Any]:
+    """The pipeline's own evaluation (seed 1, the one choices may look at), per family."""
+    out: dict[str, Any] = {}
+    sets_path, chain_path = work / "eval" / "eval.json", work / "eval-chain2" / "eval.json"
+    if sets_path.is_file():
+        doc = json.loads(sets_path.read_text())
+        for name, s in doc.get("sets", {}).items():
+            fams = s.get("families", {})
+            out[name] = {f: fams.get(f, {}).get("success") for f in FAMILIES}
+    if chain_path.is_file():
+        chain = json.loads(chain_path.read_text())["sets"]["train"]["chain"]["success"]
+        out["chain2"] = next((c["success"] for c in chain if c["length"] == 2), None)
+    return out
 
 
 def main() -> None:
@@ -152,8 +193,10 @@ def main() -> None:
         "machine": info,
         "targets": {**TARGETS, "wall_clock_s": WALL_AIM_S},
         "reached": reached,
+        "intervals": summary["intervals"],
         "per_family": summary["per_family"],
         "pooled": summary["pooled"],
+        "validation_seed1": validation(work),
         "stages": {
             k: {"seconds": v["seconds"], "commands": v["commands"]} for k, v in stages.items()
         },
@@ -171,14 +214,18 @@ def main() -> None:
         for f in FAMILIES
     ]
     missed = [k for k, ok in reached.items() if not ok]
+    ci = {k: v if v else [float("nan")] * 2 for k, v in summary["intervals"].items()}
     body = "\n".join(
         [
             f"Test seed {args.eval_seed}, {args.episodes} episodes per set. Targets "
             + ("all reached." if not missed else f"NOT reached: {', '.join(missed)}."),
             "",
-            "| key | value | target |",
+            "| key | value [95% interval] | target |",
             "|---|---:|---:|",
-            *(f"| {k} | {headline[k]:.3f} | {TARGETS[k]} |" for k in TARGETS),
+            *(
+                f"| {k} | {headline[k]:.3f} [{ci[k][0]:.2f}, {ci[k][1]:.2f}] | {TARGETS[k]} |"
+                for k in TARGETS
+            ),
             f"| wall_clock_s | {wall:.0f} | aim {WALL_AIM_S} |",
             "",
             "| family | seen | held-out | paraphrase | true state (seen) |",

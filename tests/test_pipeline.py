@@ -165,6 +165,37 @@ def test_stopping_the_camera_benchmark_stops_its_build(monkeypatch):
     assert seen["preexec_fn"] is die_with_parent
 
 
+def test_the_camera_benchmark_summarises_an_evaluation_with_intervals():
+    """Seen success per family, chain2 and the pooled ratios come with 95% intervals; a
+    ratio's interval holds its value and narrows with more episodes."""
+    from benchmarks.robosuite_camera import FAMILIES, ratio_interval, summarise
+
+    fams = {f: {"success": 0.5, "ci": [0.4, 0.6]} for f in FAMILIES}
+
+    def doc(seen: float, held: float, para: float) -> dict:
+        return {
+            "sets": {
+                "train": {"success": seen, "episodes": 500, "families": fams},
+                "heldout": {"success": held, "episodes": 500, "families": fams},
+                "paraphrase": {"success": para, "episodes": 500, "families": fams},
+            }
+        }
+
+    chain = {"sets": {"train": {"chain": {"success": [
+        {"length": 1, "success": 0.7, "ci": [0.6, 0.8]},
+        {"length": 2, "success": 0.45, "ci": [0.35, 0.55]},
+    ]}}}}  # fmt: skip
+    ev = {"sets": doc(0.8, 0.6, 0.7), "chain2": chain, "true_state": doc(0.9, 0.9, 0.9)}
+    s = summarise(ev)
+    assert s["chain2"] == 0.45 and s["intervals"]["chain2"] == [0.35, 0.55]
+    assert abs(s["heldout_ratio"] - 0.75) < 1e-9 and s["intervals"]["push"] == [0.4, 0.6]
+    low, high = s["intervals"]["heldout_ratio"]
+    assert low < 0.75 < high
+    wide = ratio_interval((0.6, 50), (0.8, 50))
+    narrow = ratio_interval((0.6, 5000), (0.8, 5000))
+    assert wide[1] - wide[0] > 3 * (narrow[1] - narrow[0])
+
+
 def _fake_stages(monkeypatch, fail: str = "", seconds: float = 0.15):
     """Stage commands that sleep a moment and make their ``--out`` (and its ``model``),
     logging when each ran; ``fail`` names a command word that fails."""
