@@ -158,3 +158,62 @@ def test_the_camera_builds_parts_are_kept_and_a_build_takes_them_up(tmp_path, on
     assert taken == ["perception", "demos-robosuite-manip", "teacher-put", "teacher-stack"]
     assert (out / "teachers" / "put" / "latest.json").is_file()
     assert "`robosuite-camera-parts/`" in (MODELS / "README.md").read_text()
+
+
+CAMERA = MODELS / "robosuite-camera"
+
+
+def test_the_kept_camera_policy_acts_from_frames_reads_free_text_and_is_evaluated(
+    tmp_path, one_thread, capsys
+):
+    """The policy ``lcrl train robosuite-camera`` keeps: one network acting through its own
+    copy of the perception model on 84 px agentview frames and proprioception, with the
+    canonical reader on by default (kept beside it, no replay state), that ``lcrl act`` and
+    ``lcrl eval`` take in a fresh clone."""
+    pytest.importorskip("robosuite")
+    from helpers import cli
+
+    from lcrl.checkpoint import verify_checkpoint
+    from train.environments.text_reading import READER_CACHE
+
+    ckpt = verify_checkpoint(CAMERA)
+    env = ckpt.meta["config"]["env"]
+    assert env["kind"] == "robosuite" and env["canonical_reader"]
+    assert sorted(env["families"]) == ["lift", "push", "put", "reach", "stack"]
+    assert "perception" in ckpt.meta and (CAMERA / READER_CACHE).is_dir()
+    assert not list(CAMERA.glob("arrays.npz")) and not list(CAMERA.glob("state*"))
+    assert sum(f.stat().st_size for f in CAMERA.rglob("*") if f.is_file()) < 10e6
+
+    import lcrl
+
+    policy = lcrl.load(CAMERA)
+    try:
+        assert policy.perceives and policy.agent.name == "bc"  # one network, distilled
+        obs, _ = policy.env.reset(seed=3)
+        frame = np.asarray(obs["image"], np.uint8)
+        assert frame.shape == (84, 84, 3)
+        start = policy._frame_reader()[0].layout.start  # the gripper's state leads the vector
+        camera = {"image": frame, "proprio": obs["observation"][:start]}
+        action = policy.act(camera, "pick up the yellow cube")
+        assert action.shape == policy.env.action_space.shape
+        policy.reset()
+        # the env's observation is perception's reading of the same frame
+        np.testing.assert_allclose(action, policy.act(obs, "pick up the yellow cube"), atol=1e-4)
+    finally:
+        policy.env.close()
+
+    video = tmp_path / "lift.gif"
+    args = ["act", str(CAMERA), "--instruction", "pick up the yellow cube", "--episodes", "1"]
+    assert cli(*args, "--video", str(video), "--seed", "11") == 0
+    said = capsys.readouterr().out
+    assert "the reader reads it as" in said and video.stat().st_size > 10_000
+    out = tmp_path / "eval.json"
+    args = ["eval", str(CAMERA), "--episodes", "2", "--sets", "train", "--seed", "12"]
+    assert cli(*args, "--json", str(out), "--no-progress") == 0
+    train = json.loads(out.read_text())["sets"]["train"]
+    assert train["episodes"] == 2 and 0.0 <= train["success"] <= 1.0
+    assert set(train["families"]) <= {"reach", "push", "lift", "put", "stack"}
+    result = json.loads((MODELS.parent / "results" / "robosuite-camera.json").read_text())
+    assert result["headline"]["model"] == "benchmarks/models/robosuite-camera"
+    assert "`robosuite-camera/`" in (MODELS / "README.md").read_text()
+

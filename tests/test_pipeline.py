@@ -303,6 +303,25 @@ def test_the_clock_counts_stages_side_by_side_once():
     assert wall_clock(records) == 10 + 5 + 7
 
 
+def test_a_stage_stopped_and_run_again_counts_the_time_of_both_runs(tmp_path, monkeypatch):
+    """The time a stage spent before an interrupt or a failure stopped it is in its record
+    once it finishes (its seconds and the clock time), not lost with the stopped run."""
+    from train.commands.pipeline import robosuite_camera, run_pipeline, wall_clock
+
+    _fake_stages(monkeypatch, fail="collect", seconds=0.2)
+    p = dataclasses.replace(
+        robosuite_camera(), out=str(tmp_path / "c"), stages=("perception-data",)
+    )
+    with pytest.raises(LcrlError, match="failed"):
+        run_pipeline(p)
+    assert not (tmp_path / "c" / "stages" / "perception-data.json").exists()
+    _fake_stages(monkeypatch, seconds=0.2)
+    record = run_pipeline(p)["perception-data"]
+    assert len(record["earlier_spans"]) == 1 and record["seconds"] >= 0.4
+    assert wall_clock([record]) >= 0.4 - 1e-6
+    assert not list((tmp_path / "c" / "stages").glob(".*partial*"))  # folded into it
+
+
 def test_parts_of_a_build_are_kept_and_taken_up_by_another(tmp_path, monkeypatch, capsys):
     """--export-parts keeps perception and the teachers (weights, configs and records, no
     data); --parts starts a new build from them: only perception's data (read again by

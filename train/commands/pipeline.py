@@ -421,8 +421,11 @@ def stages(p: CameraPipeline) -> list[Stage]:
 
 def wall_clock(records: Sequence[dict[str, Any]]) -> float:
     """Seconds the stages of ``records`` took on the clock: stages that ran side by side
-    count once (their spans are merged); a record without a span counts its seconds."""
-    spans = sorted(tuple(r["span"]) for r in records if r.get("span"))
+    count once (their spans, and those of their earlier stopped runs, are merged); a
+    record without a span counts its seconds."""
+    spans = sorted(
+        tuple(s) for r in records if r.get("span") for s in (*r.get("earlier_spans", ()), r["span"])
+    )
     total = sum(float(r["seconds"]) for r in records if not r.get("span"))
     end = float("-inf")
     for a, b in spans:
@@ -460,22 +463,41 @@ def _stage_threads(p: CameraPipeline, beside: int) -> CameraPipeline:
 
 
 def _run_stage(p: CameraPipeline, stage: Stage, signals: Signals) -> None:
-    """Run one stage's commands and record it as finished."""
+    """Run one stage's commands and record it as finished, with the time of its earlier
+    runs that were stopped (an interrupt, a failure) before it finished."""
     seconds, started = 0.0, time.time()
-    for args in stage.commands:
-        seconds += run_command(args, signals)
-    if stage.name == "keep":
-        seconds += keep_policy(p, signals)
-    signals.check()  # stopped after its last command: not finished
+    partial = _record(p) / f".{stage.name}.partial.json"
+    try:
+        for args in stage.commands:
+            seconds += run_command(args, signals)
+        if stage.name == "keep":
+            seconds += keep_policy(p, signals)
+        signals.check()  # stopped after its last command: not finished
+    except BaseException:
+        earlier = _earlier_runs(partial)
+        earlier.append([round(started, 1), round(time.time(), 1)])
+        partial.write_text(json.dumps(earlier))
+        raise
+    earlier = _earlier_runs(partial)
     record = {
         "stage": stage.name,
-        "seconds": round(seconds, 1),
+        "seconds": round(seconds + sum(b - a for a, b in earlier), 1),
         "commands": ["lcrl " + shlex.join(a) for a in stage.commands],
         "outputs": list(stage.outputs),
         "finished": time.strftime("%Y-%m-%dT%H:%M:%S"),
         "span": [round(started, 1), round(time.time(), 1)],  # wall clock, side by side
     }
+    if earlier:
+        record["earlier_spans"] = earlier  # runs stopped before it finished
     (_record(p) / f"{stage.name}.json").write_text(json.dumps(record, indent=1))
+    partial.unlink(missing_ok=True)
+
+
+def _earlier_runs(partial: Path) -> list[list[float]]:
+    try:
+        return [list(map(float, s)) for s in json.loads(partial.read_text())]
+    except (OSError, ValueError, TypeError):
+        return []
 
 
 def _makers(stage: Stage) -> list[tuple[str, str]]:
