@@ -216,4 +216,3 @@ def test_the_kept_camera_policy_acts_from_frames_reads_free_text_and_is_evaluate
     result = json.loads((MODELS.parent / "results" / "robosuite-camera.json").read_text())
     assert result["headline"]["model"] == "benchmarks/models/robosuite-camera"
     assert "`robosuite-camera/`" in (MODELS / "README.md").read_text()
-
