@@ -22,6 +22,7 @@ import argparse
 import copy
 import dataclasses
 import os
+import sys
 import tempfile
 import time
 from pathlib import Path
@@ -131,6 +132,20 @@ def collection_rates(workers: int, seconds: float, seed: int) -> dict[str, float
     }
 
 
+def without_arms(argv: list[str]) -> list[str]:
+    """``argv`` less ``--arms`` and its values."""
+    out, skipping = [], False
+    for a in argv:
+        if a == "--arms":
+            skipping = True
+        elif skipping and not a.startswith("-"):
+            continue
+        else:
+            skipping = False
+            out.append(a)
+    return out
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--steps", type=int, default=30_000)
@@ -156,6 +171,8 @@ def main(argv: list[str] | None = None) -> int:
     }
     seconds = {arm: float((work / arm / "seconds.txt").read_text()) for arm in ("local", "ray")}
     info = machine()
+    # the figures are the full command's: --arms only leaves out runs already done
+    cmd = " ".join(["python -m benchmarks.ray_collect", *without_arms(argv or sys.argv[1:])])
     headline = {
         "ray_seen": final["ray"]["train"]["success"],
         "local_seen": final["local"]["train"]["success"],
@@ -168,8 +185,7 @@ def main(argv: list[str] | None = None) -> int:
     save_json(
         NAME,
         {
-            # the figures are the full command's: --arms only leaves out runs already done
-            "command": "python -m benchmarks.ray_collect",
+            "command": cmd,
             "headline": headline,
             "machine": info,
             "settings": vars(args),
@@ -199,7 +215,7 @@ def main(argv: list[str] | None = None) -> int:
         "environment; the headline is now against the local loop as shipped, measured in "
         "the same run."
     )
-    save_markdown(NAME, "Ray rollout workers on lang2d", body, info)
+    save_markdown(NAME, "Ray rollout workers on lang2d", body, info, cmd)
 
     fig, axes = new_figure(nrows=1, ncols=2, figsize=(9, 3.5))
     x = range(len(SETS))
@@ -216,7 +232,7 @@ def main(argv: list[str] | None = None) -> int:
         color="tab:green",
     )
     axes[1].set(ylabel="collection steps/s", title="collection alone")
-    save_figure(NAME, fig, info)
+    save_figure(NAME, fig, info, cmd)
     return 0
 
 

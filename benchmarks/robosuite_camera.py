@@ -222,9 +222,10 @@ def main() -> None:
     reached["wall_clock_s"] = wall <= WALL_AIM_S
     info = machine()
     # the figures are what the build command gives (--analyse only re-reads its evaluations)
-    build = " ".join(["python -m benchmarks.robosuite_camera", *sys.argv[1:]])
+    build = [a for a in sys.argv[1:] if a != "--analyse"]
+    cmd = " ".join(["python -m benchmarks.robosuite_camera", *build])
     payload = {
-        "command": build.replace(" --analyse", ""),
+        "command": cmd,
         "headline": headline,
         "machine": info,
         "targets": {**TARGETS, "wall_clock_s": WALL_AIM_S},
@@ -275,7 +276,7 @@ def main() -> None:
             *findings(summary, ev, payload["validation_seed1"], stages),
         ]
     )
-    save_markdown(NAME, "One camera policy for every robosuite family", body, info)
+    save_markdown(NAME, "One camera policy for every robosuite family", body, info, cmd)
     import matplotlib.pyplot as plt
 
     fig, ax = plt.subplots(figsize=(8, 3.6))
@@ -286,7 +287,7 @@ def main() -> None:
     ax.set_xticks(range(len(FAMILIES)), FAMILIES)
     ax.set(ylim=(0, 1.02), ylabel="success")
     ax.legend(fontsize=7)
-    save_figure(NAME, fig, info)
+    save_figure(NAME, fig, info, cmd)
     print(json.dumps(headline, indent=1))
 
 
