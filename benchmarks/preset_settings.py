@@ -6,7 +6,8 @@ Trains ``lcrl train PRESET`` as shipped and with each candidate's options (``--c
 one string of options each), on seeds that no headline uses (``--seeds``, 100 and 101: a
 choice, not a figure to report), one run after another with the arms alternating within
 each seed, each on ``--threads`` torch threads, all with the same evaluation schedule
-(``--eval-every``, ``--eval-episodes``). Time to success is the training seconds
+(``--eval-every``, ``--eval-episodes``) and the same budget (``--total-steps``, default
+the preset's own). Time to success is the training seconds
 (evaluations excluded) of the first evaluation whose seen success reaches
 ``--threshold``; a run that never gets there counts its whole training time and is
 marked. Finished runs are read, not trained again.
@@ -50,6 +51,7 @@ def run_command(preset: str, options: str, seed: int, out: Path, args: Any) -> l
         "--seed", str(seed), "--agent.seed", str(seed),
         "--torch-threads", str(args.threads),
         "--eval-every", str(args.eval_every), "--eval-episodes", str(args.eval_episodes),
+        *(["--total-steps", str(args.total_steps)] if args.total_steps else []),
         *shlex.split(options),
     ]  # fmt: skip
 
@@ -82,6 +84,12 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--eval-episodes", type=int, default=50)
     p.add_argument("--threads", type=int, default=1)
     p.add_argument("--work", default="runs/bench/preset-settings")
+    p.add_argument(
+        "--total-steps",
+        type=int,
+        default=0,
+        help="train every arm for this many steps (0: the preset's own budget)",
+    )
     args = p.parse_args(argv)
     options = ["", *args.candidates]
     runs: dict[str, dict[str, Any]] = {}
@@ -132,7 +140,8 @@ def main(argv: list[str] | None = None) -> int:
     lines = [
         f"`lcrl train {args.preset}`, training seconds to {args.threshold:.0%} seen success "
         f"(medians over seeds {args.seeds}, which no headline uses; "
-        f"{args.threads} torch thread(s), evaluations excluded).",
+        f"{args.threads} torch thread(s), evaluations excluded; "
+        f"{f'{args.total_steps:,} steps' if args.total_steps else 'the preset budget'}).",
         "",
         "| options | seconds | per seed | final seen | every seed reached |",
         "|---|---:|---|---:|---|",

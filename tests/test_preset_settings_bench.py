@@ -44,6 +44,17 @@ def test_the_soonest_arm_that_keeps_the_final_success_is_chosen(tmp_path, monkey
     for c in calls:
         assert c[c.index("--torch-threads") + 1] == "1"
         assert c[c.index("--eval-every") + 1] == "1000"
+        assert "--total-steps" not in c  # the preset's own budget unless one is given
+
+
+def test_every_arm_gets_the_same_budget_when_one_is_given(tmp_path):
+    args = ps.argparse.Namespace(threads=1, eval_every=2000, eval_episodes=50, total_steps=40000)
+    shipped = ps.run_command("lang2d-td3", "", 100, tmp_path / "run", args)
+    candidate = ps.run_command("lang2d-td3", "--collect.envs 8", 100, tmp_path / "run", args)
+    for cmd in (shipped, candidate):
+        assert cmd[cmd.index("--total-steps") + 1] == "40000"
+    # a candidate's own options come last, so they win over the shared ones
+    assert candidate[-2:] == ["--collect.envs", "8"] and candidate[:-2] == shipped
 
 
 def test_no_arm_is_chosen_that_ends_lower_than_the_shipped_one():
