@@ -504,3 +504,27 @@ def test_a_student_of_more_families_than_its_base_teacher_has_their_table(teache
     table = lcrl.load(out).task.table
     assert any(t.startswith("push ") for t in table) and any(t.startswith("reach ") for t in table)
     assert _rows(out / "progress.csv")[0]["rows"] > 0
+
+
+def test_colour_renaming_switched_on_at_a_resume_is_recorded_from_its_round(
+    teacher, perception, tmp_path, capsys
+):
+    out = tmp_path / "student"
+    args = ["distill", str(teacher), "--perception", str(perception), "--out", str(out)]
+    args += ["--episodes-per-round", "1", "--updates-per-round", "3", "--batch-size", "8"]
+    args += ["--eval-every", "0", "--eval-episodes", "1", "--no-progress", "--no-tensorboard"]
+    assert cli(*args, "--rounds", "1") == 0
+    assert cli(*args, "--rounds", "2", "--resume", "--augment", "colours") == 0
+    assert "colours renamed in every update's rows from round 2 on" in capsys.readouterr().out
+    from lcrl.checkpoint import load_checkpoint
+    from train.evaluation.evaluate import resolve_checkpoint
+
+    ckpt = load_checkpoint(resolve_checkpoint(out))
+    assert ckpt.meta["distill"]["augment"] == {"kind": "colours", "from_round": 1}
+    # a later resumption keeps it on, from the same round
+    assert cli(*args, "--rounds", "3", "--resume") == 0
+    ckpt = load_checkpoint(resolve_checkpoint(out))
+    assert ckpt.meta["distill"]["augment"] == {"kind": "colours", "from_round": 1}
+    assert ckpt.state("trainer")["augment_from"] == 1
+    assert cli(*args, "--rounds", "1", "--overwrite", "--augment", "shapes") == 2
+    assert "distill.augment must be 'colours'" in error_line(capsys.readouterr().err)

@@ -415,3 +415,23 @@ def test_the_camera_benchmark_evaluates_side_by_side_and_reads_what_is_done(tmp_
     chain = out["chain2"]["argv"]
     assert chain[chain.index("eval") + 1 :][:5] == ["M", "--episodes", "100", "--seed", "7"]
     assert "--chain" in chain and "--true-state" in out["true_state"]["argv"]
+
+
+def test_augmented_rounds_are_a_stage_of_their_own_before_the_evaluation(tmp_path):
+    from train.commands.pipeline import _waits_for, robosuite_camera, stages
+
+    p = dataclasses.replace(robosuite_camera(), out=str(tmp_path / "camera"), rounds_aug=0)
+    assert "student-aug" not in [s.name for s in stages(p)]
+    p = dataclasses.replace(p, rounds_aug=40)
+    every = stages(p)
+    names = [s.name for s in every]
+    assert names[names.index("student-ft") + 1] == "student-aug"
+    (aug,) = [s for s in every if s.name == "student-aug"]
+    cmd = aug.commands[0]
+    assert cmd[:4] == ["distill", f"{p.out}/teachers/put", "--out", f"{p.out}/student"]
+    assert "--resume" in cmd and cmd[cmd.index("--augment") + 1] == "colours"
+    assert cmd[cmd.index("--rounds") + 1] == str(p.rounds + p.rounds_ft + 40)
+    assert cmd[cmd.index("--perception") + 1] == f"{p.out}/perception-ft/model"
+    waits = _waits_for(every)
+    assert "student-ft" in waits["student-aug"]
+    assert "student-aug" in waits["eval"] and "student-aug" in waits["keep"]

@@ -70,6 +70,11 @@ class DistillCommand:
     max_episode_steps: int = 0
     """The student's episode length (default: the teacher's env's; manipulation needs
     100)."""
+    augment: str = ""
+    """``colours``: rename the colours of every update's rows in scene and instruction
+    alike (into training instructions only), more scenes from the same episodes; with
+    ``--resume`` it applies from the next round on. Empty: the rows as gathered (a resumed
+    run keeps its own)."""
     new_perception: str = ""
     """With ``--resume``: the perception model the student acts through from the next
     round on (one fine-tuned on the student's own frames, ``lcrl perception train --init
@@ -140,6 +145,7 @@ class DistillCommand:
             chain_teacher=self.chain_teacher,
             roll_in=self.roll_in,
             init_from_teacher=self.init_from_teacher,
+            augment=self.augment,
         )
         cfg = student_config(
             teacher,

@@ -15,6 +15,8 @@ goes), each writing into the pipeline's folder (``--out``)::
     student-frames    lcrl perception collect: the student's own episodes
     perception-ft     lcrl perception train --init: perception fine-tuned on them
     student-ft        lcrl distill --resume --new-perception: more DAgger rounds with it
+    student-aug       lcrl distill --resume --augment colours: more rounds, the colours of
+                      every update's rows renamed in scene and instruction (--rounds-aug)
     eval              lcrl eval: every instruction set, and chains of two
     keep              the final policy (weights and configs), its perception model and its
                       canonical reader copied to --keep, with checksums
@@ -125,6 +127,11 @@ class CameraPipeline:
     """Training steps of ``perception-ft``."""
     rounds_ft: int = 10
     """More DAgger rounds through the fine-tuned perception (``student-ft``)."""
+    rounds_aug: int = 0
+    """More DAgger rounds after those with every update's rows augmented
+    (``student-aug``, ``--augment``); 0: no such stage."""
+    augment: str = "colours"
+    """The augmentation of ``student-aug`` (``lcrl distill --augment``)."""
     eval_episodes: int = 100
     """Episodes per instruction set of ``eval``."""
     eval_seed: int = 1
@@ -387,6 +394,24 @@ def stages(p: CameraPipeline) -> list[Stage]:
             outputs=(str(student),),
         )
     )  # fmt: skip
+    if p.rounds_aug:
+        found.append(
+            Stage(
+                "student-aug",
+                f"more DAgger rounds, every update's rows augmented ({p.augment})",
+                [
+                    [
+                        "distill", str(_teacher_dir(p, base.family)), "--out", str(student),
+                        "--resume", "--rounds", str(total + p.rounds_aug), "--no-progress",
+                        *torch_threads, "--augment", p.augment,
+                        "--perception", str(out / "perception-ft" / "model"),
+                        "--new-perception", str(out / "perception-ft" / "model"),
+                    ]
+                ],
+                needs=(f"{student}<student-ft",),
+                outputs=(str(student),),
+            )
+        )  # fmt: skip
     found.append(
         Stage(
             "eval",

@@ -440,6 +440,11 @@ class DistillConfig:
     states labelled as every other), so that the student acts from where it left the
     scene: more of the states that chains start from (with ``chain``)."""
 
+    augment: str = ""
+    """``colours``: every update's rows get their colours renamed in scene and instruction
+    alike (:class:`train.training.augment.ColourPermutations`, only into training
+    instructions); empty: the rows as gathered."""
+
     init_from_teacher: bool = False
     """The student starts as the teacher: its policy network and observation and goal
     normalisers are copies of the teacher's actor (the mean half of a stochastic actor's
@@ -460,6 +465,8 @@ class DistillConfig:
                 raise LcrlError(f"distill.{name} must be in [0, 1], got {value}")
         if self.chain and self.chain_length < 2:
             raise LcrlError("distill.chain_length must be at least 2 (instructions in a row)")
+        if self.augment not in ("", "colours"):
+            raise LcrlError(f"distill.augment must be 'colours' or empty, got {self.augment!r}")
         family_teachers(self.teachers)
 
 

@@ -48,6 +48,7 @@ from typing import Any
 import numpy as np
 import torch
 
+from envs.features import slot_layout
 from lcrl.buffer import Batch
 from lcrl.errors import LcrlError
 from train.configs.config import (
@@ -61,6 +62,7 @@ from train.configs.sections import SCRIPTED
 from train.environments.tasks import ScriptedActor, find_language_wrapper, make_env, switch_in_place
 from train.evaluation.evaluate import LoadedPolicy, build_agent, build_task, resolve_checkpoint
 from train.policies.loading import load_policy
+from train.training.augment import ColourPermutations
 from train.training.loop import attach_grounding, checkpoint_meta
 from train.training.trainer import BaseTrainer, open_run
 
@@ -280,6 +282,11 @@ class DistillTrainer(BaseTrainer):
                 )
             cfg, ckpt = open_run(cfg, perception=new_perception)
             saved = cfg.distill  # a resumed run keeps the teachers it started with
+            #: The round from which the updates' rows are augmented (0: from the start).
+            self.augment_from = 0
+            if ckpt is not None and given.augment and given.augment != saved.augment:
+                cfg.distill = saved = dataclasses.replace(saved, augment=given.augment)
+                self.augment_from = -1  # from the checkpoint's round: set by restore
             if (saved.teachers, saved.chain_teacher) != (given.teachers, given.chain_teacher):
                 self._close_envs(teachers_only=True)
                 self._load_teachers(saved)
@@ -380,6 +387,7 @@ class DistillTrainer(BaseTrainer):
         self._round: dict[str, float] = {}
         self._start: dict[str, Any] | None = None
         self.lang = find_language_wrapper(self.env)
+        self.augment = self._augmentation()
         self.scripted = None
         if self.scripted_families or cfg.distill.chain_teacher == SCRIPTED:
             # the controller that reads everything off the scene
@@ -391,6 +399,14 @@ class DistillTrainer(BaseTrainer):
         else:
             self.agent.observe({}, self.task.embeddings[: self.task.num_train])
         attach_grounding(self.agent, self.task, cfg)
+
+    def _augmentation(self) -> ColourPermutations | None:
+        """The renamings of ``distill.augment`` for the student's observation (None: off)."""
+        if not self.cfg.distill.augment:
+            return None
+        start, count, width, _ = slot_layout(self.env)
+        size = int(self.problem.obs_shapes["observation"][0])
+        return ColourPermutations(self.task.table, self.task.num_train, (start, count, width), size)
 
     # --- the loop --------------------------------------------------------------------
     def begin(self) -> None:
@@ -414,6 +430,12 @@ class DistillTrainer(BaseTrainer):
             )
             others += f", after the first instruction of a chain: {who}"
         chain = f"; chains of up to {cfg.distill.chain_length}" if cfg.distill.chain else ""
+        if self.augment is not None:
+            since = f" from round {self.augment_from + 1} on" if self.augment_from else ""
+            chain += (
+                f"; colours renamed in every update's rows{since} "
+                f"({self.augment.per_instruction():.1f} renamings per training instruction)"
+            )
         if cfg.distill.roll_in:
             chain += f", the teacher acting the first instruction of {cfg.distill.roll_in:.0%}"
         print(
@@ -559,6 +581,9 @@ class DistillTrainer(BaseTrainer):
         arrays = self._arrays()
         idx = self.rng.integers(self.rows, size=self.cfg.batch_size)
         obs = {k: arrays[k][idx] for k in self.keys}
+        goal = arrays["goal"][idx]
+        if self.augment is not None:
+            obs, goal = self.augment.apply(obs, goal, self.rng)
         n = len(idx)
         return Batch(
             obs=obs,
@@ -566,7 +591,7 @@ class DistillTrainer(BaseTrainer):
             reward=np.zeros(n, np.float32),
             next_obs=obs,
             terminated=np.zeros(n, np.float32),
-            goal=arrays["goal"][idx],
+            goal=goal,
             relabelled=np.zeros(n, bool),
             index=idx,
         )
@@ -648,6 +673,11 @@ class DistillTrainer(BaseTrainer):
             "rows": self.rows,
             "init_from_teacher": bool(cfg.distill.init_from_teacher),
         }
+        if cfg.distill.augment:
+            meta["distill"]["augment"] = {
+                "kind": cfg.distill.augment,
+                "from_round": self.augment_from,
+            }
         if self.family_teachers or self.scripted_families:
             meta["distill"]["teachers"] = {
                 **{
@@ -670,6 +700,7 @@ class DistillTrainer(BaseTrainer):
                 "episodes": self.episodes,
                 "round": self._round,
                 "train_s": self.train_seconds(),
+                "augment_from": self.augment_from,
             },
             "rng": self.rng.bit_generator.state,
         }
@@ -688,6 +719,10 @@ class DistillTrainer(BaseTrainer):
         self._round = dict(trainer.get("round") or {})
         # seconds before this resume, so a run's train_s counts every session of it
         self.train_s_before = float(trainer.get("train_s", 0.0))
+        if self.augment_from < 0:  # switched on by this resumption
+            self.augment_from = self.step
+        else:
+            self.augment_from = int(trainer.get("augment_from", 0))
         self.rng.bit_generator.state = ckpt.state("rng")
         if ckpt.has_arrays():
             arrays = ckpt.arrays()
