@@ -18,9 +18,10 @@ of capacity or updates: its error on held-out segments falls with more segments,
 figure shows by how much per doubling. The reference is the error of always acting the
 training rows' mean action.
 
-With ``--augment`` the largest share is also fitted with the colours of every batch's rows
-renamed in scene and instruction alike (``lcrl distill --augment colours``), to set what
-the renaming buys beside what more episodes buy.
+``--augment colours mirror+colours ...`` also fits the largest share with every batch's rows
+augmented each way (``lcrl distill --augment``: colours renamed in scene and instruction
+alike, scenes reflected left to right), to set what each buys beside what more episodes
+buy.
 
 Writes ``benchmarks/results/distill-data.{json,md,png}``; ``headline`` holds the best
 held-out error per fraction (``heldout_error_<percent>``), the mean-action reference and
@@ -79,8 +80,8 @@ def fit(
     args: Any,
     augment: Any = None,
 ) -> list[dict[str, float]]:
-    """Fit a fresh student on the ``train`` rows (their colours renamed by ``augment``, a
-    :class:`~train.training.augment.ColourPermutations`, if given); its error on ``probe``
+    """Fit a fresh student on the ``train`` rows (augmented by ``augment``, a
+    :class:`~train.training.augment.Augmentation`, if given); its error on ``probe``
     (held-out rows, as gathered) and on training rows, every ``updates // 8`` updates."""
     import torch
 
@@ -114,12 +115,13 @@ def fit(
         agent.opt.lr = lr0 * 0.5 * (1 + math.cos(math.pi * u / args.updates))
         idx = train[rng.integers(len(train), size=batch)]
         obs, goal = {k: data[k][idx] for k in keys}, data["goal"][idx]
+        action = data["action"][idx]
         if augment is not None:
-            obs, goal = augment.apply(obs, goal, rng)
+            obs, goal, action = augment.apply(obs, goal, action, rng)
         agent.update(
             Batch(
                 obs=obs,
-                action=data["action"][idx],
+                action=action,
                 reward=np.zeros(batch, np.float32),
                 next_obs=obs,
                 terminated=np.zeros(batch, np.float32),
@@ -147,14 +149,14 @@ def fit(
     return points
 
 
-def colour_permutations(policy: Any) -> Any:
-    """The colour renamings ``lcrl distill --augment colours`` applies to the policy's rows."""
+def augmenter(policy: Any, kinds: str) -> Any:
+    """The augmentation ``lcrl distill --augment KINDS`` applies to the policy's rows."""
     from envs.features import slot_layout
-    from train.training.augment import ColourPermutations
+    from train.training.augment import augmentation
 
-    start, count, width, _ = slot_layout(policy.env)
     size = int(policy.task.problem().obs_shapes["observation"][0])
-    return ColourPermutations(policy.task.table, policy.task.num_train, (start, count, width), size)
+    table, n = policy.task.table, policy.task.num_train
+    return augmentation(kinds, table, n, slot_layout(policy.env), size, policy.task.discrete)
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -168,8 +170,9 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument(
         "--augment",
-        action="store_true",
-        help="also fit the largest share with its colours renamed (lcrl distill --augment colours)",
+        nargs="*",
+        default=[],
+        help="also fit the largest share augmented each of these ways (lcrl distill --augment)",
     )
     args = parser.parse_args(argv)
 
@@ -196,22 +199,21 @@ def main(argv: list[str] | None = None) -> int:
     rng = np.random.default_rng(args.seed)
     arms: dict[str, Any] = {}
     start = time.time()
-    plans = [(f, False) for f in args.fractions]
-    if args.augment:
-        plans.append((max(args.fractions), True))
+    plans = [(f, "") for f in args.fractions]
+    plans += [(max(args.fractions), kinds) for kinds in args.augment]
     for fraction, augmented in plans:
         train, held = split_rows(seg, args.heldout, fraction, args.seed)
         probe = rng.choice(held, min(args.probe_rows, len(held)), replace=False)
         print(
             f"{fraction:.0%} of the training segments: {len(train)} rows, "
-            f"{len(np.unique(seg[train]))} segments{', colours renamed' if augmented else ''}"
+            f"{len(np.unique(seg[train]))} segments{f', {augmented}' if augmented else ''}"
         )
-        augment = colour_permutations(policy) if augmented else None
+        augment = augmenter(policy, augmented) if augmented else None
         points = fit(policy, data, train, probe, families, args, augment)
         best = min(points, key=lambda p: p["heldout"])
-        arms[f"{round(fraction * 100)}{'_colours' if augmented else ''}"] = {
+        arms[f"{round(fraction * 100)}{f'_{augmented}' if augmented else ''}"] = {
             "fraction": fraction,
-            "augment": "colours" if augmented else "",
+            "augment": augmented,
             "rows": len(train),
             "segments": len(np.unique(seg[train])),
             "best": best,
@@ -250,7 +252,7 @@ def main(argv: list[str] | None = None) -> int:
         "squared error summed over the action dimensions (best over the run, measured every "
         f"{max(1, args.updates // 8):,} updates).",
         "",
-        "| training segments | colours renamed | rows | held-out error | "
+        "| training segments | augmented | rows | held-out error | "
         + " | ".join(fams)
         + " | gripper | trained rows (final) |",
         "|---|---|---:|---:|" + "---:|" * len(fams) + "---:|---:|",
@@ -258,7 +260,7 @@ def main(argv: list[str] | None = None) -> int:
     for v in arms.values():
         b = v["best"]
         lines.append(
-            f"| {v['segments']:,} ({v['fraction']:.0%}) | {'yes' if v['augment'] else 'no'} | "
+            f"| {v['segments']:,} ({v['fraction']:.0%}) | {v['augment'] or 'no'} | "
             f"{v['rows']:,} | {b['heldout']:.3f} | "
             + " | ".join(f"{b.get(f, float('nan')):.3f}" for f in fams)
             + f" | {b['gripper']:.3f} | {v['final']['train']:.3f} |"
@@ -291,7 +293,7 @@ def main(argv: list[str] | None = None) -> int:
     fig, axes = new_figure(ncols=2, figsize=(9, 3.6))
     for v in arms.values():
         c = v["curve"]
-        name = f"{v['segments']} seg.{' + colours' if v['augment'] else ''}"
+        name = f"{v['segments']} seg.{' + ' + v['augment'] if v['augment'] else ''}"
         axes[0].plot([p["updates"] for p in c], [p["heldout"] for p in c], label=name)
         axes[0].plot(
             [p["updates"] for p in c], [p["train"] for p in c], ls=":", color="grey", lw=0.8
@@ -303,9 +305,8 @@ def main(argv: list[str] | None = None) -> int:
     axes[1].plot(segs, [v["best"]["heldout"] for v in plain.values()], "o-", label="all")
     for f in fams:
         axes[1].plot(segs, [v["best"].get(f, np.nan) for v in plain.values()], ".--", label=f)
-    for v in arms.values():
-        if v["augment"]:
-            axes[1].plot(v["segments"], v["best"]["heldout"], "r*", ms=10, label="colours renamed")
+    for v, marker in zip([v for v in arms.values() if v["augment"]], "*Pd^", strict=False):
+        axes[1].plot(v["segments"], v["best"]["heldout"], marker, ms=9, label=v["augment"])
     axes[1].set(xscale="log", xlabel="training segments", ylabel="best held-out action error")
     axes[1].legend(fontsize=7)
     title = "A DAgger student's error on unseen episodes against its data"

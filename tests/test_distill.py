@@ -515,7 +515,8 @@ def test_colour_renaming_switched_on_at_a_resume_is_recorded_from_its_round(
     args += ["--eval-every", "0", "--eval-episodes", "1", "--no-progress", "--no-tensorboard"]
     assert cli(*args, "--rounds", "1") == 0
     assert cli(*args, "--rounds", "2", "--resume", "--augment", "colours") == 0
-    assert "colours renamed in every update's rows from round 2 on" in capsys.readouterr().out
+    said = capsys.readouterr().out
+    assert "every update's rows augmented from round 2 on: colours renamed" in said
     from lcrl.checkpoint import load_checkpoint
     from train.evaluation.evaluate import resolve_checkpoint
 
@@ -527,4 +528,4 @@ def test_colour_renaming_switched_on_at_a_resume_is_recorded_from_its_round(
     assert ckpt.meta["distill"]["augment"] == {"kind": "colours", "from_round": 1}
     assert ckpt.state("trainer")["augment_from"] == 1
     assert cli(*args, "--rounds", "1", "--overwrite", "--augment", "shapes") == 2
-    assert "distill.augment must be 'colours'" in error_line(capsys.readouterr().err)
+    assert "distill.augment 'shapes': name each of" in error_line(capsys.readouterr().err)

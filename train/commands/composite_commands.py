@@ -71,10 +71,11 @@ class DistillCommand:
     """The student's episode length (default: the teacher's env's; manipulation needs
     100)."""
     augment: str = ""
-    """``colours``: rename the colours of every update's rows in scene and instruction
-    alike (into training instructions only), more scenes from the same episodes; with
-    ``--resume`` it applies from the next round on. Empty: the rows as gathered (a resumed
-    run keeps its own)."""
+    """More scenes from the same episodes: ``colours`` renames the colours of every
+    update's rows in scene and instruction alike, ``mirror`` reflects half of them left to
+    right (scene, instruction and action), ``colours+mirror`` both; only into training
+    instructions. With ``--resume`` it applies from the next round on. Empty: the rows as
+    gathered (a resumed run keeps its own)."""
     new_perception: str = ""
     """With ``--resume``: the perception model the student acts through from the next
     round on (one fine-tuned on the student's own frames, ``lcrl perception train --init

@@ -404,6 +404,26 @@ class FinetuneConfig:
 SCRIPTED = "scripted"
 
 
+#: Augmentations of a DAgger student's batches (``lcrl distill --augment``, joined by ``+``).
+AUGMENTATIONS = ("colours", "mirror")
+
+
+def augmentation_kinds(text: str) -> tuple[str, ...]:
+    """The augmentations ``text`` names (``""``: none; ``colours+mirror``: both).
+
+    Raises:
+        LcrlError: an unknown or repeated name.
+    """
+    kinds = tuple(k.strip() for k in text.split("+")) if text.strip() else ()
+    unknown = [k for k in kinds if k not in AUGMENTATIONS]
+    if unknown or len(set(kinds)) != len(kinds):
+        raise LcrlError(
+            f"distill.augment {text!r}: name each of {', '.join(AUGMENTATIONS)} at most once, "
+            "joined by '+' (e.g. colours+mirror), or leave it empty"
+        )
+    return kinds
+
+
 @dataclass
 class DistillConfig:
     """Teacher -> student distillation with DAgger (``lcrl distill TEACHER_RUN``): a student
@@ -441,9 +461,10 @@ class DistillConfig:
     scene: more of the states that chains start from (with ``chain``)."""
 
     augment: str = ""
-    """``colours``: every update's rows get their colours renamed in scene and instruction
-    alike (:class:`train.training.augment.ColourPermutations`, only into training
-    instructions); empty: the rows as gathered."""
+    """Augment every update's rows (:mod:`train.training.augment`): ``colours`` renames
+    the colours in scene and instruction alike, ``mirror`` reflects half of the rows left
+    to right (scene, instruction and action), ``colours+mirror`` both; only into training
+    instructions. Empty: the rows as gathered."""
 
     init_from_teacher: bool = False
     """The student starts as the teacher: its policy network and observation and goal
@@ -465,8 +486,7 @@ class DistillConfig:
                 raise LcrlError(f"distill.{name} must be in [0, 1], got {value}")
         if self.chain and self.chain_length < 2:
             raise LcrlError("distill.chain_length must be at least 2 (instructions in a row)")
-        if self.augment not in ("", "colours"):
-            raise LcrlError(f"distill.augment must be 'colours' or empty, got {self.augment!r}")
+        augmentation_kinds(self.augment)
         family_teachers(self.teachers)
 
 

@@ -62,7 +62,7 @@ from train.configs.sections import SCRIPTED
 from train.environments.tasks import ScriptedActor, find_language_wrapper, make_env, switch_in_place
 from train.evaluation.evaluate import LoadedPolicy, build_agent, build_task, resolve_checkpoint
 from train.policies.loading import load_policy
-from train.training.augment import ColourPermutations
+from train.training.augment import Augmentation, augmentation
 from train.training.loop import attach_grounding, checkpoint_meta
 from train.training.trainer import BaseTrainer, open_run
 
@@ -400,13 +400,18 @@ class DistillTrainer(BaseTrainer):
             self.agent.observe({}, self.task.embeddings[: self.task.num_train])
         attach_grounding(self.agent, self.task, cfg)
 
-    def _augmentation(self) -> ColourPermutations | None:
-        """The renamings of ``distill.augment`` for the student's observation (None: off)."""
+    def _augmentation(self) -> Augmentation | None:
+        """The augmentations of ``distill.augment`` for the student's rows (None: off)."""
         if not self.cfg.distill.augment:
             return None
-        start, count, width, _ = slot_layout(self.env)
-        size = int(self.problem.obs_shapes["observation"][0])
-        return ColourPermutations(self.task.table, self.task.num_train, (start, count, width), size)
+        return augmentation(
+            self.cfg.distill.augment,
+            self.task.table,
+            self.task.num_train,
+            slot_layout(self.env),
+            int(self.problem.obs_shapes["observation"][0]),
+            self.problem.discrete,
+        )
 
     # --- the loop --------------------------------------------------------------------
     def begin(self) -> None:
@@ -432,10 +437,7 @@ class DistillTrainer(BaseTrainer):
         chain = f"; chains of up to {cfg.distill.chain_length}" if cfg.distill.chain else ""
         if self.augment is not None:
             since = f" from round {self.augment_from + 1} on" if self.augment_from else ""
-            chain += (
-                f"; colours renamed in every update's rows{since} "
-                f"({self.augment.per_instruction():.1f} renamings per training instruction)"
-            )
+            chain += f"; every update's rows augmented{since}: {self.augment.describe()}"
         if cfg.distill.roll_in:
             chain += f", the teacher acting the first instruction of {cfg.distill.roll_in:.0%}"
         print(
@@ -581,13 +583,13 @@ class DistillTrainer(BaseTrainer):
         arrays = self._arrays()
         idx = self.rng.integers(self.rows, size=self.cfg.batch_size)
         obs = {k: arrays[k][idx] for k in self.keys}
-        goal = arrays["goal"][idx]
+        goal, action = arrays["goal"][idx], arrays["action"][idx]
         if self.augment is not None:
-            obs, goal = self.augment.apply(obs, goal, self.rng)
+            obs, goal, action = self.augment.apply(obs, goal, action, self.rng)
         n = len(idx)
         return Batch(
             obs=obs,
-            action=arrays["action"][idx],
+            action=action,
             reward=np.zeros(n, np.float32),
             next_obs=obs,
             terminated=np.zeros(n, np.float32),
