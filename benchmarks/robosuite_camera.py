@@ -240,7 +240,11 @@ def main() -> None:
         "validation": "the pipeline's eval stage (lcrl eval ... --seed 1) is the validation "
         f"evaluation; seed {args.eval_seed} was evaluated once, for this file",
         "tried": [
-            "the robosuite-camera pipeline as shipped (train/commands/pipeline.py), one build"
+            "the robosuite-camera pipeline as shipped (train/commands/pipeline.py), one build",
+            "its student chosen on validation seed 1 among: the build stopped after student-ft "
+            "(round 60), 50 more DAgger rounds as gathered (round 110), and 50 more rounds with "
+            "the colours of every update's rows renamed (student-aug, round 110, chosen): "
+            "benchmarks/results/robosuite-camera-choice.json",
         ],
     }
     save_json(NAME, payload)

@@ -696,7 +696,9 @@ def robosuite_camera() -> CameraPipeline:
     controller for reach, push and lift and for every chained instruction, SAC teachers
     for put and stack (grounded slots, from 2,000 scripted demonstrations); the student
     learns over chains of up to three instructions, with the teacher acting the first
-    instruction of half the episodes (roll-in)."""
+    instruction of half the episodes (roll-in), then 50 more rounds with the colours of
+    every update's rows renamed (``student-aug``; chosen on validation seed 1 over 50 more
+    rounds without: ``benchmarks/results/robosuite-camera-choice.md``)."""
     bf16 = ("--agent.precision", "bf16")
     return CameraPipeline(
         env="robosuite",
@@ -712,6 +714,7 @@ def robosuite_camera() -> CameraPipeline:
         episodes_per_round=30,
         updates_per_round=1000,
         chain=1.0,
+        rounds_aug=50,
         extra_student=(
             "--chain-length", "3", "--chain-teacher", SCRIPTED, "--roll-in", "0.5",
             "--batch-size", "512", "--lr", "3e-4", "--beta-decay", "0.7",
