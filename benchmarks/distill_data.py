@@ -85,8 +85,8 @@ def fit(
     (held-out rows, as gathered) and on training rows, every ``updates // 8`` updates."""
     import torch
 
-    from lcrl.buffer import Batch
     from train.evaluation.evaluate import build_agent
+    from train.training.distill import labelled_batch
     from train.training.loop import attach_grounding
 
     torch.manual_seed(args.seed)
@@ -118,18 +118,7 @@ def fit(
         action = data["action"][idx]
         if augment is not None:
             obs, goal, action = augment.apply(obs, goal, action, rng)
-        agent.update(
-            Batch(
-                obs=obs,
-                action=action,
-                reward=np.zeros(batch, np.float32),
-                next_obs=obs,
-                terminated=np.zeros(batch, np.float32),
-                goal=goal,
-                relabelled=np.zeros(batch, bool),
-                index=idx,
-            )
-        )
+        agent.update(labelled_batch(obs, action, goal, idx))
         if (u + 1) % every == 0 or u + 1 == args.updates:
             e = error(probe)
             point = {

@@ -70,6 +70,23 @@ from train.training.trainer import BaseTrainer, open_run
 EPISODE_SEED = 1_000_003
 
 
+def labelled_batch(
+    obs: dict[str, np.ndarray], action: np.ndarray, goal: np.ndarray, index: np.ndarray
+) -> Batch:
+    """Labelled states as a batch a behavioural-cloning student updates on (no rewards)."""
+    n = len(index)
+    return Batch(
+        obs=obs,
+        action=action,
+        reward=np.zeros(n, np.float32),
+        next_obs=obs,
+        terminated=np.zeros(n, np.float32),
+        goal=goal,
+        relabelled=np.zeros(n, bool),
+        index=index,
+    )
+
+
 def student_config(
     teacher_cfg: TrainConfig,
     *,
@@ -586,17 +603,7 @@ class DistillTrainer(BaseTrainer):
         goal, action = arrays["goal"][idx], arrays["action"][idx]
         if self.augment is not None:
             obs, goal, action = self.augment.apply(obs, goal, action, self.rng)
-        n = len(idx)
-        return Batch(
-            obs=obs,
-            action=action,
-            reward=np.zeros(n, np.float32),
-            next_obs=obs,
-            terminated=np.zeros(n, np.float32),
-            goal=goal,
-            relabelled=np.zeros(n, bool),
-            index=idx,
-        )
+        return labelled_batch(obs, action, goal, idx)
 
     def _arrays(self) -> dict[str, np.ndarray]:
         """The dataset as one array per key (consolidated on first use after a round)."""
