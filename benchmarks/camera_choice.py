@@ -20,12 +20,12 @@ from __future__ import annotations
 
 import argparse
 import json
-import math
 from pathlib import Path
 from typing import Any
 
 from benchmarks.common import LCRL, machine, new_figure, publish, run_jobs
 from benchmarks.protocol import VALIDATION_SEEDS
+from lcrl.statistics import wilson_interval
 
 FAMILIES = ("reach", "push", "lift", "put", "stack")
 SETS = ("train", "heldout")
@@ -46,16 +46,6 @@ def candidates(entries: list[str]) -> dict[str, str]:
     return out
 
 
-def wilson(successes: float, n: int) -> list[float]:
-    """95% Wilson interval of a success rate."""
-    if n <= 0:
-        return [float("nan"), float("nan")]
-    z, p = 1.96, successes / n
-    centre = (p + z * z / (2 * n)) / (1 + z * z / n)
-    half = z * math.sqrt(p * (1 - p) / n + z * z / (4 * n * n)) / (1 + z * z / n)
-    return [max(0.0, centre - half), min(1.0, centre + half)]
-
-
 def summary(doc: dict[str, Any]) -> dict[str, Any]:
     """Pooled, per-set and per-family success of one ``lcrl eval --json`` document."""
     sets = doc["sets"]
@@ -63,7 +53,7 @@ def summary(doc: dict[str, Any]) -> dict[str, Any]:
     n = sum(sets[s]["episodes"] for s in SETS if s in sets)
     out: dict[str, Any] = {
         "pooled": wins / n if n else float("nan"),
-        "pooled_ci": wilson(wins, n),
+        "pooled_ci": list(wilson_interval(round(wins), n)) if n else [float("nan")] * 2,
         "episodes": n,
     }
     for s in SETS:

@@ -378,40 +378,35 @@ def stages(p: CameraPipeline) -> list[Stage]:
     )  # fmt: skip
     total = p.rounds + p.rounds_ft
     reader = ["--canonical-reader"] if p.reader else []
+    tuned = str(out / "perception-ft" / "model")
+
+    def more_rounds(rounds: int, *extra: str) -> list[str]:
+        """The student resumed to ``rounds`` rounds, acting through the tuned perception."""
+        return [
+            "distill", str(_teacher_dir(p, base.family)), "--out", str(student), "--resume",
+            "--rounds", str(rounds), "--no-progress", *torch_threads, *extra,
+            "--perception", tuned, "--new-perception", tuned,
+        ]  # fmt: skip
+
     found.append(
         Stage(
             "student-ft",
             "more DAgger rounds, the student acting through the fine-tuned perception",
-            [
-                [
-                    "distill", str(_teacher_dir(p, base.family)), "--out", str(student),
-                    "--resume", "--rounds", str(total), "--no-progress", *torch_threads,
-                    "--perception", str(out / "perception-ft" / "model"),
-                    "--new-perception", str(out / "perception-ft" / "model"),
-                ]
-            ],
-            needs=(f"{out / 'perception-ft' / 'model'}<perception-ft",),
+            [more_rounds(total)],
+            needs=(f"{tuned}<perception-ft",),
             outputs=(str(student),),
         )
-    )  # fmt: skip
+    )
     if p.rounds_aug:
         found.append(
             Stage(
                 "student-aug",
                 f"more DAgger rounds, every update's rows augmented ({p.augment})",
-                [
-                    [
-                        "distill", str(_teacher_dir(p, base.family)), "--out", str(student),
-                        "--resume", "--rounds", str(total + p.rounds_aug), "--no-progress",
-                        *torch_threads, "--augment", p.augment,
-                        "--perception", str(out / "perception-ft" / "model"),
-                        "--new-perception", str(out / "perception-ft" / "model"),
-                    ]
-                ],
+                [more_rounds(total + p.rounds_aug, "--augment", p.augment)],
                 needs=(f"{student}<student-ft",),
                 outputs=(str(student),),
             )
-        )  # fmt: skip
+        )
     found.append(
         Stage(
             "eval",

@@ -30,7 +30,7 @@ from __future__ import annotations
 
 import dataclasses
 import itertools
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from typing import Any
 
 import numpy as np
@@ -49,6 +49,14 @@ __all__ = [
 
 #: Directions and relations a reflection through ``x = 0`` swaps.
 MIRRORED = {"left": "right", "right": "left", "left of": "right of", "right of": "left of"}
+
+
+def _on_slot_entries(
+    obs: Mapping[str, np.ndarray], size: int, fn: Callable[[np.ndarray], np.ndarray]
+) -> dict[str, np.ndarray]:
+    """``obs`` with ``fn`` applied to every entry laid out in the slots (a batch of
+    ``size`` values a row: the observation and the instruction's first one)."""
+    return {k: fn(v) if v.ndim == 2 and v.shape[1] == size else v for k, v in obs.items()}
 
 
 def _training_ids(table: Sequence[str], num_train: int) -> tuple[list[Any], dict[str, int]]:
@@ -140,11 +148,7 @@ class ColourPermutations:
         renamed[keep] = goal[keep]
         rows = np.arange(n)[:, None]
         cols = self.columns[perm]
-        out = {
-            k: (v[rows, cols] if v.ndim == 2 and v.shape[1] == self.size else v)
-            for k, v in obs.items()
-        }
-        return out, renamed, action
+        return _on_slot_entries(obs, self.size, lambda v: v[rows, cols]), renamed, action
 
 
 class MirrorLeftRight:
@@ -194,6 +198,9 @@ class MirrorLeftRight:
         #: The reflected instruction's id (-1: not a training instruction).
         self.goals = goal
         self.size, self.share = size, float(share)
+        #: -1 at :attr:`columns`, 1 elsewhere: a reflected observation is ``obs * sign``.
+        self.sign = np.ones(size, np.float32)
+        self.sign[self.columns] = -1.0
 
     def apply(
         self,
@@ -207,13 +214,8 @@ class MirrorLeftRight:
         instruction reflected."""
         goal = np.asarray(goal)
         flip = (rng.random(len(goal)) < self.share) & (self.goals[goal] >= 0)
-        sign = np.ones(self.size, np.float32)
-        sign[self.columns] = -1.0
         rows = flip[:, None]
-        out = {
-            k: (np.where(rows, v * sign, v) if v.ndim == 2 and v.shape[1] == self.size else v)
-            for k, v in obs.items()
-        }
+        out = _on_slot_entries(obs, self.size, lambda v: np.where(rows, v * self.sign, v))
         action = np.asarray(action).copy()
         action[flip, 0] *= -1.0
         return out, np.where(flip, self.goals[goal], goal), action
