@@ -261,6 +261,7 @@ def main(argv: list[str] | None = None) -> int:
         default=list(VOCABULARIES),
         help="training-only phrasings: the narrow lists (16 per meaning), or the wide ones",
     )
+    parser.add_argument("--name", default="", help="the result's name (default: reader-PRESET)")
     args = parser.parse_args(argv)
     from train.environments.text_reading import CANONICAL_DROPOUT, FAMILY_WEIGHT
 
@@ -286,7 +287,7 @@ def main(argv: list[str] | None = None) -> int:
     head["arm"], head["baseline_arm"] = new_arm, base_arm
     head["seeds"] = len(args.seeds)
     head["fit_s"] = round(float(np.mean([r["fit_s"] for r in new["per_seed"].values()])), 1)
-    name = f"reader-{args.preset}"
+    name = args.name or f"reader-{args.preset}"
     save_json(
         name,
         {
