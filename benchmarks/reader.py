@@ -208,10 +208,10 @@ def score(
             validating = train_reading_encoder(*fit, exclude=held)
             for w, arm in arms.items():
                 row: dict[str, Any] = {"fit_s": fit_s}
+                scored = CanonicalEncoder(reading, family_weight=w)
+                validated = CanonicalEncoder(validating, family_weight=w)
                 for name, items in sets.items():
-                    reader = CanonicalEncoder(
-                        validating if name == "validation" else reading, family_weight=w
-                    )
+                    reader = validated if name == "validation" else scored
                     got = reader.meanings([t for t, _ in items])
                     pairs = list(zip(items, got, strict=True))
                     wrong = [(t, m) for (t, m), g in pairs if g != m]
@@ -263,8 +263,12 @@ def main(argv: list[str] | None = None) -> int:
     )
     parser.add_argument("--name", default="", help="the result's name (default: reader-PRESET)")
     args = parser.parse_args(argv)
+    from train.configs.presets import PRESETS
     from train.environments.text_reading import CANONICAL_DROPOUT, FAMILY_WEIGHT
 
+    if args.preset not in PRESETS or PRESETS[args.preset][1].env.goal_type != "language":
+        language = sorted(k for k, v in PRESETS.items() if v[1].env.goal_type == "language")
+        parser.error(f"--preset {args.preset!r}: choose a language preset ({', '.join(language)})")
     args.dropout = args.dropout or [CANONICAL_DROPOUT]
     if any(not 0.0 <= d < 1.0 for d in args.dropout):
         parser.error("--dropout values must be in [0, 1)")

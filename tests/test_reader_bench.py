@@ -78,3 +78,15 @@ def test_the_token_cache_encodes_each_text_once_and_pads_as_the_encoder_does():
     states, mask = cache.encode_tokens(["push it"])
     assert states.shape == (1, 2, 3) and mask.all() and inner.calls == 2
     assert cache.name == "words"
+
+
+def test_a_preset_without_language_goals_is_a_one_line_error(capsys):
+    import pytest
+
+    from benchmarks.reader import main
+
+    for preset in ("nonexistent", "state2d"):
+        with pytest.raises(SystemExit) as stop:
+            main(["--preset", preset])
+        assert stop.value.code == 2
+        assert "choose a language preset" in capsys.readouterr().err
