@@ -1,0 +1,65 @@
+"""benchmarks.chain_probe and benchmarks.update_floor: what they count and compute."""
+
+from __future__ import annotations
+
+import math
+
+import torch
+
+from benchmarks import chain_probe, update_floor
+
+
+class _Recorded:
+    """What a :class:`chain_probe.Probe` holds after its episodes."""
+
+    def __init__(self) -> None:
+        self.errors = {
+            ("fresh", 0, "reach"): [0.1, 0.3],
+            ("fresh", 0, "push"): [0.5],
+            ("after teacher", 1, "reach"): [1.0, 2.0],
+        }
+        self.success = {
+            ("fresh", 0, "reach"): [True, True],
+            ("fresh", 0, "push"): [False],
+            ("after teacher", 1, "reach"): [False, True],
+            ("teacher twice", 1, "reach"): [True, True],
+        }
+
+
+def test_the_chain_probe_pools_success_and_action_error_per_instruction_of_the_chain():
+    rows = chain_probe.summary(_Recorded(), ["reach", "push"])
+    fresh, second, teacher = rows["fresh 1"], rows["after teacher 2"], rows["teacher twice 2"]
+    assert (fresh["success"], fresh["n"]) == (2 / 3, 3)
+    assert math.isclose(fresh["action_error"], 0.3)  # the mean over every step of both
+    assert fresh["families"]["reach"]["success"] == 1.0
+    assert math.isclose(fresh["families"]["reach"]["action_error"], 0.2)
+    assert (second["success"], second["action_error"]) == (0.5, 1.5)
+    push = second["families"]["push"]
+    assert push["n"] == 0 and push["action_error"] is None
+    assert teacher["success"] == 1.0 and teacher["action_error"] is None  # the teacher acted
+    low, high = fresh["ci"]
+    assert 0.0 < low < 2 / 3 < high < 1.0
+    assert math.isnan(chain_probe.rate([])["success"])
+
+
+def test_the_eager_floor_is_a_sac_update_that_moves_actor_critics_targets_and_temperature():
+    torch.set_num_threads(1)
+    floor = update_floor.EagerFloor(seed=0)
+    before = {
+        "actor": [p.detach().clone() for p in floor.actor.parameters()],
+        "critic": [p.detach().clone() for p in floor.q_params],
+        "target": [p.detach().clone() for p in floor.t_params],
+    }
+    alpha = floor.log_alpha.item()
+    floor.update()
+    after = {
+        "actor": list(floor.actor.parameters()),
+        "critic": floor.q_params,
+        "target": floor.t_params,
+    }
+    for name, old in before.items():
+        assert any(not torch.equal(o, n) for o, n in zip(old, after[name], strict=True)), name
+    assert floor.log_alpha.item() != alpha
+    # the critics are trainable again after the actor's step, the targets never are
+    assert all(p.requires_grad for p in floor.q_params)
+    assert update_floor.ms_per_call(lambda: None, 3) >= 0.0
