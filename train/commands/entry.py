@@ -10,22 +10,27 @@ ends ``lcrl`` with one line and the shell's status of that signal (130, 143).
 
 from __future__ import annotations
 
+import os
 import signal
 import sys
 from collections.abc import Sequence
 from typing import Any
 
 
-class StartupInterrupted(KeyboardInterrupt):
-    """A signal that arrived before the command began its work; ``signum`` says which."""
-
-    def __init__(self, signum: int) -> None:
-        super().__init__(signal.Signals(signum).name)
-        self.signum = int(signum)
-
-
 def _stop(signum: int, frame: Any) -> None:
-    raise StartupInterrupted(signum)
+    """Stop at once: nothing has begun, so there is nothing to save.
+
+    Raising from here is not safe while the command line imports: an exception thrown into
+    an extension module's import (pybind11 code calling back into Python) ends the process
+    with a C++ ``terminate`` and a core dump instead of the one line and the status.
+    """
+    print(f"lcrl: interrupted by {signal.Signals(signum).name} while starting", file=sys.stderr)
+    for stream in (sys.stdout, sys.stderr):
+        try:
+            stream.flush()
+        except (OSError, ValueError):  # a closed pipe: the status still says it
+            pass
+    os._exit(128 + signum)
 
 
 def _handled_interrupt() -> None:
@@ -52,10 +57,6 @@ def main(argv: Sequence[str] | None = None) -> None:
         from train.commands.cli import main as cli_main
 
         cli_main(argv)  # installs the commands' own handlers first thing
-    except StartupInterrupted as e:
-        print(f"lcrl: interrupted by {e.args[0]} while starting", file=sys.stderr)
-        _handled_interrupt()
-        sys.exit(128 + e.signum)
     except SystemExit as e:
         if e.code in (128 + signal.SIGINT, 128 + signal.SIGTERM):  # a stop, said and handled
             _handled_interrupt()
