@@ -73,6 +73,22 @@ def die_with_parent() -> None:
     libc.prctl(1, int(signal.SIGTERM))  # PR_SET_PDEATHSIG
 
 
+def one_thread_worker() -> None:
+    """Initializer of a worker process that trains beside others (``ProcessPoolExecutor``):
+    one torch thread, and one for OpenMP and MKL; it dies with the benchmark.
+
+    ``OMP_NUM_THREADS`` is what keeps the one thread: a trainer that is not told its
+    threads takes :func:`train.runtime.machine.default_threads`, which reads it. Without
+    it, workers started together each saw the other core idle and took both, and two
+    2-thread runs on two cores trained about ten times slower than two 1-thread runs.
+    """
+    os.environ.update(OMP_NUM_THREADS="1", MKL_NUM_THREADS="1")
+    import torch
+
+    torch.set_num_threads(1)
+    die_with_parent()
+
+
 def side_by_side_env(processes: int = 2, **extra: str) -> dict[str, str]:
     """The environment of a child lcrl process that trains beside ``processes - 1`` others:
     ``LCRL_PROCESSES`` (so each takes its share of the cores as torch threads, see

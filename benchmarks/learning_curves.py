@@ -64,9 +64,9 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt
 
 from benchmarks.common import (
-    die_with_parent,
     keep_timings,
     machine,
+    one_thread_worker,
     save_figure,
     save_json,
     save_markdown,
@@ -185,14 +185,6 @@ SUITES: dict[str, dict[str, Any]] = {
         "steps": 5_000,
     },
 }
-
-
-def _one_thread() -> None:
-    """Initializer of a worker process: one torch thread; it dies with the benchmark."""
-    import torch
-
-    torch.set_num_threads(1)
-    die_with_parent()
 
 
 def run_config(
@@ -418,7 +410,7 @@ def main(argv: list[str] | None = None) -> int:
     elif args.parallel and len(jobs) > 1:
         # One process per run, one torch thread each, so that the runs share the machine.
         ctx = multiprocessing.get_context("spawn")
-        with ProcessPoolExecutor(len(jobs), mp_context=ctx, initializer=_one_thread) as pool:
+        with ProcessPoolExecutor(len(jobs), mp_context=ctx, initializer=one_thread_worker) as pool:
             futures = {name: pool.submit(run_one, job) for name, job in jobs.items()}
             results.update({name: f.result() for name, f in futures.items()})
     else:

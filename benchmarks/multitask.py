@@ -4,6 +4,7 @@ Run from the repository root::
 
     python benchmarks/multitask.py --parallel   # the 4 runs, 2 side by side, 30k steps each
     python benchmarks/multitask.py --runs ids ids-pcgrad ids-gradnorm --seeds 0 1 2 --reuse
+    python benchmarks/multitask.py --runs lang lang-pcgrad --seeds 0 1 2 --parallel --reuse
     python benchmarks/multitask.py --steps 1000 --eval-episodes 16   # a quick check
     python benchmarks/multitask.py --report-only   # rebuild the results from runs/bench/
 
@@ -25,7 +26,10 @@ split's training set) are learned four ways, same seed and budget:
 
 With ``--runs ids ids-pcgrad ids-gradnorm --seeds 0 1 2`` the ``headline`` holds
 ``uniform_mean``, ``pcgrad_mean`` and ``gradnorm_mean``: the final mean success over the
-seeds of the three task-balancing arms.
+seeds of the three task-balancing arms; with ``--runs lang lang-pcgrad`` it holds
+``language_mean`` and ``language_pcgrad_mean`` the same way. The runs an invocation does
+not train stay in the file with the command and date that gave them, so the two
+invocations together give the whole headline.
 
 Every run measures gradient conflict between the tasks every 10 updates (the presets'
 ``conflict_every``; PCGrad runs measure it at every update, before projecting), so all
@@ -69,9 +73,9 @@ from benchmarks.common import (
     RESULTS_DIR,
     add_report_only,
     command,
-    die_with_parent,
     keep_timings,
     machine,
+    one_thread_worker,
     save_figure,
     save_json,
     save_markdown,
@@ -97,6 +101,8 @@ RUNS: dict[str, tuple[str, bool, str]] = {
 DEFAULT_RUNS = ["ids", "ids-pcgrad", "lang", "lang-pcgrad"]
 #: The headline's three task-balancing arms over task ids: key -> run.
 BALANCING = {"uniform_mean": "ids", "pcgrad_mean": "ids-pcgrad", "gradnorm_mean": "ids-gradnorm"}
+#: The headline's language-goal arms (language HER among the 8 tasks): key -> run.
+LANGUAGE = {"language_mean": "lang", "language_pcgrad_mean": "lang-pcgrad"}
 #: Gradient-conflict columns of progress.csv, as (network, statistic, column).
 CONFLICT = [
     (net, stat, f"grad/{net}_{stat}")
@@ -142,14 +148,6 @@ def run_config(
         multitask=dataclasses.replace(cfg.agent.multitask, pcgrad=pcgrad, weighting=weighting),
     )
     return cfg
-
-
-def _one_thread() -> None:
-    """Initializer of a worker process: one torch thread; it dies with the benchmark."""
-    import torch
-
-    torch.set_num_threads(1)
-    die_with_parent()
 
 
 def train_one(cfg: TrainConfig) -> float:
@@ -355,11 +353,12 @@ def figure(results: dict[str, Any], tasks: tuple[str, ...], info: dict[str, Any]
 def balancing_headline(results: dict[str, Any]) -> dict[str, Any]:
     """``uniform_mean``, ``pcgrad_mean`` and ``gradnorm_mean``: the final mean success of
     the task-id runs of each balancing, averaged over the seeds that ran (with its
-    spread)."""
+    spread); ``language_mean`` and ``language_pcgrad_mean`` the same of the language-goal
+    runs."""
     from train.evaluation.report import spread
 
     out: dict[str, Any] = {}
-    for key, run in BALANCING.items():
+    for key, run in {**BALANCING, **LANGUAGE}.items():
         values = [r["final"]["mean"]["success"] for r in results.values() if r["run"] == run]
         if values:
             sp = spread(values)
@@ -418,7 +417,7 @@ def main(argv: list[str] | None = None) -> int:
         info["torch_threads"] = 1
         ctx = multiprocessing.get_context("spawn")
         workers = min(args.parallel, len(todo))
-        with ProcessPoolExecutor(workers, mp_context=ctx, initializer=_one_thread) as pool:
+        with ProcessPoolExecutor(workers, mp_context=ctx, initializer=one_thread_worker) as pool:
             futures = {key: pool.submit(train_one, cfg) for key, cfg in todo.items()}
             seconds.update({key: f.result() for key, f in futures.items()})
     else:
@@ -443,15 +442,15 @@ def main(argv: list[str] | None = None) -> int:
     table = markdown(results, tasks, any_cfg.eval_episodes)
     if headline:
         table = (
-            "Task balancing over task ids, final mean success over seeds: "
+            "Final mean success over seeds: "
             + ", ".join(
-                f"{k.removesuffix('_mean')} {headline[k]:.3f} ± "
+                f"{k.removesuffix('_mean').replace('_', ' ')} {headline[k]:.3f} ± "
                 f"{headline[k.replace('_mean', '_std')]:.3f} "
                 f"({headline[k.replace('_mean', '_seeds')]} seeds)"
-                for k in BALANCING
+                for k in {**BALANCING, **LANGUAGE}
                 if k in headline
             )
-            + ".\n\n"
+            + " (uniform, pcgrad and gradnorm: task ids).\n\n"
             + table
         )
     print(table)

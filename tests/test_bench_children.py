@@ -50,3 +50,23 @@ def test_a_child_started_by_a_benchmark_dies_with_it():
     while _alive(child) and time.monotonic() < deadline:
         time.sleep(0.1)
     assert not _alive(child)
+
+
+def _trainer_threads() -> int:
+    """What a trainer that is not told its threads takes (``--torch-threads 0``)."""
+    from train.runtime.machine import set_threads
+
+    return set_threads(0)
+
+
+def test_a_pool_worker_that_trains_beside_others_keeps_one_thread():
+    """A trainer in a benchmark's worker process keeps the worker's one thread: it no
+    longer takes both cores because the other worker happened to be idle as it started."""
+    import multiprocessing
+    from concurrent.futures import ProcessPoolExecutor
+
+    from benchmarks.common import one_thread_worker
+
+    ctx = multiprocessing.get_context("spawn")
+    with ProcessPoolExecutor(1, mp_context=ctx, initializer=one_thread_worker) as pool:
+        assert pool.submit(_trainer_threads).result(timeout=120) == 1

@@ -1,12 +1,15 @@
-"""benchmarks.chain_probe and benchmarks.update_floor: what they count and compute."""
+"""benchmarks.chain_probe, benchmarks.dagger_fit and benchmarks.update_floor: what they
+count and compute."""
 
 from __future__ import annotations
 
 import math
 
+import numpy as np
+import pytest
 import torch
 
-from benchmarks import chain_probe, update_floor
+from benchmarks import chain_probe, dagger_fit, update_floor
 
 
 class _Recorded:
@@ -40,6 +43,35 @@ def test_the_chain_probe_pools_success_and_action_error_per_instruction_of_the_c
     low, high = fresh["ci"]
     assert 0.0 < low < 2 / 3 < high < 1.0
     assert math.isnan(chain_probe.rate([])["success"])
+
+
+def _episode(gripper_start: list[float], steps: int, switch_at: int = 0) -> tuple:
+    """Rows of one DAgger episode (observation, first observation; gripper x, y, z first),
+    the gripper moving 1 cm a step; at step ``switch_at`` (0: never) the next instruction
+    of a chain starts where the gripper is."""
+    obs, initial = [], []
+    g = np.asarray(gripper_start, np.float32)
+    first = np.r_[g, 0.0].astype(np.float32)
+    for i in range(steps):
+        row = np.r_[g, float(i)].astype(np.float32)
+        if switch_at and i == switch_at:
+            first = row.copy()
+        obs.append(row)
+        initial.append(first)
+        g = g + 0.01
+    return np.stack(obs), np.stack(initial)
+
+
+def test_dagger_fit_tells_a_switch_in_place_from_a_reset_and_rows_from_their_round(tmp_path):
+    # episode 1: a link of 3 steps, then one of 3 in place; episode 2: a reset far away
+    o1, i1 = _episode([0.0, 0.0, 0.9], 6, switch_at=3)
+    o2, i2 = _episode([0.3, 0.3, 1.0], 4)
+    links = dagger_fit.chain_links(np.concatenate([i1, i2]), np.concatenate([o1, o2]))
+    assert links.tolist() == [0, 0, 0, 1, 1, 1, 0, 0, 0, 0]
+    (tmp_path / "progress.csv").write_text("step,rows\n1,6\n2,10\n")
+    assert dagger_fit.row_rounds(tmp_path, 10).tolist() == [1] * 6 + [2] * 4
+    with pytest.raises(SystemExit, match="ends at 10 rows"):
+        dagger_fit.row_rounds(tmp_path, 12)
 
 
 def test_the_eager_floor_is_a_sac_update_that_moves_actor_critics_targets_and_temperature():
