@@ -2,8 +2,11 @@
 
 from __future__ import annotations
 
+import csv
+
 import numpy as np
 import pytest
+import torch
 from helpers import cli, error_line, tiny
 
 from train.configs.config import CollectionConfig
@@ -126,3 +129,92 @@ def test_busy_cores_count_what_others_use_now_not_the_load_average(
 
     monkeypatch.setattr(m.os, "times", fake_times)
     assert m.busy_cores() == expected
+
+
+class _Load:
+    """A fake machine for :class:`ThreadWatcher`: 2 cores, this process busy on
+    ``own`` cores and other processes on ``others``, advanced by :meth:`tick` seconds."""
+
+    def __init__(self) -> None:
+        self.t, self.busy, self.total, self.own_s = 0.0, 0, 0, 0.0
+        self.own, self.others = 2.0, 0.0
+
+    def tick(self, seconds: float) -> None:
+        jiffies = 100 * seconds * 2  # 2 cores, 100 jiffies a second each
+        self.busy += round(jiffies * (self.own + self.others) / 2)
+        self.total += round(jiffies)
+        self.own_s += self.own * seconds
+        self.t += seconds
+
+    def times(self):
+        import types
+
+        return types.SimpleNamespace(user=self.own_s, system=0.0, elapsed=self.t)
+
+
+def test_the_thread_watcher_gives_a_core_back_when_another_run_starts_and_takes_it_again(
+    monkeypatch,
+):
+    """A run that took both cores drops to one thread when another busy process starts
+    beside it, and takes two again when that process ends, each at the next reading."""
+    from train.runtime import machine as m
+
+    monkeypatch.setattr(m, "available_cores", lambda: 2)
+    monkeypatch.setattr(m.os, "cpu_count", lambda: 2)
+    before = torch.get_num_threads()
+    try:
+        torch.set_num_threads(2)
+        load = _Load()
+        watch = m.ThreadWatcher(
+            every_s=20, clock=lambda: load.t, jiffies=lambda: (load.busy, load.total),
+            times=load.times,
+        )  # fmt: skip
+        load.tick(30)
+        assert watch.poll() is None and torch.get_num_threads() == 2  # alone: both cores
+        load.others, load.own = 1.0, 1.0  # another run starts
+        load.tick(5)
+        assert watch.poll() is None  # not yet time to read again
+        load.tick(20)
+        assert watch.poll() == 1 and torch.get_num_threads() == 1
+        load.tick(25)
+        assert watch.poll() is None and torch.get_num_threads() == 1  # it still runs
+        load.others = 0.0  # it ended
+        load.tick(25)
+        assert watch.poll() == 2 and torch.get_num_threads() == 2
+        assert watch.changes == 2
+    finally:
+        torch.set_num_threads(before)
+
+
+@pytest.mark.parametrize(
+    ("threads", "omp", "processes", "watched"),
+    [(0, "", "", True), (1, "", "", False), (0, "1", "", False), (0, "", "2", False)],
+)
+def test_only_a_run_that_chooses_its_own_threads_has_them_chosen_again(
+    monkeypatch, threads, omp, processes, watched
+):
+    from train.runtime.machine import automatic_threads
+
+    monkeypatch.setenv("OMP_NUM_THREADS", omp)
+    monkeypatch.setenv("LCRL_PROCESSES", processes)
+    assert automatic_threads(threads) is watched
+
+
+def test_a_run_that_chooses_its_threads_watches_them_and_logs_them(tmp_path, monkeypatch):
+    monkeypatch.delenv("OMP_NUM_THREADS", raising=False)
+    monkeypatch.delenv("LCRL_PROCESSES", raising=False)
+    before = torch.get_num_threads()
+    try:
+        chosen = Trainer(tiny("state2d", tmp_path / "auto", torch_threads=0))
+        fixed = Trainer(tiny("state2d", tmp_path / "fixed", torch_threads=1))
+        try:
+            assert chosen.thread_watch is not None and fixed.thread_watch is None
+            fixed.run()
+        finally:
+            chosen.close()
+            fixed.close()
+        with (tmp_path / "fixed" / "progress.csv").open() as f:
+            rows = list(csv.DictReader(f))
+        assert rows and {r["torch_threads"] for r in rows} == {"1"}
+    finally:
+        torch.set_num_threads(before)

@@ -10,6 +10,7 @@ ends ``lcrl`` with one line and the shell's status of that signal (130, 143).
 
 from __future__ import annotations
 
+import contextlib
 import os
 import signal
 import sys
@@ -26,10 +27,8 @@ def _stop(signum: int, frame: Any) -> None:
     """
     print(f"lcrl: interrupted by {signal.Signals(signum).name} while starting", file=sys.stderr)
     for stream in (sys.stdout, sys.stderr):
-        try:
+        with contextlib.suppress(OSError, ValueError):  # a closed pipe: the status says it
             stream.flush()
-        except (OSError, ValueError):  # a closed pipe: the status still says it
-            pass
     os._exit(128 + signum)
 
 

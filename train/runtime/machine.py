@@ -68,6 +68,21 @@ def _cpu_jiffies() -> tuple[int, int] | None:
     return total - idle, total
 
 
+def _others_busy(
+    first: tuple[int, int], second: tuple[int, int], mine: Any, mine_after: Any
+) -> int:
+    """Cores other processes kept busy between two ``/proc/stat`` readings, from the CPU
+    time of all cores and this process's own (``os.times()`` at the same instants)."""
+    if second[1] <= first[1]:
+        return 0
+    busy, total = second[0] - first[0], second[1] - first[1]
+    cpus = os.cpu_count() or 1
+    own = (mine_after.user - mine.user) + (mine_after.system - mine.system)
+    elapsed = max(1e-6, mine_after.elapsed - mine.elapsed)
+    others = busy / total * cpus - own / elapsed
+    return max(0, min(cpus, round(others)))
+
+
 def busy_cores(sample_s: float = BUSY_SAMPLE_S) -> int:
     """Cores other processes keep busy now: the CPU time spent outside this process while
     watching ``/proc/stat`` for ``sample_s`` seconds, in cores, rounded. Where that file is
@@ -85,14 +100,75 @@ def busy_cores(sample_s: float = BUSY_SAMPLE_S) -> int:
     time.sleep(sample_s)
     second = _cpu_jiffies()
     mine_after = os.times()
-    if second is None or second[1] <= first[1]:
+    if second is None:
         return 0
-    busy, total = second[0] - first[0], second[1] - first[1]
-    cpus = os.cpu_count() or 1
-    own = (mine_after.user - mine.user) + (mine_after.system - mine.system)
-    elapsed = max(1e-6, mine_after.elapsed - mine.elapsed)
-    others = busy / total * cpus - own / elapsed
-    return max(0, min(cpus, round(others)))
+    return _others_busy(first, second, mine, mine_after)
+
+
+def automatic_threads(threads: int) -> bool:
+    """Whether a process given ``--torch-threads threads`` chooses its threads itself:
+    0, with neither ``OMP_NUM_THREADS`` nor ``LCRL_PROCESSES`` set."""
+    return threads <= 0 and not any(
+        os.environ.get(name, "").strip() for name in ("OMP_NUM_THREADS", PROCESSES_VARIABLE)
+    )
+
+
+class ThreadWatcher:
+    """Torch's threads chosen again while a run trains, from the load of the moment.
+
+    :func:`set_threads` chooses once, as a run starts. A run that took both cores of an
+    idle machine collapses when another busy process starts beside it (two threads where
+    one core is free run several times slower than one). Every ``every_s`` seconds
+    :meth:`poll` reads how many cores other processes kept busy since the last poll (the
+    CPU time of all cores in ``/proc/stat`` less this process's own, with no waiting) and
+    sets the threads to the cores they left free: fewer when another run starts, the
+    process's share again when it ends. Nothing happens between polls but a clock read.
+
+    Args:
+        helpers: processes this one starts on the same machine (local Ray workers).
+        every_s: seconds between two readings.
+        clock, jiffies, times: the clock, the ``/proc/stat`` reader and ``os.times``
+            (replaceable in tests).
+    """
+
+    def __init__(
+        self,
+        helpers: int = 0,
+        every_s: float = 20.0,
+        clock: Any = time.monotonic,
+        jiffies: Any = None,
+        times: Any = os.times,
+    ) -> None:
+        self.share = max(1, available_cores() // (1 + max(0, helpers)))
+        self.every_s = float(every_s)
+        self._clock, self._times = clock, times
+        self._jiffies = jiffies or _cpu_jiffies
+        self._last = (self._clock(), self._jiffies(), self._times())
+        #: How many times the threads were changed.
+        self.changes = 0
+
+    @property
+    def threads(self) -> int:
+        return torch.get_num_threads()
+
+    def poll(self) -> int | None:
+        """Choose again where ``every_s`` seconds have passed; returns the new number of
+        threads where it changed, else None."""
+        now = self._clock()
+        if now - self._last[0] < self.every_s:
+            return None
+        reading, times = self._jiffies(), self._times()
+        before, before_times = self._last[1], self._last[2]
+        self._last = (now, reading, times)
+        if reading is None or before is None:
+            return None
+        others = _others_busy(before, reading, before_times, times)
+        target = max(1, min(self.share, available_cores() - others))
+        if target == torch.get_num_threads():
+            return None
+        torch.set_num_threads(target)
+        self.changes += 1
+        return target
 
 
 def set_threads(threads: int = 0, helpers: int = 0) -> int:

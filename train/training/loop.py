@@ -19,6 +19,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+import torch
 
 from lcrl.algos import ALGOS, Agent
 from lcrl.buffer import HindsightReplayBuffer
@@ -34,7 +35,7 @@ from train.environments.tasks import (
     task_texts,
 )
 from train.evaluation.evaluate import build_agent, build_task
-from train.runtime.machine import set_threads
+from train.runtime.machine import ThreadWatcher, automatic_threads, set_threads
 from train.runtime.memory import check_memory
 from train.training.collection import Collection
 from train.training.explore import Explorer
@@ -144,6 +145,8 @@ class Trainer(SequentialStages, Collection, BaseTrainer):
         c = cfg.collect
         local_workers = c.workers if c.backend == "ray" and not c.address else 0
         set_threads(cfg.torch_threads, helpers=local_workers)
+        if automatic_threads(cfg.torch_threads):
+            self.thread_watch = ThreadWatcher(helpers=local_workers)
         #: The families of each sequential stage (empty: one stage of everything).
         self.stages = cfg.sequential.families()
         self.stage = 0
@@ -453,6 +456,7 @@ class Trainer(SequentialStages, Collection, BaseTrainer):
             "buffer": self.buffer.size,
             "sim_errors": self.sim_errors,
             "scripted_episodes": self.scripted_episodes,
+            "torch_threads": torch.get_num_threads(),
         }
         if self.cfg.collect.backend == "ray":
             # this process's Ray worker restarts (each dropped the episode in hand)

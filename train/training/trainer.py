@@ -64,6 +64,7 @@ from train.configs.config import TrainConfig, config_to_dict
 from train.configs.run_meta import run_meta
 from train.evaluation.evaluate import evaluate, format_results
 from train.evaluation.report import write_report
+from train.runtime.machine import ThreadWatcher
 from train.runtime.run_lock import lock_run, unlock_run
 
 
@@ -481,6 +482,9 @@ class BaseTrainer(ABC):
     #: stopped during it): saved with the checkpoint, and run first when the run resumes,
     #: so that eval.csv has the row an uninterrupted run has.
     eval_pending: bool = False
+    #: Chooses torch's threads again while the run trains (None: the threads are fixed,
+    #: by ``--torch-threads``, ``OMP_NUM_THREADS`` or ``LCRL_PROCESSES``).
+    thread_watch: ThreadWatcher | None = None
     #: A periodic evaluation is running (what :meth:`interrupted` saves as pending).
     _periodic_eval: bool = False
     #: Seconds of training (evaluations excluded) before this process resumed the run.
@@ -609,6 +613,8 @@ class BaseTrainer(ABC):
                     before = self.step
                     self.advance()
                     bar.update(self.step - before)
+                    if self.thread_watch is not None:
+                        self.thread_watch.poll()
                     if self.step >= next_log:
                         self.log()
                         next_log = next_multiple(self.step, cfg.log_every)
