@@ -32,6 +32,7 @@ from __future__ import annotations
 
 import argparse
 import csv
+import json
 import os
 import shutil
 import signal
@@ -40,7 +41,15 @@ import time
 from pathlib import Path
 from typing import Any
 
-from benchmarks.common import LCRL, die_with_parent, machine, new_figure, publish
+from benchmarks.common import (
+    LCRL,
+    RESULTS_DIR,
+    add_report_only,
+    die_with_parent,
+    machine,
+    new_figure,
+    publish,
+)
 
 NAME = "thread_watch"
 ROOT = Path("runs/bench/thread-watch")
@@ -114,8 +123,18 @@ def arm(name: str, args: argparse.Namespace) -> dict[str, Any]:
                 p.send_signal(signal.SIGINT)
                 p.wait(timeout=60)
 
+    return summarise({"main_threads": ARMS[name], "trace": trace})
+
+
+def summarise(result: dict[str, Any]) -> dict[str, Any]:
+    """An arm's steps per second per phase, from its trace. The main run's last phase ends
+    at its last step: the final evaluation after it trains nothing."""
+    trace = result["trace"]
+    last = max((r["step"] for r in trace), default=0)
+    end = next((i for i, r in enumerate(trace) if r["step"] >= last), len(trace) - 1)
+
     def rate(phase: str, key: str = "step") -> float | None:
-        rows = [r for r in trace if r["phase"] == phase]
+        rows = [r for r in trace[: end + 1] if r["phase"] == phase]
         if key == "other_step":
             rows = [r for r in rows if r["other_step"] > 0]
         if len(rows) < 2 or rows[-1]["t"] <= rows[0]["t"]:
@@ -123,7 +142,7 @@ def arm(name: str, args: argparse.Namespace) -> dict[str, Any]:
         return (rows[-1][key] - rows[0][key]) / (rows[-1]["t"] - rows[0]["t"])
 
     return {
-        "main_threads": ARMS[name],
+        "main_threads": result["main_threads"],
         "alone": rate("alone"),
         "overlap": rate("overlap"),
         "other": rate("overlap", "other_step"),
@@ -140,12 +159,16 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--overlap-steps", type=int, default=3000, help="the other beside it")
     parser.add_argument("--after-steps", type=int, default=2000, help="alone again")
     parser.add_argument("--arms", nargs="+", choices=sorted(ARMS), default=list(ARMS))
+    add_report_only(parser, "the traces in benchmarks/results/thread_watch.json")
     args = parser.parse_args(argv)
     ROOT.mkdir(parents=True, exist_ok=True)
-    results = {}
+    results, kept = {}, {}
+    if args.report_only:  # the measured traces again, with this version's arithmetic
+        kept = json.loads((RESULTS_DIR / f"{NAME}.json").read_text())
+        args = argparse.Namespace(**{**vars(args), **kept["settings"], "report_only": True})
     for name in args.arms:
         print(f"== {name}", flush=True)
-        results[name] = arm(name, args)
+        results[name] = summarise(kept["arms"][name]) if kept else arm(name, args)
         r = results[name]
         print(f"   alone {r['alone']}, beside another {r['overlap']} (other {r['other']}), "
               f"after {r['after']}", flush=True)  # fmt: skip
@@ -160,7 +183,11 @@ def main(argv: list[str] | None = None) -> int:
         headline[f"{name}_after"] = r["after"]
     if results.get("watched", {}).get("overlap") and results.get("fixed", {}).get("overlap"):
         headline["overlap_ratio"] = results["watched"]["overlap"] / results["fixed"]["overlap"]
-    payload = {"headline": headline, "machine": machine(), "settings": vars(args), "arms": results}
+    settings = {k: v for k, v in vars(args).items() if k != "report_only"}
+    payload = {"headline": headline, "machine": machine(), "settings": settings, "arms": results}
+    if kept:
+        payload.update(machine=kept["machine"], command=kept["command"], git=kept["git"])
+        payload["date"] = kept["date"]
     lines = [
         "| main run | alone | beside another run | the other run | alone again | threads it used |",
         "|---|---:|---:|---:|---:|---|",
@@ -181,15 +208,12 @@ def main(argv: list[str] | None = None) -> int:
     fig, ax = new_figure(figsize=(7, 3.8))
     for name, r in results.items():
         tr = r["trace"]
-        ts, rates = [], []
-        for i, p in enumerate(tr):  # over the last 10 s
-            j = next(k for k in range(i + 1) if tr[k]["t"] >= p["t"] - 10.0)
-            if p["t"] - tr[j]["t"] >= 5.0:
-                ts.append(p["t"])
-                rates.append((p["step"] - tr[j]["step"]) / (p["t"] - tr[j]["t"]))
-        ax.plot(ts, rates, label=f"main run, {name}")
-    ax.set(xlabel="seconds", ylabel="steps per second (last 10 s)", title=args.preset)
-    ax.legend(fontsize=8)
+        (line,) = ax.plot([p["t"] for p in tr], [p["step"] for p in tr], label=f"main run, {name}")
+        beside = [p["t"] for p in tr if p["phase"] == "overlap"]
+        if beside:  # the other run's time beside it, shaded in the arm's colour
+            ax.axvspan(min(beside), max(beside), color=line.get_color(), alpha=0.12)
+    ax.set(xlabel="seconds", ylabel="main run's environment steps", title=args.preset)
+    ax.legend(fontsize=8, title="shaded: another run beside it", title_fontsize=8)
     publish(NAME, payload, "Torch threads chosen again when another run starts", body, fig)
     return 0
 
