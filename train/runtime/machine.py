@@ -147,10 +147,6 @@ class ThreadWatcher:
         #: How many times the threads were changed.
         self.changes = 0
 
-    @property
-    def threads(self) -> int:
-        return torch.get_num_threads()
-
     def poll(self) -> int | None:
         """Choose again where ``every_s`` seconds have passed; returns the new number of
         threads where it changed, else None."""
