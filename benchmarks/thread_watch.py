@@ -78,10 +78,10 @@ def _start(preset: str, out: Path, threads: str, steps: int, seed: int) -> subpr
     argv = [*LCRL, "train", preset, "--out", str(out), "--total-steps", str(steps)]
     argv += ["--seed", str(seed), "--torch-threads", threads, "--eval-every", "0"]
     argv += ["--log-every", "250", "--checkpoint-every", "0", "--no-progress", "--no-tensorboard"]
-    log = (out.parent / f"{out.name}.log").open("w")
-    return subprocess.Popen(
-        argv, stdout=log, stderr=subprocess.STDOUT, env=_env(), preexec_fn=die_with_parent
-    )
+    with (out.parent / f"{out.name}.log").open("w") as log:  # the child keeps its own copy
+        return subprocess.Popen(
+            argv, stdout=log, stderr=subprocess.STDOUT, env=_env(), preexec_fn=die_with_parent
+        )
 
 
 def arm(name: str, args: argparse.Namespace) -> dict[str, Any]:
