@@ -9,7 +9,8 @@ Run from the repository root::
     python benchmarks/multitask.py --report-only   # rebuild the results from runs/bench/
 
 The same 8 tasks (``train.configs.presets.TASKS_2D``: 4 reach and 4 push instructions of the 2D
-split's training set) are learned four ways, same seed and budget:
+split's training set) are learned four ways, with the same seed, budget and collection (one
+environment, batch 256):
 
 ``ids``
     the ``lang2d-tasks`` preset: one-hot task ids, each task rewarded by its own rule
@@ -97,6 +98,10 @@ RUNS: dict[str, tuple[str, bool, str]] = {
     "lang": ("lang2d-tasks-lang", False, "fixed"),
     "lang-pcgrad": ("lang2d-tasks-lang", True, "fixed"),
 }
+#: How every arm collects and samples, whatever its preset ships: one environment at batch
+#: 256, the settings the arms of benchmarks/results/multitask.json were measured with
+#: (``lang2d-tasks-lang`` has shipped 8 environments at batch 128 since; task ids have not).
+COLLECTION = {"envs": 1, "batch_size": 256}
 #: The runs of the first version of this benchmark (``--runs`` default).
 DEFAULT_RUNS = ["ids", "ids-pcgrad", "lang", "lang-pcgrad"]
 #: The headline's three task-balancing arms over task ids: key -> run.
@@ -129,6 +134,10 @@ def run_config(
     cfg = dataclasses.replace(
         cfg,
         out=str(run_folder(name, seed)),
+        # every arm collects alike: the presets' own collection differs since
+        # lang2d-tasks-lang ships 8 environments at batch 128 (see COLLECTION)
+        collect=dataclasses.replace(cfg.collect, envs=COLLECTION["envs"]),
+        batch_size=COLLECTION["batch_size"],
         total_steps=total,
         learning_starts=learning_starts,
         eval_every=eval_every,

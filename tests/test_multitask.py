@@ -30,7 +30,7 @@ from lcrl.multitask import (
 )
 from lcrl.nets import FlatAdam, GoalConditionedEnsemble, GoalConditionedNet, NetConfig, TaskHeads
 from train.configs.config import BufferConfig, TrainConfig
-from train.configs.presets import TASKS_2D
+from train.configs.presets import PRESETS, TASKS_2D
 from train.environments.tasks import (
     EnvConfig,
     LanguageTask,
@@ -696,6 +696,9 @@ def test_benchmark_configs():
         assert cfg.learning_starts == 250 and cfg.eval_every == 500
         assert (cfg.env.goal_type == "task") is (preset == "lang2d-tasks")
         assert cfg.buffer.k == (0 if preset == "lang2d-tasks" else 4)
+        # every arm collects alike, whatever its preset ships
+        assert (cfg.collect.envs, cfg.batch_size) == (1, 256)
+    assert PRESETS["lang2d-tasks-lang"][1].collect.envs == 8
 
 
 def test_benchmark_runs_stopped_midway_go_on_from_their_checkpoint(tmp_path):
