@@ -18,7 +18,10 @@ Writes ``benchmarks/results/time_to_success.{json,md,png}``. Headline: ``new_s``
 (the new run's must not be below the old one's).
 
 A fourth arm, ``preset``, is ``lcrl train lang2d`` exactly as shipped (no option added):
-``headline.preset_s`` (target <= 300) and ``headline.final_seen_preset``.
+``headline.preset_s`` (target <= 300) and ``headline.final_seen_preset``. With
+``--preset-seeds`` it trains once per seed (one after another, each alone), and the two
+figures are the medians over those seeds (``headline.preset_s_per_seed`` lists them; a
+seed that never reaches the threshold makes the median ``None`` when it is the middle one).
 
 A third arm, ``bf16``, is the new settings with ``--agent.precision bf16`` (updates under
 bfloat16 autocast); it reports ``headline.bf16_s`` and ``headline.final_seen_bf16``. An
@@ -30,9 +33,11 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
 import re
 import shlex
 import shutil
+import statistics
 from pathlib import Path
 
 from benchmarks.common import (
@@ -65,11 +70,17 @@ TARGET_S = 480.0
 TARGET_PRESET_S = 300.0
 
 
-def run_args(args: argparse.Namespace, arm: str) -> list[str]:
-    """The ``lcrl train`` command of an arm."""
-    cmd = [*LCRL, "train", PRESET, "--out", str(Path(args.work) / arm)]
+def run_folder(args: argparse.Namespace, arm: str, seed: int | None = None) -> str:
+    """An arm's run folder: ``ARM`` at ``--seed``, ``ARM-sSEED`` at another seed."""
+    return arm if seed is None or seed == args.seed else f"{arm}-s{seed}"
+
+
+def run_args(args: argparse.Namespace, arm: str, seed: int | None = None) -> list[str]:
+    """The ``lcrl train`` command of an arm (at ``--seed`` unless ``seed`` is given)."""
+    seed = args.seed if seed is None else seed
+    cmd = [*LCRL, "train", PRESET, "--out", str(Path(args.work) / run_folder(args, arm, seed))]
     cmd += ["--total-steps", str(args.steps), "--eval-every", str(args.eval_every)]
-    cmd += ["--eval-episodes", str(args.eval_episodes), "--seed", str(args.seed)]
+    cmd += ["--eval-episodes", str(args.eval_episodes), "--seed", str(seed)]
     cmd += ["--checkpoint-every", "0", "--overwrite", "--no-progress", "--no-tensorboard"]
     return cmd + OPTIONS[arm]
 
@@ -87,6 +98,34 @@ def first_success(rows: list[dict[str, float]], threshold: float) -> dict[str, f
     return next((r for r in rows if r["train/success"] >= threshold), None)
 
 
+def seed_runs(work: Path, args: argparse.Namespace, seeds: list[int]) -> dict[int, dict]:
+    """Each seed's preset run: seconds and steps to the threshold (None: never), final seen
+    success, training seconds and torch threads."""
+    out = {}
+    for seed in seeds:
+        name = run_folder(args, "preset", seed)
+        rows = curve(work / name)
+        hit = first_success(rows, args.threshold)
+        out[seed] = {
+            "time_to_success_s": None if hit is None else hit["train_s"],
+            "steps_to_success": None if hit is None else int(hit["step"]),
+            "final_seen": rows[-1]["train/success"],
+            "train_s": rows[-1]["train_s"],
+            "torch_threads": run_threads(work / f"{name}.log"),
+        }
+    return out
+
+
+def median_or_none(values: list[float | None]) -> float | None:
+    """The median, a run that never got there counting as slower than every other; None
+    when such a run is at or past the middle."""
+    ordered = sorted(values, key=lambda v: math.inf if v is None else v)
+    mid = ordered[(len(ordered) - 1) // 2 : len(ordered) // 2 + 1]
+    if any(v is None for v in mid):
+        return None
+    return statistics.median(mid)
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--steps", type=int, default=60_000, help="step budget of both runs")
@@ -97,19 +136,29 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--work", default="runs/bench/time-to-success")
     parser.add_argument("--arms", nargs="+", default=["new", "old", "bf16"], choices=list(OPTIONS))
     parser.add_argument("--fresh", action="store_true", help="train finished runs again")
+    parser.add_argument(
+        "--preset-seeds",
+        nargs="+",
+        type=int,
+        default=[],
+        help="train the preset arm at each of these seeds; its figures are their medians",
+    )
     args = parser.parse_args(argv)
 
     work = Path(args.work)
     work.mkdir(parents=True, exist_ok=True)
+    preset_seeds = args.preset_seeds or [args.seed]
     for arm in args.arms:
-        run, cmd = work / arm, run_args(args, arm)
-        done = (run / "report.md").is_file() and (run / "command.txt").is_file()
-        if done and not args.fresh and (run / "command.txt").read_text() == shlex.join(cmd):
-            print(f"== {arm}: kept {run}", flush=True)
-            continue
-        shutil.rmtree(run, ignore_errors=True)
-        run_logged(cmd, work / f"{arm}.log", arm)
-        (run / "command.txt").write_text(shlex.join(cmd))
+        for seed in preset_seeds if arm == "preset" else [args.seed]:
+            name = run_folder(args, arm, seed)
+            run, cmd = work / name, run_args(args, arm, seed)
+            done = (run / "report.md").is_file() and (run / "command.txt").is_file()
+            if done and not args.fresh and (run / "command.txt").read_text() == shlex.join(cmd):
+                print(f"== {name}: kept {run}", flush=True)
+                continue
+            shutil.rmtree(run, ignore_errors=True)
+            run_logged(cmd, work / f"{name}.log", name)
+            (run / "command.txt").write_text(shlex.join(cmd))
 
     info = machine()
     previous = Path(__file__).resolve().parent / "results" / f"{NAME}.json"
@@ -169,6 +218,16 @@ def main(argv: list[str] | None = None) -> int:
         preset_s = arms["preset"]["time_to_success_s"]
         headline["preset_s"] = preset_s
         headline["final_seen_preset"] = arms["preset"]["final_seen"]
+        if len(preset_seeds) > 1 and "preset" in args.arms:
+            per_seed = seed_runs(work, args, preset_seeds)
+            headline["preset_s"] = preset_s = median_or_none(
+                [r["time_to_success_s"] for r in per_seed.values()]
+            )
+            headline["final_seen_preset"] = statistics.median(
+                r["final_seen"] for r in per_seed.values()
+            )
+            headline["preset_s_per_seed"] = {s: r["time_to_success_s"] for s, r in per_seed.items()}
+            arms["preset"]["seeds"] = per_seed
         reached["preset_s"] = preset_s is not None and preset_s <= TARGET_PRESET_S
     save_json(
         NAME,
@@ -218,6 +277,19 @@ def main(argv: list[str] | None = None) -> int:
         f"`{shlex.join(NEW_OPTIONS)}`; bf16: the new options and "
         "`--agent.precision bf16`.\n\n" + "\n".join(lines)
     )
+    seeds = arms.get("preset", {}).get("seeds")
+    if seeds:
+        body += (
+            f"\n\nThe preset arm at seeds {', '.join(map(str, seeds))}, one after another, each "
+            "alone on the machine (the row above is seed "
+            f"{args.seed}): "
+            + "; ".join(
+                f"seed {s}: {fmt(r['time_to_success_s'])} to {args.threshold:.0%}, final seen "
+                f"{r['final_seen']:.2f}, {r['torch_threads']} torch thread(s)"
+                for s, r in seeds.items()
+            )
+            + f". `headline.preset_s` is their median: {fmt(headline['preset_s'])}."
+        )
     kept = {arm: a["kept_from"] for arm, a in arms.items() if "kept_from" in a}
     if kept:
         body += "\n\n" + "; ".join(

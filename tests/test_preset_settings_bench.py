@@ -65,3 +65,41 @@ def test_no_arm_is_chosen_that_ends_lower_than_the_shipped_one():
     assert ps.choose(arms) == "as shipped"
     arms["--collect.envs 8"]["final_seen"] = 0.94
     assert ps.choose(arms) == "--collect.envs 8"
+
+
+def test_time_to_success_trains_the_preset_at_every_seed_and_reports_the_median(
+    tmp_path, monkeypatch
+):
+    from benchmarks import time_to_success as tts
+
+    def run_logged(cmd, log, what):
+        out = Path(cmd[cmd.index("--out") + 1])
+        seed = int(cmd[cmd.index("--seed") + 1])
+        # seed 0 gets there at 100 s, seed 1 at 350 s, seed 2 never
+        hit = {0: 0.9, 1: 0.5, 2: 0.5}[seed]
+        late = 0.85 if seed == 1 else 0.6
+        _curve(out, [(1000, hit, 100), (2000, late, 350)])
+        (out / "config.json").write_text(
+            json.dumps({"collect": {"envs": 8}, "updates_per_step": 1.0, "batch_size": 128})
+        )
+        return 1.0
+
+    written = {}
+    monkeypatch.setattr(tts, "run_logged", run_logged)
+    monkeypatch.setattr(tts, "save_json", lambda name, doc, **kw: written.update(doc))
+    monkeypatch.setattr(tts, "save_markdown", lambda *a, **kw: None)
+    monkeypatch.setattr(tts, "save_figure", lambda *a, **kw: None)
+    work = tmp_path / "work"
+    for arm in ("new", "old"):  # the arms this invocation does not train
+        run_logged([*tts.run_args(tts.argparse.Namespace(
+            work=str(work), steps=2000, eval_every=1000, eval_episodes=10, seed=0), arm)],
+            None, arm)  # fmt: skip
+    tts.main(["--arms", "preset", "--preset-seeds", "0", "1", "2", "--work", str(work),
+              "--steps", "2000", "--eval-every", "1000"])  # fmt: skip
+    # seed 0 (--seed) trains in the arm's folder, the others beside it
+    assert {"preset", "preset-s1", "preset-s2"} <= {p.name for p in work.iterdir()}
+    head = written["headline"]
+    assert head["preset_s_per_seed"] == {0: 100.0, 1: 350.0, 2: None}
+    assert head["preset_s"] == 350.0  # the median, the seed that never got there the slowest
+    assert written["reached"]["preset_s"] is False  # the target is 300 s
+    assert tts.median_or_none([None, None, 5.0]) is None
