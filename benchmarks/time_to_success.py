@@ -292,7 +292,7 @@ def main(argv: list[str] | None = None) -> int:
         )
     kept = {arm: a["kept_from"] for arm, a in arms.items() if "kept_from" in a}
     if kept:
-        body += "\n\n" + "; ".join(
+        body += "\n\n" + " ".join(
             f"The {arm} run is kept from the previous result file ({date}): not trained again "
             "in this invocation."
             for arm, date in kept.items()
