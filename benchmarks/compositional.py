@@ -60,10 +60,10 @@ from benchmarks.common import (
 from train.evaluation.report import spread
 
 PRESETS = {"lang2d": "lang2d", "robosuite": "robosuite-reach"}
-#: Collection options every run of an environment adds: the settings its results were
-#: measured with, where the preset ships others since (robosuite-reach: 8 environments at
-#: batch 128, docs/scale.md).
-COLLECTION = {"robosuite": ["--collect.envs", "1", "--batch-size", "256"]}
+#: Collection options every run of a preset adds: the settings its results were measured
+#: with, where the preset ships others since (robosuite-reach: 8 environments at batch 128,
+#: docs/scale.md).
+COLLECTION = {"robosuite-reach": ["--collect.envs", "1", "--batch-size", "256"]}
 TARGETS = {
     "lang2d": {"seen": 0.90, "heldout_ratio": 0.70, "paraphrase_ratio": 0.90},
     "robosuite": {"seen": 0.85, "heldout_ratio": 0.70},
@@ -270,7 +270,10 @@ def run_all(args: argparse.Namespace) -> dict[str, float]:
             out.parent.mkdir(parents=True, exist_ok=True)
             train = [*LCRL, "train", args.preset, "--out", str(out), "--seed", str(seed)]
             train += ["--total-steps", str(args.steps), "--overwrite", "--no-progress"]
-            train += [*COLLECTION.get(args.env, []), *arm_args(arm, args.grounding, args.phrasings)]
+            train += [
+                *COLLECTION.get(args.preset, []),
+                *arm_args(arm, args.grounding, args.phrasings),
+            ]
             ev = [*LCRL, "eval", str(out), "--episodes", str(args.episodes), "--num-envs", "1"]
             ev += ["--sets", *SETS, "--no-progress", "--json", str(out / "final-eval.json")]
             log = open(out.parent / f"{out.name}.log", "w")  # noqa: SIM115

@@ -241,6 +241,7 @@ def test_an_averaged_student_is_checkpointed_and_acts_through_load(teacher, perc
 
     out = tmp_path / "averaged"
     args = ["distill", str(teacher), "--perception", str(perception), "--ema", "0.9"]
+    args += ["--weight-decay", "0.01"]
     args += ["--rounds", "1", "--episodes-per-round", "2", "--updates-per-round", "20"]
     args += ["--batch-size", "32", "--eval-every", "0", "--eval-episodes", "1"]
     args += ["--no-progress", "--no-tensorboard"]
@@ -253,8 +254,10 @@ def test_an_averaged_student_is_checkpointed_and_acts_through_load(teacher, perc
     agent = policy.agent
     for k, w in agent.actor_ema.state_dict().items():
         torch.testing.assert_close(w, averaged[k])
-    assert agent.cfg.ema == 0.9
+    assert agent.cfg.ema == 0.9 and agent.cfg.weight_decay == 0.01
     bad = ["distill", str(teacher), "--perception", str(perception), "--ema", "1.0"]
+    assert cli(*bad, "--out", str(tmp_path / "bad"), "--no-progress") == 2
+    bad = ["distill", str(teacher), "--perception", str(perception), "--weight-decay", "-1"]
     assert cli(*bad, "--out", str(tmp_path / "bad"), "--no-progress") == 2
 
 

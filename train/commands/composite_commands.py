@@ -96,6 +96,8 @@ class DistillCommand:
     """Rows per student update."""
     lr: float = 1e-3
     """The student's learning rate."""
+    weight_decay: float = 0.0
+    """Decoupled weight decay (as in AdamW) on the student's weights (0: off)."""
     ema: float = 0.0
     """Polyak average of the student's weights, the student that acts, is evaluated and
     checkpointed: ``avg = ema * avg + (1 - ema) * w`` after each update (0: off; e.g.
@@ -166,7 +168,13 @@ class DistillCommand:
             progress=self.progress,
             tensorboard=self.tensorboard,
         )
-        cfg.bc = BCConfig(lr=self.lr, loss="mse", hindsight=False, ema=self.ema)
+        cfg.bc = BCConfig(
+            lr=self.lr,
+            loss="mse",
+            hindsight=False,
+            ema=self.ema,
+            weight_decay=self.weight_decay,
+        )
         if self.families:
             cfg.env.families = tuple(self.families)
         if self.max_episode_steps:
