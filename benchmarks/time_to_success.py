@@ -39,6 +39,7 @@ import shlex
 import shutil
 import statistics
 from pathlib import Path
+from typing import Any
 
 from benchmarks.common import (
     LCRL,
@@ -98,21 +99,28 @@ def first_success(rows: list[dict[str, float]], threshold: float) -> dict[str, f
     return next((r for r in rows if r["train/success"] >= threshold), None)
 
 
+def run_figures(work: Path, name: str, threshold: float) -> dict[str, Any]:
+    """A finished run's figures: seconds and steps to ``threshold`` (None: never), final
+    seen success and step, training seconds, torch threads and its evaluation curve."""
+    rows = curve(work / name)
+    hit = first_success(rows, threshold)
+    return {
+        "time_to_success_s": None if hit is None else hit["train_s"],
+        "steps_to_success": None if hit is None else int(hit["step"]),
+        "final_seen": rows[-1]["train/success"],
+        "final_step": int(rows[-1]["step"]),
+        "train_s": rows[-1]["train_s"],
+        "torch_threads": run_threads(work / f"{name}.log"),
+        "curve": rows,
+    }
+
+
 def seed_runs(work: Path, args: argparse.Namespace, seeds: list[int]) -> dict[int, dict]:
-    """Each seed's preset run: seconds and steps to the threshold (None: never), final seen
-    success, training seconds and torch threads."""
+    """Each seed's preset run: :func:`run_figures` without the curve."""
     out = {}
     for seed in seeds:
-        name = run_folder(args, "preset", seed)
-        rows = curve(work / name)
-        hit = first_success(rows, args.threshold)
-        out[seed] = {
-            "time_to_success_s": None if hit is None else hit["train_s"],
-            "steps_to_success": None if hit is None else int(hit["step"]),
-            "final_seen": rows[-1]["train/success"],
-            "train_s": rows[-1]["train_s"],
-            "torch_threads": run_threads(work / f"{name}.log"),
-        }
+        figures = run_figures(work, run_folder(args, "preset", seed), args.threshold)
+        out[seed] = {k: v for k, v in figures.items() if k != "curve"}
     return out
 
 
@@ -175,21 +183,13 @@ def main(argv: list[str] | None = None) -> int:
             elif arm not in ("bf16", "preset"):
                 raise SystemExit(f"no {arm} run in {work} and none in {previous}: train it")
             continue
-        rows = curve(work / arm)
-        hit = first_success(rows, args.threshold)
         config = json.loads((work / arm / "config.json").read_text())
         arms[arm] = {
             "options": OPTIONS[arm],
             "collect_envs": config["collect"]["envs"],
             "updates_per_step": config["updates_per_step"],
             "batch_size": config["batch_size"],
-            "time_to_success_s": None if hit is None else hit["train_s"],
-            "steps_to_success": None if hit is None else int(hit["step"]),
-            "final_seen": rows[-1]["train/success"],
-            "final_step": int(rows[-1]["step"]),
-            "train_s": rows[-1]["train_s"],
-            "torch_threads": run_threads(work / f"{arm}.log"),
-            "curve": rows,
+            **run_figures(work, arm, args.threshold),
         }
         earlier = before.get("arms", {}).get(arm)
         if earlier and earlier.get("time_to_success_s") != arms[arm]["time_to_success_s"]:
