@@ -433,6 +433,40 @@ def test_family_teachers_merge_into_one_state_student_over_chains(two_families, 
         trainer.close()
 
 
+def test_a_student_without_initial_reads_the_current_observation_only(two_families, tmp_path):
+    """``--no-initial``: the student's rows and network hold the current observation only
+    (the teachers still read theirs with ``initial``); the saved config says so, and the
+    policy acts, over chains too, through ``lcrl.load`` and ``lcrl eval``."""
+    import lcrl
+    from lcrl.checkpoint import load_checkpoint
+    from train.evaluation.evaluate import resolve_checkpoint
+
+    out = tmp_path / "current"
+    args = ["distill", str(two_families), "--state", "--out", str(out), "--chain", "1"]
+    args += ["--teacher-for", "reach=scripted", "push=scripted", "--rounds", "1"]
+    args += ["--episodes-per-round", "4", "--updates-per-round", "20", "--batch-size", "32"]
+    args += ["--eval-every", "0", "--eval-episodes", "1", "--no-progress", "--no-tensorboard"]
+    assert cli(*args, "--no-initial") == 0
+    ckpt = load_checkpoint(resolve_checkpoint(out))
+    assert ckpt.meta["config"]["env"]["initial"] is False
+    assert {k for k in ckpt.arrays() if k.startswith("data_")} == {
+        "data_observation",
+        "data_action",
+        "data_goal",
+    }
+    policy = lcrl.load(out)
+    assert set(policy.task.obs_shapes) == {"observation"}
+    teacher = lcrl.load(two_families)
+    assert set(teacher.task.obs_shapes) == {"observation", "initial"}
+    obs, _ = policy.make_env().reset(seed=0)
+    assert policy.act(obs, "push the red cube left").shape == (2,)
+    report = tmp_path / "chain.json"
+    eval_args = ["eval", str(out), "--episodes", "3", "--chain", "2", "--sets", "train"]
+    assert cli(*eval_args, "--no-progress", "--json", str(report)) == 0
+    chain = json.loads(report.read_text())["sets"]["train"]["chain"]
+    assert chain["length"] == 2 and chain["chains"] == 3
+
+
 def test_family_teachers_that_cannot_teach_are_refused(two_families, teacher, tmp_path, capsys):
     out = ["--out", str(tmp_path / "s"), "--no-progress", "--no-tensorboard"]
     base = ["distill", str(two_families), "--state", *out]

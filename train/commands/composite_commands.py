@@ -67,6 +67,11 @@ class DistillCommand:
     families: tuple[str, ...] = ()
     """The student's instruction families (default: the teacher's env's): a student of
     several family teachers (``--teacher-for``) follows all of theirs."""
+    initial: bool = True
+    """The student also reads the observation at the start of its instruction, as its
+    teachers do. ``--no-initial``: the current observation only (its displacements say
+    what moved since the instruction began), so the next instruction of a chain looks to
+    the student like a first one (``--env.initial``)."""
     max_episode_steps: int = 0
     """The student's episode length (default: the teacher's env's; manipulation needs
     100)."""
@@ -175,6 +180,7 @@ class DistillCommand:
             ema=self.ema,
             weight_decay=self.weight_decay,
         )
+        cfg.env.initial = self.initial
         if self.families:
             cfg.env.families = tuple(self.families)
         if self.max_episode_steps:

@@ -48,7 +48,14 @@ class LanguageTask(Task):
             raise LcrlError("language tasks need a text encoder")
         if cfg.tasks:
             kwargs["tasks"] = task_texts(cfg)
-        return cls(env, embed, image_obs=cfg.image_obs, phrasings=cfg.phrasings, **kwargs)
+        return cls(
+            env,
+            embed,
+            image_obs=cfg.image_obs,
+            phrasings=cfg.phrasings,
+            initial=cfg.initial,
+            **kwargs,
+        )
 
     def outcome(self, env: gym.Env) -> dict[str, Any]:
         """The episode's instruction and its family (``free`` for unparsed text)."""
@@ -65,6 +72,7 @@ class LanguageTask(Task):
         image_obs: bool = False,
         tasks: tuple[str, ...] = (),
         phrasings: int = 0,
+        initial: bool = True,
     ) -> None:
         super().__init__(env)
         if tasks:
@@ -110,7 +118,10 @@ class LanguageTask(Task):
         self._phrasing_cache: tuple[np.ndarray, np.ndarray] | None = None
         space = env.observation_space
         shape = tuple(space["observation"].shape)
-        self.obs_shapes = {"observation": shape, "initial": shape}
+        self.initial = bool(initial)
+        self.obs_shapes = (
+            {"observation": shape, "initial": shape} if initial else {"observation": shape}
+        )
         self._setup_image_obs(env, image_obs)
         self.goal_space = LabelGoals(
             len(self.table), self.embeddings, num_relabel=self.num_train, terminate_on_success=True
@@ -170,14 +181,15 @@ class LanguageTask(Task):
     def storage_obs(
         self, obs: Mapping[str, Any], first: Mapping[str, Any]
     ) -> dict[str, np.ndarray]:
-        """The observation and the episode's first observation (or, with image
-        observations, the image and the proprioception)."""
+        """The observation and the one its instruction started from (``initial``; not
+        with ``env.initial`` off), or with image observations the image and the
+        proprioception."""
         if self.image_obs:
             return self._image_storage(obs)
-        return {
-            "observation": np.asarray(obs["observation"], np.float32),
-            "initial": np.asarray(first["observation"], np.float32),
-        }
+        out = {"observation": np.asarray(obs["observation"], np.float32)}
+        if self.initial:
+            out["initial"] = np.asarray(first["observation"], np.float32)
+        return out
 
     def goal(self, obs: Mapping[str, Any], env: gym.Env) -> int:
         """The id of the episode's instruction (added to the table if new)."""
@@ -270,12 +282,18 @@ class TaskIdTask(Task):
         cls, cfg: EnvConfig, env: gym.Env, embed: Any = None, **kwargs: Any
     ) -> TaskIdTask:
         """The task-id task of a config's task set."""
-        return cls(env, task_texts(cfg), image_obs=cfg.image_obs)
+        return cls(env, task_texts(cfg), image_obs=cfg.image_obs, initial=cfg.initial)
 
     #: the instruction and family, as language goals report them
     outcome = LanguageTask.outcome
 
-    def __init__(self, env: gym.Env, tasks: tuple[str, ...], image_obs: bool = False) -> None:
+    def __init__(
+        self,
+        env: gym.Env,
+        tasks: tuple[str, ...],
+        image_obs: bool = False,
+        initial: bool = True,
+    ) -> None:
         super().__init__(env)
         if not tasks:
             raise LcrlError("task ids need at least one task (env.tasks)")
@@ -293,7 +311,10 @@ class TaskIdTask(Task):
         self.ids = {t: i for i, t in enumerate(self.tasks)}
         self.ids.update({m.text: i for i, m in enumerate(self.meanings)})
         shape = tuple(env.observation_space["observation"].shape)
-        self.obs_shapes = {"observation": shape, "initial": shape}
+        self.initial = bool(initial)
+        self.obs_shapes = (
+            {"observation": shape, "initial": shape} if initial else {"observation": shape}
+        )
         self._setup_image_obs(env, image_obs)
         self.goal_space = TaskGoals(self.num_tasks, terminate_on_success=True)
 

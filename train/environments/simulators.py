@@ -106,6 +106,12 @@ class EnvConfig:
     """Add each object's displacement since the episode's reset to its observation slot
     (:class:`envs.features.SlotFeatures`): push and put are judged on it. Widens each slot
     by 2 values on the 2D tabletop (3 on robosuite); set ``--agent.net.slots`` to match."""
+    initial: bool = True
+    """Language and task goals: the policy also reads the observation at the start of its
+    instruction (``initial``). ``False``: the current observation only, which with
+    ``displacements`` still says what moved since the instruction began; the next
+    instruction of a chain then looks to the policy like a first one (its gripper
+    anywhere), not like a start it rarely saw."""
     perception: str = ""
     """A perception model (``lcrl perception train --out``): the policy's ``observation``
     is its estimate of the object slots from the camera frame and the proprioception
