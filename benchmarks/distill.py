@@ -525,20 +525,38 @@ def main(argv: list[str] | None = None) -> int:
 
 def add_push(payload: dict) -> None:
     """The push figures into the headline and the verdicts."""
-    final = payload["push"]["final"]
+    push = payload["push"]
+    final = push["final"]
     teacher, student = final["teacher"]["success"], final["student"]["success"]
+    members = push.get("members", [])
+    # the headline is one network: the command's own seed where several were averaged
+    # (the mean of their actions is a composite, reported beside it)
+    single = members[0]["success"] if members else student
     payload["headline"].update(
         push_teacher_seen=round(teacher, 3),
-        push_student_seen=round(student, 3),
-        push_gap=round(teacher - student, 3),
+        push_student_seen=round(single, 3),
+        push_gap=round(teacher - single, 3),
     )
-    payload["reached"]["push_within_5_points"] = round(teacher - student, 9) <= TARGET_GAP
-    again = payload["push"].get("recheck")
-    if again:  # the same verdict on the other episodes
+    payload["reached"]["push_within_5_points"] = round(teacher - single, 9) <= TARGET_GAP
+    for key in ("push_ensemble_seen", "push_ensemble_gap", "push_ensemble_members"):
+        payload["headline"].pop(key, None)
+    payload["reached"].pop("push_ensemble_within_5_points", None)
+    if members:
+        payload["headline"].update(
+            push_ensemble_seen=round(student, 3),
+            push_ensemble_gap=round(teacher - student, 3),
+            push_ensemble_members=len(members),
+        )
+        payload["reached"]["push_ensemble_within_5_points"] = (
+            round(teacher - student, 9) <= TARGET_GAP
+        )
+    again = push.get("recheck")
+    payload["reached"].pop("push_within_5_points_recheck", None)
+    payload["reached"].pop("push_ensemble_within_5_points_recheck", None)
+    if again:  # the same verdict on the other episodes, for the policy rechecked
         gap = again["teacher"]["success"] - again["student"]["success"]
-        payload["reached"]["push_within_5_points_recheck"] = round(gap, 9) <= TARGET_GAP
-    else:
-        payload["reached"].pop("push_within_5_points_recheck", None)
+        key = "push_ensemble_within_5_points_recheck" if members else "push_within_5_points_recheck"
+        payload["reached"][key] = round(gap, 9) <= TARGET_GAP
 
 
 def push_curves(payload: dict) -> dict[str, list[tuple[float, float]]]:
@@ -583,7 +601,15 @@ def render(payload: dict, info: dict) -> None:
     push = payload.get("push")
     if push is not None:
         pt, ps = push["final"]["teacher"], push["final"]["student"]
-        lines.append(f"| push, train | {cell(pt)} | {cell(ps)} |")
+        members = push.get("members", [])
+        if members:  # one network in the headline row, their average beside it
+            lines.append(f"| push, train | {cell(pt)} | {cell(members[0])} |")
+            lines.append(
+                f"| push, train: the mean of {len(members)} students' actions (a composite) "
+                f"| | {cell(ps)} |"
+            )
+        else:
+            lines.append(f"| push, train | {cell(pt)} | {cell(ps)} |")
         if push.get("state_student"):
             cs = push["state_student"]["final"]
             lines.append(f"| push, train: a student reading the true state | | {cell(cs)} |")
@@ -639,11 +665,22 @@ def render(payload: dict, info: dict) -> None:
             "",
             *round_table(push["rounds"]),
             "",
-            f"Push: student within {TARGET_GAP:.2f} of the teacher: "
+            f"Push: student (one network) within {TARGET_GAP:.2f} of the teacher: "
             f"{'reached' if reached['push_within_5_points'] else 'NOT reached'} (gap "
             f"{headline['push_gap']:+.2f}). Distillation took {push['student_distill_s']:.0f} s"
             " (collection and updates).",
         ]
+        if "push_ensemble_gap" in headline:
+            ensemble_ok = reached.get("push_ensemble_within_5_points")
+            lines += [
+                "",
+                f"The mean of the {headline['push_ensemble_members']} students' actions, a "
+                f"composite and not the headline: {headline['push_ensemble_seen']:.2f} (gap "
+                f"{headline['push_ensemble_gap']:+.2f}, "
+                f"{'within' if ensemble_ok else 'NOT within'} {TARGET_GAP:.2f}).",
+            ]
+        if payload.get("headline_note"):
+            lines += ["", payload["headline_note"]]
         members = push.get("members", [])
         if members:
             alone = "; ".join(
@@ -652,7 +689,7 @@ def render(payload: dict, info: dict) -> None:
             )
             lines += [
                 "",
-                f"The push student is the mean of the actions of {len(members)} students "
+                f"The composite is the mean of the actions of {len(members)} students "
                 f"distilled the same way with other seeds (`{push.get('ensemble_command', '')}`"
                 f"; the distillation time above is theirs together). Alone: {alone}.",
             ]
@@ -667,7 +704,8 @@ def render(payload: dict, info: dict) -> None:
                 "",
                 f"Again on {again['episodes']} other episodes (evaluation seed "
                 f"{again['seed']}: other layouts and instructions): teacher "
-                f"{cell(again['teacher'])}, student {cell(again['student'])} (gap "
+                f"{cell(again['teacher'])}, "
+                f"{'the composite' if members else 'student'} {cell(again['student'])} (gap "
                 f"{'+' if gap >= 0 else '-'}{rate(abs(gap))}, {within} {TARGET_GAP:.2f}); "
                 f"`{'`, `'.join(again['commands'])}`.",
             ]
