@@ -6,7 +6,9 @@ Evaluates each candidate (a ``lcrl distill`` run or checkpoint: the same build s
 another round, with another option, ...) with ``lcrl eval RUN --sets train heldout
 --episodes N --seed S --canonical-reader``, two at a time on one torch thread each, and
 chooses the one with the highest success pooled over both sets (seen instructions and
-held-out word combinations, every family). The validation seed is one no headline
+held-out word combinations, every family). ``--chain 2`` also runs ``N`` chains of two
+seen instructions per candidate (``lcrl eval ... --chain 2 --sets train``) and pools a
+whole chain achieved as one more success. The validation seed is one no headline
 reports (one of ``benchmarks.protocol.VALIDATION_SEEDS``; the test seed of
 ``benchmarks.robosuite_camera`` is 7);
 an evaluation already written is read, not run again.
@@ -46,11 +48,25 @@ def candidates(entries: list[str]) -> dict[str, str]:
     return out
 
 
-def summary(doc: dict[str, Any]) -> dict[str, Any]:
-    """Pooled, per-set and per-family success of one ``lcrl eval --json`` document."""
+def chain_success(doc: dict[str, Any]) -> tuple[float, int]:
+    """The share of chains achieved whole in a ``lcrl eval --chain`` document, and how
+    many chains ran."""
+    chain = doc["sets"]["train"]["chain"]
+    whole = next((c for c in chain["success"] if c["length"] == chain["length"]), None)
+    return (whole["success"] if whole else 0.0), int(chain["chains"])
+
+
+def summary(doc: dict[str, Any], chains: dict[str, Any] | None = None) -> dict[str, Any]:
+    """Pooled, per-set and per-family success of one ``lcrl eval --json`` document (and
+    of its chains, from a ``--chain`` document)."""
     sets = doc["sets"]
     wins = sum(sets[s]["success"] * sets[s]["episodes"] for s in SETS if s in sets)
     n = sum(sets[s]["episodes"] for s in SETS if s in sets)
+    chain = None
+    if chains is not None:
+        chain = chain_success(chains)
+        wins += chain[0] * chain[1]
+        n += chain[1]
     out: dict[str, Any] = {
         "pooled": wins / n if n else float("nan"),
         "pooled_ci": list(wilson_interval(round(wins), n)) if n else [float("nan")] * 2,
@@ -60,6 +76,9 @@ def summary(doc: dict[str, Any]) -> dict[str, Any]:
         if s in sets:
             out[s] = sets[s]["success"]
             out[f"{s}_families"] = {f: v["success"] for f, v in sets[s].get("families", {}).items()}
+    if chain is not None:
+        out["chain"] = chain[0]
+        out["chain_ci"] = list(wilson_interval(round(chain[0] * chain[1]), chain[1]))
     return out
 
 
@@ -76,6 +95,9 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--work", default="runs/camera-choice")
     parser.add_argument("--name", default="robosuite-camera-choice")
     parser.add_argument("--parallel", type=int, default=2)
+    parser.add_argument(
+        "--chain", type=int, default=0, help="also chains of this many seen instructions"
+    )
     args = parser.parse_args(argv)
     runs = candidates(args.candidates)
     if args.seed not in VALIDATION_SEEDS:
@@ -93,11 +115,22 @@ def main(argv: list[str] | None = None) -> int:
                 "--json", str(path),
             ]  # fmt: skip
             jobs.append((f"eval {name}", argv_, work / f"{name}-seed{args.seed}.log"))
+        chained = work / f"{name}-seed{args.seed}-chain{args.chain}.json"
+        if args.chain and not chained.is_file():
+            argv_ = [
+                *LCRL, "eval", run, "--sets", "train", "--chain", str(args.chain),
+                "--episodes", str(args.episodes), "--seed", str(args.seed),
+                "--canonical-reader", "--no-progress", "--json", str(chained),
+            ]  # fmt: skip
+            jobs.append((f"chains {name}", argv_, chained.with_suffix(".log")))
     run_jobs(jobs, parallel=args.parallel)
-    results = {
-        name: summary(json.loads((work / f"{name}-seed{args.seed}.json").read_text()))
-        for name in runs
-    }
+
+    def read(name: str) -> dict[str, Any]:
+        doc = json.loads((work / f"{name}-seed{args.seed}.json").read_text())
+        chained = work / f"{name}-seed{args.seed}-chain{args.chain}.json"
+        return summary(doc, json.loads(chained.read_text()) if args.chain else None)
+
+    results = {name: read(name) for name in runs}
     chosen = choose(results)
     info = machine()
     headline: dict[str, Any] = {"chosen": chosen, "seed": args.seed}
@@ -105,6 +138,8 @@ def main(argv: list[str] | None = None) -> int:
         headline[f"{name}_pooled"] = round(r["pooled"], 3)
         headline[f"{name}_seen"] = round(r.get("train", float("nan")), 3)
         headline[f"{name}_heldout"] = round(r.get("heldout", float("nan")), 3)
+        if args.chain:
+            headline[f"{name}_chain{args.chain}"] = round(r["chain"], 3)
     payload = {
         "headline": headline,
         "machine": info,
@@ -113,15 +148,19 @@ def main(argv: list[str] | None = None) -> int:
         "protocol": f"validation seed {args.seed}: a choice, not a figure to report",
         "tried": [f"{name}={run}" for name, run in runs.items()],
     }
+    sets = "seen instructions, held-out word combinations"
+    if args.chain:
+        sets += f", chains of {args.chain} seen instructions (a whole chain one success)"
+    chain_head = f" chain{args.chain} |" if args.chain else ""
     lines = [
-        f"Validation seed {args.seed}, {args.episodes} episodes per set (seen instructions, "
-        "held-out word combinations), free text through the canonical reader. Chosen: the "
-        "highest success pooled over both sets.",
+        f"Validation seed {args.seed}, {args.episodes} episodes per set ({sets}), free text "
+        "through the canonical reader. Chosen: the highest success pooled over "
+        f"{'the three' if args.chain else 'both sets'}.",
         "",
-        "| candidate | run | pooled (95% CI) | seen | held-out | "
-        + " | ".join(f"seen {f}" for f in FAMILIES)
-        + " |",
-        "|---|---|---|---:|---:|" + "---:|" * len(FAMILIES),
+        "| candidate | run | pooled (95% CI) | seen | held-out |"
+        + chain_head
+        + " ".join(f"seen {f} |" for f in FAMILIES),
+        "|---|---|---|---:|---:|" + "---:|" * (len(FAMILIES) + bool(args.chain)),
     ]
     for name, r in results.items():
         lo, hi = r["pooled_ci"]
@@ -129,6 +168,7 @@ def main(argv: list[str] | None = None) -> int:
         lines.append(
             f"| {name} | `{runs[name]}` | {r['pooled']:.2f} [{lo:.2f}, {hi:.2f}] | "
             f"{r.get('train', float('nan')):.2f} | {r.get('heldout', float('nan')):.2f} | "
+            + (f"{r['chain']:.2f} | " if args.chain else "")
             + " | ".join(f"{fams.get(f, float('nan')):.2f}" for f in FAMILIES)
             + " |"
         )
