@@ -18,7 +18,13 @@ policy acting on what it acts on in ``lcrl eval`` (its perception of the camera 
     (``switch_in_place``, as ``lcrl eval --chain`` does), which the policy follows;
 ``teacher twice``
     the scripted controller follows both: how often the second instruction is feasible
-    for a controller that can do it.
+    for a controller that can do it;
+``reset initial``
+    as ``after teacher``, but the policy reads the reset's observation as its
+    ``initial`` one instead of the observation its instruction started from (what a
+    first instruction shows it): whether the start of a later instruction is what it
+    fails on. A policy trained without ``initial`` (``lcrl distill --no-initial``) acts
+    the same both ways.
 
 At every step the policy acts, the scripted controller's action for the same state is
 recorded beside the policy's, and their squared distance (summed over the action's
@@ -30,7 +36,8 @@ against a controller the policy did not imitate there.
 
 Writes ``benchmarks/results/chain-probe.{json,md,png}``. Headline: ``fresh_success``,
 ``second_success`` (policy's second instruction after the teacher's first),
-``teacher_second_success``, ``fresh_action_error``, ``second_action_error``.
+``teacher_second_success``, ``fresh_action_error``, ``second_action_error``,
+``second_success_reset_initial``.
 """
 
 from __future__ import annotations
@@ -67,10 +74,15 @@ class Probe:
         self.errors: dict[tuple[str, int, str], list[float]] = defaultdict(list)
         self.success: dict[tuple[str, int, str], list[bool]] = defaultdict(list)
 
-    def _instruction(self, arm: str, link: int, policy_acts: bool, obs: Any) -> tuple[Any, bool]:
-        """Follow the running instruction to its end; the last observation and success."""
+    def _instruction(
+        self, arm: str, link: int, policy_acts: bool, obs: Any, first: Any = None
+    ) -> tuple[Any, bool]:
+        """Follow the running instruction to its end; the last observation and success.
+        ``first``: the observation the policy reads as its ``initial`` one (default: the
+        one the instruction starts from)."""
         env, task = self.env, self.task
-        first, goal = obs, np.asarray([task.goal(obs, env)])
+        first = obs if first is None else first
+        goal = np.asarray([task.goal(obs, env)])
         family = self.lang.meaning.family
         success = False
         while True:
@@ -91,15 +103,18 @@ class Probe:
     def episode(self, seed: int) -> None:
         from train.environments.tasks import switch_in_place
 
-        for arm in ("fresh", "after teacher", "teacher twice"):
+        for arm in ("fresh", "after teacher", "teacher twice", "reset initial"):
             obs, _ = self.env.reset(seed=seed)
+            reset = obs
             self.scripted.reset()
             obs, done = self._instruction(arm, 0, arm == "fresh", obs)
             if arm == "fresh" or not done:
                 continue
             following = switch_in_place(self.env, obs)
             if following is not None:
-                self._instruction(arm, 1, arm == "after teacher", following)
+                policy_acts = arm in ("after teacher", "reset initial")
+                first = reset if arm == "reset initial" else None
+                self._instruction(arm, 1, policy_acts, following, first)
 
     def close(self) -> None:
         self.env.close()
@@ -114,7 +129,12 @@ def rate(values: list[bool]) -> dict[str, Any]:
 def summary(probe: Probe, families: list[str]) -> dict[str, Any]:
     """Success and action error per (arm, instruction of the chain), pooled and per family."""
     out: dict[str, Any] = {}
-    for arm, link in (("fresh", 0), ("after teacher", 1), ("teacher twice", 1)):
+    for arm, link in (
+        ("fresh", 0),
+        ("after teacher", 1),
+        ("teacher twice", 1),
+        ("reset initial", 1),
+    ):
         fam_rows = {}
         for f in families:
             errs = probe.errors.get((arm, link, f), [])
@@ -151,12 +171,14 @@ def main(argv: list[str] | None = None) -> int:
     families = list(probe.policy.cfg.env.families)
     rows = summary(probe, families)
     fresh, second, teacher = rows["fresh 1"], rows["after teacher 2"], rows["teacher twice 2"]
+    reset = rows["reset initial 2"]
     headline = {
         "fresh_success": fresh["success"],
         "second_success": second["success"],
         "teacher_second_success": teacher["success"],
         "fresh_action_error": fresh["action_error"],
         "second_action_error": second["action_error"],
+        "second_success_reset_initial": reset["success"],
         "model": args.model,
         "seed": args.seed,
     }
@@ -170,14 +192,14 @@ def main(argv: list[str] | None = None) -> int:
 
     lines = [
         "| family | policy, first instruction | policy, second (teacher did the first) "
-        "| teacher, second |",
-        "|---|---|---|---|",
+        "| teacher, second | policy, second, reading the reset as `initial` |",
+        "|---|---|---|---|---|",
     ]
     for f in [*families, None]:
         pick = (lambda r: r) if f is None else (lambda r, f=f: r["families"][f])
         lines.append(
             f"| {f or '**all**'} | {cell(pick(fresh))} | {cell(pick(second))} "
-            f"| {cell(pick(teacher))} |"
+            f"| {cell(pick(teacher))} | {cell(pick(reset))} |"
         )
     body = (
         f"`{args.model}` on {args.episodes} layouts (seeds {args.seed * 1000} on). Success "
@@ -185,7 +207,9 @@ def main(argv: list[str] | None = None) -> int:
         "action and the scripted controller's for the same state (policy units, summed over "
         "the action's dimensions), over the steps the policy acted; a family whose first "
         "instructions were taught by another teacher (put and stack of robosuite-camera) "
-        "imitated another controller there.\n\n" + "\n".join(lines)
+        "imitated another controller there. The last column: the same second instructions "
+        "from the same scenes, the policy reading the reset's observation as the one its "
+        "instruction started from (`initial`).\n\n" + "\n".join(lines)
     )
     fig, axes = new_figure(ncols=2, figsize=(9, 3.5))
     x = np.arange(len(families))

@@ -4,6 +4,7 @@ count and compute."""
 from __future__ import annotations
 
 import math
+from collections import defaultdict
 
 import numpy as np
 import pytest
@@ -43,6 +44,51 @@ def test_the_chain_probe_pools_success_and_action_error_per_instruction_of_the_c
     low, high = fresh["ci"]
     assert 0.0 < low < 2 / 3 < high < 1.0
     assert math.isnan(chain_probe.rate([])["success"])
+
+
+def test_the_chain_probe_reads_the_reset_as_initial_in_its_last_arm(monkeypatch):
+    """``reset initial``: the same second instruction from the same scene, the policy
+    reading the reset's observation as its ``initial`` one; ``after teacher`` reads the
+    observation its instruction started from."""
+    import types
+
+    import train.environments.tasks as tasks
+
+    read: list[tuple[str, str]] = []  # (what the observation is, what it reads as initial)
+
+    class Env:
+        def reset(self, seed):
+            return {"at": "reset"}, {}
+
+        def step(self, action):
+            return {"at": "stepped"}, 0.0, True, False, {"is_success": True}
+
+    class Task:
+        def goal(self, obs, env):
+            return 0
+
+        def storage_obs(self, obs, first):
+            read.append((obs["at"], first["at"]))
+            return {"x": np.zeros(1, np.float32)}
+
+        def scale_action(self, a):
+            return a
+
+    probe = object.__new__(chain_probe.Probe)
+    probe.env, probe.task = Env(), Task()
+    probe.lang = types.SimpleNamespace(meaning=types.SimpleNamespace(family="reach"))
+    probe.scripted = types.SimpleNamespace(act=lambda env, rng: np.zeros(1), reset=lambda: None)
+    agent = types.SimpleNamespace(act=lambda batch, goal, deterministic: np.zeros((1, 1)))
+    probe.policy = types.SimpleNamespace(agent=agent)
+    probe.rng = np.random.default_rng(0)
+    probe.errors, probe.success = defaultdict(list), defaultdict(list)
+    monkeypatch.setattr(tasks, "switch_in_place", lambda env, obs: {"at": "switched"})
+    probe.episode(7)
+    # fresh: the reset read as itself; after teacher: the switched scene as its own start;
+    # reset initial: the switched scene, the reset read as initial
+    assert read == [("reset", "reset"), ("switched", "switched"), ("switched", "reset")]
+    assert probe.success[("reset initial", 1, "reach")] == [True]
+    assert probe.success[("teacher twice", 1, "reach")] == [True]
 
 
 def _episode(gripper_start: list[float], steps: int, switch_at: int = 0) -> tuple:
