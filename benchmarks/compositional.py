@@ -227,6 +227,26 @@ def selection_table(selection: dict[str, dict[str, dict[str, Any] | None]]) -> s
     )
 
 
+def selection_note(arms: dict[str, Any], chosen: str) -> str:
+    """How the headline arm was chosen, with its margin over the best other arm (empty
+    with one arm)."""
+    others = {a: v for a, v in arms.items() if a != chosen}
+    if not others:
+        return ""
+    best = max(others, key=lambda a: others[a]["heldout_ratio"])
+
+    def figures(arm: str) -> str:
+        a = arms[arm]
+        return f"seen {a['train']['mean']:.2f}, held-out / seen {a['heldout_ratio']:.2f}"
+
+    return (
+        f"Selection: the headline arm ({chosen}) is named on the command line "
+        "(`--headline-arm`) after every arm was evaluated on these same episodes (each "
+        f"run's final evaluation); no test seed evaluated it again. It has {figures(chosen)}; "
+        f"the other arm with the highest ratio ({best}) has {figures(best)}."
+    )
+
+
 def combination_tables(per_combo: dict[str, dict[str, dict[str, float]]]) -> str:
     """Markdown: every held-out combination, and the seen ones that fail (below 0.50) in
     some arm, with each arm's success over its seeds."""
@@ -452,6 +472,7 @@ def main(argv: list[str] | None = None) -> int:
     head = headline(args.env, arms, new)
     ok = reached(args.env, head)
     payload["headline"], payload["reached"] = head, ok
+    payload["selection"] = selection_note(arms, new)
     save_json(name, payload)
     lines = [
         "| arm | seed | seen | held-out combinations | paraphrases | held-out / seen |",
@@ -477,6 +498,7 @@ def main(argv: list[str] | None = None) -> int:
         f"`lcrl eval` with {args.episodes} episodes per set (95% Wilson intervals per run).\n\n"
         + "\n".join(lines)
         + f"\n\nHeadline ({new}): {verdict}.\n\n"
+        + (f"{note}\n\n" if (note := selection_note(arms, new)) else "")
         + combination_tables(per_combo)
         + selection_table(selection)
     )

@@ -80,6 +80,9 @@ def test_report_from_finished_runs_with_an_arm_of_fewer_seeds(tmp_path, monkeypa
     assert "--env.phrasings" in out["arm_options"]["phrased"]
     md = (tmp_path / "results" / "compositional-lang2d.md").read_text()
     assert "| grounded | 0 |" in md and "Headline (phrased)" in md
+    # how the headline arm was chosen, beside the other arm with the highest ratio
+    assert out["selection"] in md and "named on the command line" in out["selection"]
+    assert "the other arm with the highest ratio (grounded) has seen 1.00" in out["selection"]
     assert (tmp_path / "results" / "compositional-lang2d.png").is_file()
 
 
