@@ -118,6 +118,10 @@ def test_scripted_families_have_no_teacher_stage_and_a_trained_teacher_is_the_ba
     )
     with pytest.raises(LcrlError, match="needs one trained teacher at least"):
         stages(every_family_scripted)
+    # the shipped student reads initial as its teachers do; --no-initial reaches lcrl distill
+    assert "--no-initial" not in args
+    (current,) = [s for s in stages(dataclasses.replace(p, initial=False)) if s.name == "student"]
+    assert "--no-initial" in current.commands[0]
 
 
 def test_stages_writing_to_a_log_update_their_bars_twice_a_minute(monkeypatch):

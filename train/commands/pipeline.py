@@ -119,6 +119,10 @@ class CameraPipeline:
     """The student's hidden layers."""
     chain: float = 0.5
     """Probability that an achieved instruction is followed by another (chains)."""
+    initial: bool = True
+    """The student also reads the observation its instruction started from, as the
+    teachers do; ``--no-initial``: the current observation only (``lcrl distill
+    --no-initial``), so a chain's later instruction looks like a first one."""
     student_frames: int = 400
     """Episodes of the student collected for ``perception-ft``."""
     max_episode_steps: int = 100
@@ -314,6 +318,7 @@ def stages(p: CameraPipeline) -> list[Stage]:
             *(["--teacher-for", *(f"{t.family}={_teacher_source(p, t)}" for t in others)]
               if others else []),
             *(["--chain", str(p.chain)] if p.chain else []),
+            *([] if p.initial else ["--no-initial"]),
             *p.extra_student,
         ]  # fmt: skip
     teacher_needs = tuple(f"{_teacher_dir(p, t.family)}<teacher-{t.family}" for t in p.trained)
