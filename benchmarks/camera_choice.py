@@ -98,6 +98,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument(
         "--chain", type=int, default=0, help="also chains of this many seen instructions"
     )
+    parser.add_argument("--note", default="", help="what the candidates are, for the report")
     args = parser.parse_args(argv)
     runs = candidates(args.candidates)
     if args.seed not in VALIDATION_SEEDS:
@@ -152,6 +153,7 @@ def main(argv: list[str] | None = None) -> int:
     if args.chain:
         sets += f", chains of {args.chain} seen instructions (a whole chain one success)"
     chain_head = f" chain{args.chain} |" if args.chain else ""
+    chain_head += " "
     lines = [
         f"Validation seed {args.seed}, {args.episodes} episodes per set ({sets}), free text "
         "through the canonical reader. Chosen: the highest success pooled over "
@@ -173,6 +175,9 @@ def main(argv: list[str] | None = None) -> int:
             + " |"
         )
     lines += ["", f"Chosen: **{chosen}**."]
+    if args.note:
+        lines += ["", args.note]
+        payload["note"] = args.note
     fig, ax = new_figure(figsize=(7, 3.6))
     width = 0.8 / len(results)
     for i, (name, r) in enumerate(results.items()):
