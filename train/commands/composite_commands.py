@@ -71,7 +71,7 @@ class DistillCommand:
     """The student also reads the observation at the start of its instruction, as its
     teachers do. ``--no-initial``: the current observation only (its displacements say
     what moved since the instruction began), so the next instruction of a chain looks to
-    the student like a first one (``--env.initial``)."""
+    the student like a first one (``--env.no-initial``)."""
     max_episode_steps: int = 0
     """The student's episode length (default: the teacher's env's; manipulation needs
     100)."""
