@@ -158,6 +158,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--episodes", type=int, default=60, help="layouts")
     parser.add_argument("--seed", type=int, default=1, help="layout seeds: seed * 1000 + i")
     parser.add_argument("--threads", type=int, default=1, help="torch threads")
+    parser.add_argument("--name", default=NAME, help="the result's name (benchmarks/results/)")
     args = parser.parse_args(argv)
 
     from tqdm import tqdm
@@ -222,7 +223,7 @@ def main(argv: list[str] | None = None) -> int:
         ax.set_xticks(x, families)
         ax.set(title=what)
     axes[0].legend(fontsize=8)
-    publish(NAME, payload, "Chains of two: where the second instruction fails", body, fig)
+    publish(args.name, payload, "Chains of two: where the second instruction fails", body, fig)
     return 0
 
 
