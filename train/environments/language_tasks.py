@@ -16,6 +16,12 @@ from train.environments.simulators import EnvConfig
 from train.environments.task_base import Task, find_language_wrapper, slot_layout_start, task_texts
 
 
+def vector_shapes(shape: tuple[int, ...], initial: bool) -> dict[str, tuple[int, ...]]:
+    """What an instruction-following policy reads of a vector observation: the current
+    one, and with ``initial`` the one its instruction started from."""
+    return {"observation": shape, "initial": shape} if initial else {"observation": shape}
+
+
 class LanguageTask(Task):
     """Language-goal envs (:class:`captioner.lang_env.LanguageGoalWrapper`).
 
@@ -119,9 +125,7 @@ class LanguageTask(Task):
         space = env.observation_space
         shape = tuple(space["observation"].shape)
         self.initial = bool(initial)
-        self.obs_shapes = (
-            {"observation": shape, "initial": shape} if initial else {"observation": shape}
-        )
+        self.obs_shapes = vector_shapes(shape, self.initial)
         self._setup_image_obs(env, image_obs)
         self.goal_space = LabelGoals(
             len(self.table), self.embeddings, num_relabel=self.num_train, terminate_on_success=True
@@ -312,9 +316,7 @@ class TaskIdTask(Task):
         self.ids.update({m.text: i for i, m in enumerate(self.meanings)})
         shape = tuple(env.observation_space["observation"].shape)
         self.initial = bool(initial)
-        self.obs_shapes = (
-            {"observation": shape, "initial": shape} if initial else {"observation": shape}
-        )
+        self.obs_shapes = vector_shapes(shape, self.initial)
         self._setup_image_obs(env, image_obs)
         self.goal_space = TaskGoals(self.num_tasks, terminate_on_success=True)
 
