@@ -22,7 +22,7 @@ def test_the_reader_of_a_weights_only_checkpoint_is_fitted_once_and_kept(
     monkeypatch.setattr(train.environments.text_reading, "READER_STEPS", 30)
 
     run = tmp_path / "run"
-    Trainer(tiny("lang2d-quick", run, total_steps=200, learning_starts=100)).run()
+    Trainer(tiny("lang2d", run, total_steps=200, learning_starts=100)).run()  # reach, push
     kept = tmp_path / "kept"
     kept.mkdir()
     for f in find_latest(run).iterdir():  # weights and configs only, as benchmarks/models
@@ -42,3 +42,9 @@ def test_the_reader_of_a_weights_only_checkpoint_is_fitted_once_and_kept(
     # evaluation reads the same reader
     assert cli("eval", str(kept), "--canonical-reader", "--episodes", "1", "--no-progress") == 0
     assert "fitting" not in capsys.readouterr().err
+    # an evaluation of some of its families reads the same reader, and leaves it as kept
+    before = (kept / READER_CACHE / "meta.json").read_text()
+    args = ["eval", str(kept), "--canonical-reader", "--families", "push", "--episodes", "1"]
+    assert cli(*args, "--no-progress") == 0
+    assert "fitting" not in capsys.readouterr().err
+    assert (kept / READER_CACHE / "meta.json").read_text() == before

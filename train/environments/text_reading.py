@@ -297,7 +297,11 @@ def reading_encoder(
     from train.environments.tasks import find_language_wrapper
 
     wrapper = find_language_wrapper(env)
-    train = [m for m in wrapper.split.instructions("train") if m.family in wrapper.families]
+    # a checkpoint's reader reads the families it was trained on, whatever the families
+    # of this run (``lcrl eval --families``): one reader per checkpoint, never refitted
+    trained = ((ckpt.meta.get("config") or {}).get("env") or {}).get("families") if ckpt else None
+    families = tuple(trained) if trained else wrapper.families
+    train = [m for m in wrapper.split.instructions("train") if m.family in families]
     if canonical and ckpt is not None:
         return cached_canonical_reader(encoder, ckpt.path, train, seed)
     if canonical:
