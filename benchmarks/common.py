@@ -273,15 +273,21 @@ def save_markdown(
 
 #: Caption font size (points) and the width of one of its characters, in points.
 CAPTION_SIZE, CAPTION_CHAR = 6, 6 * 0.55
+#: Lines of command a caption holds (the room under the figure); a longer command is cut
+#: there, whole in the Markdown and JSON beside the figure.
+CAPTION_LINES = 2
 
 
 def caption(fig: Any, info: dict[str, Any], cmd: str | None = None) -> None:
     """Put the command and machine under a matplotlib figure, the command wrapped at
-    spaces to the figure's width."""
+    spaces to the figure's width (at most :data:`CAPTION_LINES` lines of it)."""
     import textwrap
 
     width = max(40, int(fig.get_figwidth() * 72 * 0.98 / CAPTION_CHAR))
+    more = " ... (the whole command: the .md beside)"
     lines = textwrap.wrap(cmd or command(), width, break_on_hyphens=False)
+    if len(lines) > CAPTION_LINES:
+        lines = [*lines[: CAPTION_LINES - 1], lines[CAPTION_LINES - 1][: width - len(more)] + more]
     text = "\n".join([*lines, machine_line(info)])
     fig.text(0.01, 0.01, text, fontsize=CAPTION_SIZE, va="bottom")
 

@@ -102,3 +102,18 @@ def test_benchmark_scripts_edit_no_import_path_and_repeat_no_block():
             if not where.startswith(path.name + ":"):
                 repeated.append(f"{path.name}:{line} repeats {where}")
     assert not repeated, "\n".join(repeated[:10])
+
+
+def test_a_figure_caption_holds_a_long_command_in_a_few_lines():
+    from benchmarks.common import CAPTION_LINES, caption, machine, new_figure
+
+    fig, _ = new_figure(figsize=(7, 3))
+    info = machine()
+    long = "python -m benchmarks.camera_choice --note '" + "word " * 400 + "'"
+    caption(fig, info, long)
+    (text,) = fig.texts
+    lines = text.get_text().split("\n")
+    assert len(lines) == CAPTION_LINES + 1  # the command's lines, then the machine's
+    assert "the whole command" in lines[-2]
+    caption(fig, info, "python -m benchmarks.x --seed 1")
+    assert fig.texts[-1].get_text().startswith("python -m benchmarks.x --seed 1\n")
