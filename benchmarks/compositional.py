@@ -19,15 +19,27 @@ token-level reader's parse of the instruction); ``clipped`` is grounded with the
 TD targets clipped to the value bound of success rewards (``--sac.target-clip 1.0``),
 which keeps a critic from diverging past it; ``canonical`` is grounded with
 ``--env.canonical-reader`` (a token-level reader turns each instruction into the canonical
-sentence of the meaning it reads, and the policy reads that). ``--canonical ARM``
-evaluates an arm's finished runs again with ``lcrl eval --canonical-reader``, reported as
-``ARM-canonical`` (the same policies, a reader fitted in front of them; its figures go to
-``canonical-eval.json`` beside ``final-eval.json``). Each arm trains one run per seed
+sentence of the meaning it reads, and the policy reads that); ``preset`` adds nothing to
+the preset (``--preset lang2d-grounded --arms preset``: the policy a user gets from it).
+``--canonical ARM`` evaluates an arm's finished runs again with
+``lcrl eval --canonical-reader``, reported as ``ARM-canonical`` (the same policies, a
+reader fitted in front of them; its figures go to ``canonical-eval.json`` beside
+``final-eval.json``). Each arm trains one run per seed
 (``lcrl train PRESET --seed S``), two runs at a time with one torch thread each, and is
 evaluated with ``lcrl eval`` (100 episodes per set: seen, held-out combinations,
 paraphrases). Finished runs (their ``final-eval.json``) are kept, so an interrupted
 benchmark goes on where it stopped.
 ``--also ARM`` adds an arm's finished runs to the report without training more.
+
+``--test-seed T`` evaluates the headline arm's runs once more on evaluation seed ``T``
+(``lcrl eval --seed T``, through the canonical reader for an ``ARM-canonical`` headline),
+a seed that no choice used (``benchmarks.protocol``): the headline is that evaluation,
+and the arms' own evaluations (seed 0, where arms were compared) stand beside it.
+
+    python -m benchmarks.compositional --env lang2d --preset lang2d-grounded --arms preset \
+        --canonical preset --headline-arm preset-canonical --test-seed 13 \
+        --name compositional-lang2d --keep benchmarks/models/lang2d-grounded
+        # the shipped preset, re-measured on a test seed; its three policies kept
 
 Writes ``benchmarks/results/compositional-<env>.{json,md,png}`` (``compositional-<preset>``
 with another ``--preset``). The headline is that of the last of ``--arms`` (or
@@ -57,21 +69,25 @@ from benchmarks.common import (
     save_json,
     save_markdown,
 )
+from benchmarks.protocol import VALIDATION_SEEDS, check_test_seed
+from lcrl.errors import LcrlError
 from train.evaluation.report import spread
 
 PRESETS = {"lang2d": "lang2d", "robosuite": "robosuite-reach"}
-#: Collection options every run of a preset adds: the settings its results were measured
-#: with, where the preset ships others since (robosuite-reach: 8 environments at batch 128,
-#: docs/scale.md).
+#: Collection options every run of a preset adds (but those of the ``preset`` arm, the
+#: preset as shipped): the settings its earlier results were measured with, where the
+#: preset ships others since (robosuite-reach: 8 environments at batch 128, docs/scale.md).
 COLLECTION = {"robosuite-reach": ["--collect.envs", "1", "--batch-size", "256"]}
 TARGETS = {
     "lang2d": {"seen": 0.90, "heldout_ratio": 0.70, "paraphrase_ratio": 0.90},
     "robosuite": {"seen": 0.85, "heldout_ratio": 0.70},
 }
 SETS = ("train", "heldout", "paraphrase")
-ARMS = ("pooled", "attributes", "grounded", "phrased", "reader", "clipped", "canonical")
+ARMS = ("pooled", "attributes", "grounded", "phrased", "reader", "clipped", "canonical", "preset")
 #: The suffix of an arm's runs evaluated through a canonical reader (``--canonical``).
 READ = "-canonical"
+#: Between an arm and its test seed in the name of its evaluation there (``ARM@seedT``).
+TEST = "@seed"
 
 
 def arm_args(arm: str, grounding: float, phrasings: int = 16) -> list[str]:
@@ -96,6 +112,8 @@ def arm_args(arm: str, grounding: float, phrasings: int = 16) -> list[str]:
         return phrased if arm == "phrased" else [*phrased, "--env.text-reader"]
     if arm == "canonical":
         return [*attributes, "--agent.grounding", str(grounding), *unclipped]
+    if arm == "preset":  # the preset as shipped: what a user who names it gets
+        return []
     if arm.endswith(READ):  # the same training; the reader comes in at evaluation
         return arm_args(arm.removesuffix(READ), grounding, phrasings)
     raise SystemExit(f"unknown arm {arm!r}; choose from {ARMS}")
@@ -227,9 +245,25 @@ def selection_table(selection: dict[str, dict[str, dict[str, Any] | None]]) -> s
     )
 
 
-def selection_note(arms: dict[str, Any], chosen: str) -> str:
+def eval_options(arm: str) -> list[str]:
+    """The ``lcrl eval`` options of an arm's figures beyond episodes and sets."""
+    base, _, seed = arm.partition(TEST)
+    reader = ["--canonical-reader"] if base.endswith(READ) else []
+    return [*reader, *(["--seed", seed] if seed else [])]
+
+
+def selection_note(arms: dict[str, Any], chosen: str, test_seed: int | None = None) -> str:
     """How the headline arm was chosen, with its margin over the best other arm (empty
-    with one arm)."""
+    with one arm); with ``test_seed``, that it was evaluated once more there."""
+    if test_seed is not None:
+        base = chosen.split(TEST)[0]
+        return (
+            f"Selection: the headline arm ({base}) is named on the command line "
+            f"(`--headline-arm`), fixed before these runs; its runs were evaluated once on "
+            f"test seed {test_seed}, which no choice used, and that evaluation is the "
+            f"headline ({chosen}). The arms' own evaluations (evaluation seed 0, where arms "
+            "were compared) stand beside it."
+        )
     others = {a: v for a, v in arms.items() if a != chosen}
     if not others:
         return ""
@@ -288,12 +322,7 @@ def run_all(args: argparse.Namespace) -> dict[str, float]:
             arm, seed = todo.pop(0)
             out = run_dir(args, arm, seed)
             out.parent.mkdir(parents=True, exist_ok=True)
-            train = [*LCRL, "train", args.preset, "--out", str(out), "--seed", str(seed)]
-            train += ["--total-steps", str(args.steps), "--overwrite", "--no-progress"]
-            train += [
-                *COLLECTION.get(args.preset, []),
-                *arm_args(arm, args.grounding, args.phrasings),
-            ]
+            train = train_command(args, arm, seed)
             ev = [*LCRL, "eval", str(out), "--episodes", str(args.episodes), "--num-envs", "1"]
             ev += ["--sets", *SETS, "--no-progress", "--json", str(out / "final-eval.json")]
             log = open(out.parent / f"{out.name}.log", "w")  # noqa: SIM115
@@ -317,8 +346,46 @@ def run_all(args: argparse.Namespace) -> dict[str, float]:
     return seconds
 
 
+def train_command(args: argparse.Namespace, arm: str, seed: int) -> list[str]:
+    """The ``lcrl train`` command of an (arm, seed)."""
+    out = run_dir(args, arm, seed)
+    train = [*LCRL, "train", args.preset, "--out", str(out), "--seed", str(seed)]
+    train += ["--total-steps", str(args.steps), "--overwrite", "--no-progress"]
+    pinned = [] if arm == "preset" else COLLECTION.get(args.preset, [])
+    return [*train, *pinned, *arm_args(arm, args.grounding, args.phrasings)]
+
+
 def run_dir(args: argparse.Namespace, arm: str, seed: int) -> Path:
-    return Path(args.work) / f"{arm.removesuffix(READ)}-s{seed}"
+    """The run folder of an (arm, seed); an arm's evaluation on a test seed (``ARM@seedT``)
+    is of the same runs."""
+    return Path(args.work) / f"{arm.split(TEST)[0].removesuffix(READ)}-s{seed}"
+
+
+def eval_test(args: argparse.Namespace, arm: str) -> dict[int, Path]:
+    """Evaluate the finished runs of ``arm`` once on ``--test-seed`` (through a canonical
+    reader for an ``ARM-canonical``), those without the file yet, one after another; their
+    files by seed."""
+    found: dict[int, Path] = {}
+    for seed in args.seeds:
+        run = run_dir(args, arm, seed)
+        if not (run / "final-eval.json").is_file():
+            continue
+        out = run / f"test-eval-{args.test_seed}.json"
+        if not out.is_file():
+            ev = [*LCRL, "eval", str(run), "--episodes", str(args.episodes), "--num-envs", "1"]
+            ev += ["--sets", *SETS, "--no-progress", "--seed", str(args.test_seed)]
+            ev += ["--canonical-reader"] if arm.endswith(READ) else []
+            ev += ["--json", str(out)]
+            print(f"== {arm}{TEST}{args.test_seed}-s{seed}: {' '.join(ev[2:])}", flush=True)
+            with open(run.parent / f"{run.name}-test{args.test_seed}.log", "w") as log:
+                done = subprocess.run(
+                    ev, stdout=log, stderr=subprocess.STDOUT, env=child_env(),
+                    preexec_fn=die_with_parent, check=False,
+                )  # fmt: skip
+            if done.returncode != 0:
+                raise SystemExit(f"{arm}-s{seed} on test seed {args.test_seed}: see {log.name}")
+        found[seed] = out
+    return found
 
 
 def eval_file(args: argparse.Namespace, arm: str, seed: int) -> Path:
@@ -350,6 +417,20 @@ def eval_canonical(args: argparse.Namespace, arm: str) -> dict[int, Path]:
                 raise SystemExit(f"{arm}{READ}-s{seed} failed: see {log.name}")
         found[seed] = out
     return found
+
+
+def keep_models(args: argparse.Namespace, arm: str, seeds: list[int]) -> dict[str, str]:
+    """Keep the runs of ``arm`` in ``--keep``/seedS (:func:`keep_checkpoint`), reading
+    through the canonical reader by default where the arm's figures do; their folders by
+    seed."""
+    from train.policies.loading import keep_checkpoint
+
+    reader = arm.split(TEST)[0].endswith(READ)
+    kept = {}
+    for seed in seeds:
+        dest = keep_checkpoint(run_dir(args, arm, seed), Path(args.keep) / f"seed{seed}", reader)
+        kept[str(seed)] = str(dest)
+    return kept
 
 
 #: The per-arm entries of a result file that :func:`carry_over` keeps for arms not rerun.
@@ -409,12 +490,31 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--episodes", type=int, default=100, help="lcrl eval episodes per set")
     parser.add_argument("--parallel", type=int, default=2, help="runs at a time")
     parser.add_argument("--work", default="")
+    parser.add_argument(
+        "--test-seed",
+        type=int,
+        default=None,
+        help="evaluate the headline arm once more on this evaluation seed, one no choice "
+        "used, and report that as the headline",
+    )
+    parser.add_argument("--name", default="", help="the result's name (default: from --env)")
+    parser.add_argument(
+        "--keep",
+        default="",
+        help="keep the headline arm's policies here (DIR/seedS: weights and configs, the "
+        "canonical reader on for an ARM-canonical headline)",
+    )
     args = parser.parse_args(argv)
     if args.steps <= 0 or args.episodes <= 0 or args.parallel <= 0:
         parser.error("--steps, --episodes and --parallel must be positive")
     args.preset = args.preset or PRESETS[args.env]
     tag = args.env if args.preset == PRESETS[args.env] else args.preset
     args.work = args.work or f"runs/bench/compositional-{tag}"
+    if args.test_seed is not None:  # seed 0: where arms were compared (lcrl eval's default)
+        try:
+            check_test_seed(args.test_seed, (0, *VALIDATION_SEEDS))
+        except LcrlError as e:
+            parser.error(str(e))
     info = machine()
     seconds = run_all(args)
     per_arm: dict[str, dict[int, dict[str, Any]]] = {}
@@ -432,9 +532,16 @@ def main(argv: list[str] | None = None) -> int:
         runs = eval_canonical(args, arm)
         if runs:
             per_arm[arm + READ] = {s: json.loads(f.read_text())["sets"] for s, f in runs.items()}
-    arms = {arm: summarise(runs) for arm, runs in per_arm.items()}
     new = args.headline_arm or args.arms[-1]
-    name = f"compositional-{tag}"
+    if args.test_seed is not None:
+        runs = eval_test(args, new)
+        if not runs:
+            raise SystemExit(f"the headline arm {new!r} has no finished runs to test")
+        new = f"{new}{TEST}{args.test_seed}"
+        per_arm[new] = {s: json.loads(f.read_text())["sets"] for s, f in runs.items()}
+    arms = {arm: summarise(runs) for arm, runs in per_arm.items()}
+    name = args.name or f"compositional-{tag}"
+    kept_models = keep_models(args, new, sorted(per_arm[new])) if args.keep else {}
     per_seed = {
         arm: {
             str(s): {k: {"success": r[k]["success"], "ci": r[k]["ci"]} for k in SETS}
@@ -448,8 +555,12 @@ def main(argv: list[str] | None = None) -> int:
     }
     per_combo = {k: combination_success(per_arm, k) for k in ("heldout", "train")}
     selection = {
-        arm: {str(s): slot_selection(run_dir(args, arm, s), arm.endswith(READ)) for s in runs}
+        arm: {
+            str(s): slot_selection(run_dir(args, arm, s), arm.split(TEST)[0].endswith(READ))
+            for s in runs
+        }
         for arm, runs in per_arm.items()
+        if TEST not in arm  # the same policies and reader as the arm's own evaluation
     }
     payload: dict[str, Any] = {
         "headline": {},
@@ -457,8 +568,10 @@ def main(argv: list[str] | None = None) -> int:
         "reached": {},
         "machine": info,
         "settings": vars(args),
-        "arm_options": {arm: arm_args(arm, args.grounding, args.phrasings) for arm in arms},
-        "eval_options": {arm: ["--canonical-reader"] for arm in arms if arm.endswith(READ)},
+        "arm_options": {
+            arm: arm_args(arm.split(TEST)[0], args.grounding, args.phrasings) for arm in arms
+        },
+        "eval_options": {arm: eval_options(arm) for arm in arms if eval_options(arm)},
         "arms": arms,
         "per_seed": per_seed,
         "heldout_family_object": combos,
@@ -466,13 +579,15 @@ def main(argv: list[str] | None = None) -> int:
         "slot_selection": selection,
         "seconds": seconds,
     }
+    if kept_models:
+        payload["models"] = kept_models
     kept = carry_over(payload, common.RESULTS_DIR / f"{name}.json")
     if new not in arms:
         raise SystemExit(f"the headline arm {new!r} has no runs here nor in the previous file")
     head = headline(args.env, arms, new)
     ok = reached(args.env, head)
     payload["headline"], payload["reached"] = head, ok
-    payload["selection"] = selection_note(arms, new)
+    payload["selection"] = selection_note(arms, new, args.test_seed)
     save_json(name, payload)
     lines = [
         "| arm | seed | seen | held-out combinations | paraphrases | held-out / seen |",
@@ -498,7 +613,7 @@ def main(argv: list[str] | None = None) -> int:
         f"`lcrl eval` with {args.episodes} episodes per set (95% Wilson intervals per run).\n\n"
         + "\n".join(lines)
         + f"\n\nHeadline ({new}): {verdict}.\n\n"
-        + (f"{note}\n\n" if (note := selection_note(arms, new)) else "")
+        + (f"{note}\n\n" if (note := selection_note(arms, new, args.test_seed)) else "")
         + combination_tables(per_combo)
         + selection_table(selection)
     )

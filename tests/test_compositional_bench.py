@@ -3,6 +3,8 @@ held-out and paraphrase success to seen success, for the headline the issue name
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import pytest
 
 from benchmarks.compositional import headline, reached, summarise
@@ -176,6 +178,19 @@ def test_every_arm_parses_as_train_options():
     assert (configs["clipped"].collect.envs, configs["clipped"].batch_size) == (8, 128)
     pinned = parse_train_args(["robosuite-reach", *COLLECTION["robosuite-reach"]])
     assert (pinned.collect.envs, pinned.batch_size) == (1, 256)
+    # but the preset arm is the preset as shipped
+    import argparse
+
+    from benchmarks.compositional import train_command
+
+    args = argparse.Namespace(work="w", preset="robosuite-reach", steps=30, grounding=1.0)
+    args.phrasings = 16
+    assert "--collect.envs" in train_command(args, "clipped", 0)
+    shipped = train_command(args, "preset", 0)
+    assert "--collect.envs" not in shipped and shipped[-8:] == [
+        "--out", "w/preset-s0", "--seed", "0", "--total-steps", "30", "--overwrite",
+        "--no-progress",
+    ]  # fmt: skip
 
 
 FAKE_LCRL = """
@@ -316,3 +331,71 @@ def test_rerunning_one_arm_keeps_the_other_arms_of_the_previous_file(tmp_path, m
     assert out["kept_from"]["pooled"]["command"] == first["command"]
     md = (tmp_path / "results" / "compositional-lang2d.md").read_text()
     assert "kept from the previous file" in md and "| pooled | 0 |" in md
+
+
+def test_a_test_seed_headline_and_the_policies_kept(tmp_path, monkeypatch):
+    """``--test-seed`` reports the headline arm's evaluation on that seed (a seed no choice
+    used), its own evaluation beside it; ``--keep`` keeps the arm's policies, reading
+    through the canonical reader; seeds where choices were made are refused."""
+    import json
+
+    import benchmarks.common as common
+    import benchmarks.compositional as comp
+
+    monkeypatch.setattr(common, "RESULTS_DIR", tmp_path / "results")
+    work = tmp_path / "work"
+    kept: list[tuple[str, str, bool]] = []
+
+    def keep(source, dest, reader):
+        kept.append((Path(source).name, Path(dest).name, reader))
+        return Path(dest)
+
+    monkeypatch.setattr("train.policies.loading.keep_checkpoint", keep)
+    for seed, (own, read, test) in enumerate([(0.9, 0.95, 0.8), (1.0, 0.9, 0.7)]):
+        run = work / f"preset-s{seed}"
+        run.mkdir(parents=True)
+        (run / "final-eval.json").write_text(json.dumps({"sets": _sets(own, own, own)}))
+        (run / "canonical-eval.json").write_text(json.dumps({"sets": _sets(read, read, read)}))
+        (run / "test-eval-13.json").write_text(json.dumps({"sets": _sets(test, 0.6, 0.5)}))
+    args = ["--work", str(work), "--seeds", "0", "1", "--arms", "preset", "--canonical"]
+    args += ["preset", "--headline-arm", "preset-canonical", "--name", "comp-test"]
+    for used in (0, 1):  # lcrl eval's default seed, a validation seed
+        with pytest.raises(SystemExit):
+            comp.main([*args, "--test-seed", str(used)])
+    assert comp.main([*args, "--test-seed", "13", "--keep", str(tmp_path / "models")]) == 0
+    out = json.loads((tmp_path / "results" / "comp-test.json").read_text())
+    assert set(out["arms"]) == {"preset", "preset-canonical", "preset-canonical@seed13"}
+    h = out["headline"]
+    assert h["seen"] == 0.75 and h["heldout_ratio"] == round(0.6 / 0.75, 3)
+    assert out["arms"]["preset-canonical"]["train"]["mean"] == pytest.approx(0.925)
+    assert out["eval_options"]["preset-canonical@seed13"] == ["--canonical-reader", "--seed", "13"]
+    assert "test seed 13, which no choice used" in out["selection"]
+    assert out["arm_options"]["preset-canonical@seed13"] == []  # the preset as shipped
+    assert kept == [("preset-s0", "seed0", True), ("preset-s1", "seed1", True)]
+    assert set(out["models"]) == {"0", "1"}
+
+
+def test_a_kept_checkpoint_has_weights_not_replay(tmp_path):
+    """keep_checkpoint copies a run's latest checkpoint without what only resuming reads,
+    sets the canonical reader's default, seals it, and it loads; a folder without a
+    checkpoint is refused in one line."""
+    import json
+
+    from helpers import tiny
+
+    import lcrl
+    from lcrl.errors import LcrlError
+    from train.policies.loading import RESUME_ONLY, keep_checkpoint
+    from train.training.loop import Trainer
+
+    run = tmp_path / "run"
+    Trainer(tiny("lang2d-quick", run, total_steps=110, learning_starts=100)).run()
+    dest = keep_checkpoint(run, tmp_path / "kept" / "seed0", canonical_reader=True)
+    names = {f.name for f in dest.iterdir()}
+    assert "weights.safetensors" in names and not names & set(RESUME_ONLY)
+    assert json.loads((dest / "meta.json").read_text())["config"]["env"]["canonical_reader"]
+    assert lcrl.load(dest, env_overrides={"canonical_reader": False}).task is not None
+    again = keep_checkpoint(dest, dest, canonical_reader=False)  # a checkpoint, kept in place
+    assert not json.loads((again / "meta.json").read_text())["config"]["env"]["canonical_reader"]
+    with pytest.raises(LcrlError, match="neither a checkpoint nor a run"):
+        keep_checkpoint(tmp_path / "nothing", tmp_path / "x")

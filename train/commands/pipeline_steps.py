@@ -3,9 +3,7 @@ and the ``keep`` stage's copy of the final policy."""
 
 from __future__ import annotations
 
-import json
 import shlex
-import shutil
 import signal
 import subprocess
 import sys
@@ -104,29 +102,14 @@ def keep_policy(p: CameraPipeline, signals: Signals) -> float:
     """Copy the final student's latest checkpoint (weights and configs, no replay data or
     optimiser state) with the canonical reader on by default, fit its reader if needed,
     and seal it: a folder ``lcrl act`` / ``lcrl eval`` / ``lcrl.load`` take."""
-    from lcrl.checkpoint import find_latest, seal_checkpoint
+    from lcrl.checkpoint import find_latest
     from train.environments.text_reading import READER_CACHE
+    from train.policies.loading import keep_checkpoint
 
     t0 = time.perf_counter()
-    latest = find_latest(Path(p.out) / "student")
-    if latest is None:
+    if find_latest(Path(p.out) / "student") is None:
         raise LcrlError(f"no student in {p.out}/student: run the stage student first")
-    dest = Path(p.keep or Path(p.out) / "kept")
-    tmp = dest.with_name(f".{dest.name}.tmp")
-    shutil.rmtree(tmp, ignore_errors=True)
-    tmp.mkdir(parents=True)
-    for f in latest.iterdir():
-        if f.is_file() and f.name not in ("arrays.npz", "state.json", "state.safetensors"):
-            shutil.copy2(f, tmp / f.name)
-    meta = json.loads((tmp / "meta.json").read_text())
-    meta["config"]["env"]["canonical_reader"] = p.reader  # free text by default
-    meta.pop("checksums", None), meta.pop("meta_checksum", None)
-    (tmp / "meta.json").write_text(json.dumps(meta, indent=1))
-    if (latest / READER_CACHE).is_dir():
-        shutil.copytree(latest / READER_CACHE, tmp / READER_CACHE)
-    seal_checkpoint(tmp)
-    shutil.rmtree(dest, ignore_errors=True)
-    tmp.rename(dest)
+    dest = keep_checkpoint(Path(p.out) / "student", p.keep or Path(p.out) / "kept", p.reader)
     if p.reader and not (dest / READER_CACHE).is_dir():  # fitted once, kept beside it
         run_command(
             ["act", str(dest), "--instruction", "reach the red cube", "--episodes", "1"], signals

@@ -5,14 +5,22 @@ here."""
 
 from __future__ import annotations
 
+import json
+import shutil
 from pathlib import Path
 from typing import Any
 
+from lcrl.checkpoint import find_latest, seal_checkpoint
+from lcrl.errors import LcrlError
+from train.environments.text_reading import READER_CACHE
 from train.evaluation.evaluate import LoadedPolicy, load_single
 from train.policies.ensemble import ENSEMBLE, ensembled
 from train.policies.route import ROUTER, routed
 
-__all__ = ["LoadedPolicy", "load_policy"]
+__all__ = ["LoadedPolicy", "keep_checkpoint", "load_policy"]
+
+#: Files of a checkpoint that only resuming reads (replay arrays, optimiser and loop state).
+RESUME_ONLY = ("arrays.npz", "state.json", "state.safetensors")
 
 
 def load_policy(
@@ -29,3 +37,40 @@ def load_policy(
     if ENSEMBLE in loaded.checkpoint.meta:  # the mean of policies trained apart
         loaded = ensembled(loaded, device)
     return loaded
+
+
+def keep_checkpoint(
+    source: str | Path, dest: str | Path, canonical_reader: bool | None = None
+) -> Path:
+    """Copy a run's latest checkpoint (or the checkpoint folder ``source``) to ``dest`` as a
+    policy to keep: weights and configs, with its fitted canonical reader, and none of what
+    only resuming reads (:data:`RESUME_ONLY`: replay data, optimiser state). With
+    ``canonical_reader`` set, the kept policy reads instructions through the canonical
+    reader by default (True) or not (False). The copy is sealed (checksums) and replaces
+    ``dest`` whole; ``lcrl act``, ``lcrl eval`` and :func:`lcrl.load` take it.
+
+    Raises:
+        LcrlError: ``source`` is neither a checkpoint nor a run with one.
+    """
+    src = Path(source)
+    latest = src if (src / "meta.json").is_file() else find_latest(src)
+    if latest is None or not (latest / "meta.json").is_file():
+        raise LcrlError(f"{source} is neither a checkpoint nor a run with one (no latest.json)")
+    out = Path(dest)
+    tmp = out.with_name(f".{out.name}.tmp")
+    shutil.rmtree(tmp, ignore_errors=True)
+    tmp.mkdir(parents=True)
+    for f in latest.iterdir():
+        if f.is_file() and f.name not in RESUME_ONLY:
+            shutil.copy2(f, tmp / f.name)
+    meta = json.loads((tmp / "meta.json").read_text())
+    if canonical_reader is not None:
+        meta["config"]["env"]["canonical_reader"] = canonical_reader
+    meta.pop("checksums", None), meta.pop("meta_checksum", None)
+    (tmp / "meta.json").write_text(json.dumps(meta, indent=1))
+    if (latest / READER_CACHE).is_dir():
+        shutil.copytree(latest / READER_CACHE, tmp / READER_CACHE)
+    seal_checkpoint(tmp)
+    shutil.rmtree(out, ignore_errors=True)
+    tmp.rename(out)
+    return out
