@@ -399,3 +399,11 @@ def test_a_kept_checkpoint_has_weights_not_replay(tmp_path):
     assert not json.loads((again / "meta.json").read_text())["config"]["env"]["canonical_reader"]
     with pytest.raises(LcrlError, match="neither a checkpoint nor a run"):
         keep_checkpoint(tmp_path / "nothing", tmp_path / "x")
+    # lcrl export: the same copy, refusing to replace a folder unless told to
+    from train.commands.cli import main
+
+    with pytest.raises(SystemExit) as exit_info:
+        main(["export", str(run), str(dest)])
+    assert exit_info.value.code == 2
+    main(["export", str(run), str(dest), "--overwrite", "--canonical-reader", "off"])
+    assert not json.loads((dest / "meta.json").read_text())["config"]["env"]["canonical_reader"]

@@ -93,7 +93,7 @@ FAMILIES_2D = {
     "train", "eval", "act", "report", "demo", "split", "parse", "caption collect",
     "caption train", "caption eval", "demos record", "demos relabel", "demos info",
     "demos import-robomimic", "perception collect", "perception train", "perception eval",
-    "distill", "route", "ensemble",
+    "distill", "route", "ensemble", "export",
 }  # fmt: skip
 INSTRUCTIONS_FILE = """\
 # mine.txt

@@ -43,7 +43,13 @@ import tyro
 
 from lcrl.errors import LcrlError
 from train.commands.composite_commands import DistillCommand, EnsembleCommand, RouteCommand
-from train.commands.policy_commands import ActCommand, EvalCommand, ReportCommand, check_json_path
+from train.commands.policy_commands import (
+    ActCommand,
+    EvalCommand,
+    ExportCommand,
+    ReportCommand,
+    check_json_path,
+)
 from train.runtime.run_lock import abandon_locks
 from train.training.trainer import RunAlreadyDone, RunInterrupted
 
@@ -470,6 +476,7 @@ def _main(argv: Sequence[str] | None) -> None:
         "distill": DistillCommand,
         "route": RouteCommand,
         "ensemble": EnsembleCommand,
+        "export": ExportCommand,
     }
     try:
         if args and args[0] == "train":

@@ -7,7 +7,7 @@ import json
 import sys
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import Annotated, Any, Literal
 
 import tyro
 
@@ -268,6 +268,37 @@ class ReportCommand:
             raise LcrlError("comparing runs needs --out DIR (where comparison.md goes)")
         path = compare_runs(self.runs, self.out)
         print(f"comparison: {path} (curves: {path.parent / 'comparison.png'})")
+
+
+@dataclass
+class ExportCommand:
+    """Keep a trained policy: copy a run's latest checkpoint (or a checkpoint folder) with
+    its weights, configs and fitted canonical reader, and nothing only resuming reads (no
+    replay data, no optimiser state), into a folder for ``lcrl eval``, ``lcrl act`` and
+    ``lcrl.load``: a few MB to keep in a repository or move between machines."""
+
+    run_or_checkpoint: Annotated[tyro.conf.Positional[str], tyro.conf.arg(metavar="RUN")]
+    """The run folder (its latest checkpoint) or a checkpoint folder."""
+    out: Annotated[tyro.conf.Positional[str], tyro.conf.arg(metavar="OUT")]
+    """The folder to write."""
+    canonical_reader: Literal["as-trained", "on", "off"] = "as-trained"
+    """Whether the exported policy reads instructions through the canonical reader by
+    default (``lcrl eval`` and ``lcrl act`` can still say otherwise)."""
+    overwrite: bool = False
+    """Replace ``out`` if it exists."""
+
+    def run(self) -> None:
+        from train.policies.loading import keep_checkpoint
+
+        out = Path(self.out)
+        if out.exists() and not self.overwrite:
+            raise LcrlError(f"{out} exists: pass --overwrite to replace it")
+        check_out_dir(out.parent, "the folder of the exported policy")
+        refuse_if_training(out, "the exported folder")
+        reader = {"as-trained": None, "on": True, "off": False}[self.canonical_reader]
+        kept = keep_checkpoint(self.run_or_checkpoint, out, reader)
+        size = sum(f.stat().st_size for f in kept.rglob("*") if f.is_file())
+        print(f"saved {kept} ({size / 1e6:.1f} MB): evaluate it with lcrl eval {kept}")
 
 
 @dataclass
