@@ -363,29 +363,12 @@ def run_dir(args: argparse.Namespace, arm: str, seed: int) -> Path:
 
 def eval_test(args: argparse.Namespace, arm: str) -> dict[int, Path]:
     """Evaluate the finished runs of ``arm`` once on ``--test-seed`` (through a canonical
-    reader for an ``ARM-canonical``), those without the file yet, one after another; their
-    files by seed."""
-    found: dict[int, Path] = {}
-    for seed in args.seeds:
-        run = run_dir(args, arm, seed)
-        if not (run / "final-eval.json").is_file():
-            continue
-        out = run / f"test-eval-{args.test_seed}.json"
-        if not out.is_file():
-            ev = [*LCRL, "eval", str(run), "--episodes", str(args.episodes), "--num-envs", "1"]
-            ev += ["--sets", *SETS, "--no-progress", "--seed", str(args.test_seed)]
-            ev += ["--canonical-reader"] if arm.endswith(READ) else []
-            ev += ["--json", str(out)]
-            print(f"== {arm}{TEST}{args.test_seed}-s{seed}: {' '.join(ev[2:])}", flush=True)
-            with open(run.parent / f"{run.name}-test{args.test_seed}.log", "w") as log:
-                done = subprocess.run(
-                    ev, stdout=log, stderr=subprocess.STDOUT, env=child_env(),
-                    preexec_fn=die_with_parent, check=False,
-                )  # fmt: skip
-            if done.returncode != 0:
-                raise SystemExit(f"{arm}-s{seed} on test seed {args.test_seed}: see {log.name}")
-        found[seed] = out
-    return found
+    reader for an ``ARM-canonical``); their files by seed."""
+    seed = str(args.test_seed)
+    reader = ["--canonical-reader"] if arm.endswith(READ) else []
+    return evaluate_again(
+        args, arm, f"test-eval-{seed}.json", ["--seed", seed, *reader], f"{arm}{TEST}{seed}"
+    )
 
 
 def eval_file(args: argparse.Namespace, arm: str, seed: int) -> Path:
@@ -396,25 +379,35 @@ def eval_file(args: argparse.Namespace, arm: str, seed: int) -> Path:
 
 
 def eval_canonical(args: argparse.Namespace, arm: str) -> dict[int, Path]:
-    """Evaluate the finished runs of ``arm`` with ``lcrl eval --canonical-reader`` (those
-    without the file yet, one after another); their files by seed."""
+    """Evaluate the finished runs of ``arm`` with ``lcrl eval --canonical-reader``; their
+    files by seed."""
+    name = eval_file(args, arm + READ, 0).name
+    return evaluate_again(args, arm, name, ["--canonical-reader"], f"{arm}{READ}")
+
+
+def evaluate_again(
+    args: argparse.Namespace, arm: str, name: str, options: list[str], label: str
+) -> dict[int, Path]:
+    """Evaluate the finished runs of ``arm`` again with ``lcrl eval ... OPTIONS`` into
+    ``name`` in each run (those without the file yet, one after another), logging to
+    ``RUN-LABEL.log`` beside the run; the files by seed."""
     found: dict[int, Path] = {}
     for seed in args.seeds:
         run = run_dir(args, arm, seed)
         if not (run / "final-eval.json").is_file():
             continue
-        out = eval_file(args, arm + READ, seed)
+        out = run / name
         if not out.is_file():
             ev = [*LCRL, "eval", str(run), "--episodes", str(args.episodes), "--num-envs", "1"]
-            ev += ["--sets", *SETS, "--no-progress", "--canonical-reader", "--json", str(out)]
-            print(f"== {arm}{READ}-s{seed}: {' '.join(ev[2:])}", flush=True)
-            with open(run.parent / f"{run.name}{READ}.log", "w") as log:
+            ev += ["--sets", *SETS, "--no-progress", *options, "--json", str(out)]
+            print(f"== {label}-s{seed}: {' '.join(ev[2:])}", flush=True)
+            with open(run.parent / f"{run.name}-{label}.log", "w") as log:
                 done = subprocess.run(
                     ev, stdout=log, stderr=subprocess.STDOUT, env=child_env(),
                     preexec_fn=die_with_parent, check=False,
                 )  # fmt: skip
             if done.returncode != 0:
-                raise SystemExit(f"{arm}{READ}-s{seed} failed: see {log.name}")
+                raise SystemExit(f"{label}-s{seed} failed: see {log.name}")
         found[seed] = out
     return found
 
