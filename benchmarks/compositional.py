@@ -413,15 +413,17 @@ def evaluate_again(
 
 
 def keep_models(args: argparse.Namespace, arm: str, seeds: list[int]) -> dict[str, str]:
-    """Keep the runs of ``arm`` in ``--keep``/seedS (:func:`keep_checkpoint`), reading
-    through the canonical reader by default where the arm's figures do; their folders by
-    seed."""
+    """Keep the runs of ``arm`` in ``--keep``/seedS to act (:func:`keep_checkpoint`:
+    weights and configs without critics), reading through the canonical reader by default
+    where the arm's figures do; their folders by seed."""
     from train.policies.loading import keep_checkpoint
 
     reader = arm.split(TEST)[0].endswith(READ)
     kept = {}
     for seed in seeds:
-        dest = keep_checkpoint(run_dir(args, arm, seed), Path(args.keep) / f"seed{seed}", reader)
+        dest = keep_checkpoint(
+            run_dir(args, arm, seed), Path(args.keep) / f"seed{seed}", reader, True
+        )
         kept[str(seed)] = str(dest)
     return kept
 

@@ -346,8 +346,8 @@ def test_a_test_seed_headline_and_the_policies_kept(tmp_path, monkeypatch):
     work = tmp_path / "work"
     kept: list[tuple[str, str, bool]] = []
 
-    def keep(source, dest, reader):
-        kept.append((Path(source).name, Path(dest).name, reader))
+    def keep(source, dest, reader, acting_only=False):
+        kept.append((Path(source).name, Path(dest).name, reader and acting_only))
         return Path(dest)
 
     monkeypatch.setattr("train.policies.loading.keep_checkpoint", keep)
@@ -381,6 +381,7 @@ def test_a_kept_checkpoint_has_weights_not_replay(tmp_path):
     checkpoint is refused in one line."""
     import json
 
+    import numpy as np
     from helpers import tiny
 
     import lcrl
@@ -397,6 +398,17 @@ def test_a_kept_checkpoint_has_weights_not_replay(tmp_path):
     assert lcrl.load(dest, env_overrides={"canonical_reader": False}).task is not None
     again = keep_checkpoint(dest, dest, canonical_reader=False)  # a checkpoint, kept in place
     assert not json.loads((again / "meta.json").read_text())["config"]["env"]["canonical_reader"]
+    # kept to act: without the critics, a fraction of the size, acting the same
+    small = keep_checkpoint(run, tmp_path / "small", acting_only=True)
+    assert json.loads((small / "meta.json").read_text())["acting_only"] == [
+        "critic", "critic_target",
+    ]  # fmt: skip
+    size = (small / "weights.safetensors").stat().st_size
+    assert size < 0.5 * (dest / "weights.safetensors").stat().st_size
+    policy, kept_policy = lcrl.load(run), lcrl.load(small)
+    obs, _ = policy.make_env().reset(seed=3)
+    text = policy.instructions[0]
+    assert np.allclose(policy.act(obs, text), kept_policy.act(obs, text))
     with pytest.raises(LcrlError, match="neither a checkpoint nor a run"):
         keep_checkpoint(tmp_path / "nothing", tmp_path / "x")
     # lcrl export: the same copy, refusing to replace a folder unless told to

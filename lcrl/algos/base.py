@@ -460,6 +460,10 @@ class Agent:
             if name != "perceiver":
                 module.compile(dynamic=False, mode=mode)
 
+    #: Modules of :meth:`modules` that only learning reads (critics, target networks):
+    #: a policy kept to act (``lcrl export``) leaves them out, and loading it skips them.
+    LEARNING_ONLY: tuple[str, ...] = ()
+
     def modules(self) -> dict[str, nn.Module]:
         """Weights to checkpoint, by name."""
         out: dict[str, nn.Module] = {"norms": self.norms}

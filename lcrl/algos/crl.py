@@ -72,6 +72,8 @@ class CRL(Agent):
         config: CRL's hyper-parameters (defaults when ``None``).
     """
 
+    LEARNING_ONLY = ("critic",)
+
     name = "crl"
 
     def __init__(

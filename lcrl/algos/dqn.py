@@ -67,6 +67,8 @@ class DQN(Agent):
         config: DQN's hyper-parameters (defaults when ``None``).
     """
 
+    LEARNING_ONLY = ("q_target",)
+
     name = "dqn"
 
     def __init__(

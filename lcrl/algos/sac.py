@@ -132,6 +132,8 @@ class SAC(Agent):
         config: SAC's hyper-parameters (defaults when ``None``).
     """
 
+    LEARNING_ONLY = ("critic", "critic_target")
+
     name = "sac"
 
     def __init__(

@@ -93,6 +93,8 @@ class TD3(Agent):
         config: TD3's hyper-parameters (defaults when ``None``).
     """
 
+    LEARNING_ONLY = ("critic", "actor_target", "critic_target")
+
     name = "td3"
 
     def __init__(

@@ -71,6 +71,7 @@ from lcrl.checkpoint.state import (
     unflatten_state as unflatten_state,
 )
 from lcrl.checkpoint.writing import (
+    drop_modules as drop_modules,
     save_checkpoint as save_checkpoint,
 )
 
@@ -80,6 +81,7 @@ __all__ = [
     "CheckpointCorruptError",
     "CheckpointError",
     "CheckpointWriteError",
+    "drop_modules",
     "find_latest",
     "flatten_state",
     "load_checkpoint",

@@ -285,3 +285,28 @@ def _collect_arrays(arrays: Mapping[str, np.ndarray]) -> dict[str, np.ndarray]:
             )
         out[name] = array
     return out
+
+
+def drop_modules(directory: str | Path, names: tuple[str, ...] | list[str]) -> list[str]:
+    """Rewrite a checkpoint's ``weights.safetensors`` without the modules ``names`` (those
+    it holds), for a copy that only acts; returns the modules dropped. The file's
+    checksum changes: seal the checkpoint again afterwards (``seal_checkpoint``).
+
+    Raises:
+        CheckpointError: the folder has no weights file, or one without a module index.
+    """
+    path = Path(directory) / WEIGHTS_FILE
+    if not path.is_file():
+        raise CheckpointError(f"{directory} is not a checkpoint: expected {WEIGHTS_FILE}")
+    with safetensors.safe_open(str(path), framework="pt") as f:
+        index = json.loads((f.metadata() or {}).get(_MODULES_METADATA_KEY, "null"))
+        if not isinstance(index, dict):
+            raise CheckpointError(f"corrupt {path}: no module index in its header")
+        dropped = [n for n in names if n in index]
+        kept = {m: keys for m, keys in index.items() if m not in dropped}
+        tensors = {f"{m}.{k}": f.get_tensor(f"{m}.{k}") for m, keys in kept.items() for k in keys}
+    tmp = path.with_name(f".{path.name}.tmp")
+    safetensors.torch.save_file(tensors, tmp, metadata={_MODULES_METADATA_KEY: json.dumps(kept)})
+    _fsync_file(tmp)
+    os.replace(tmp, path)
+    return dropped

@@ -284,6 +284,9 @@ class ExportCommand:
     canonical_reader: Literal["as-trained", "on", "off"] = "as-trained"
     """Whether the exported policy reads instructions through the canonical reader by
     default (``lcrl eval`` and ``lcrl act`` can still say otherwise)."""
+    acting_only: bool = True
+    """Leave out what only learning reads (critics, target networks) as well: the policy
+    acts and is evaluated the same, in a fraction of the size."""
     overwrite: bool = False
     """Replace ``out`` if it exists."""
 
@@ -296,7 +299,7 @@ class ExportCommand:
         check_out_dir(out.parent, "the folder of the exported policy")
         refuse_if_training(out, "the exported folder")
         reader = {"as-trained": None, "on": True, "off": False}[self.canonical_reader]
-        kept = keep_checkpoint(self.run_or_checkpoint, out, reader)
+        kept = keep_checkpoint(self.run_or_checkpoint, out, reader, self.acting_only)
         size = sum(f.stat().st_size for f in kept.rglob("*") if f.is_file())
         print(f"saved {kept} ({size / 1e6:.1f} MB): evaluate it with lcrl eval {kept}")
 

@@ -352,8 +352,10 @@ def load_single(
             f"{describe_problem(saved)}, the environment gives {describe_problem(problem)}"
         )
     agent = build_agent(meta.algo, problem, cfg, task.goal_space.embed, env)
+    left_out = set(ckpt.meta.get("acting_only", ()))  # kept to act (lcrl export)
     for name, module in agent.modules().items():
-        ckpt.load_module(name, module)
+        if name not in left_out:
+            ckpt.load_module(name, module)
     return LoadedPolicy(cfg, agent, task, env, ckpt)
 
 

@@ -10,7 +10,8 @@ import shutil
 from pathlib import Path
 from typing import Any
 
-from lcrl.checkpoint import find_latest, seal_checkpoint
+from lcrl import algos
+from lcrl.checkpoint import drop_modules, find_latest, seal_checkpoint
 from lcrl.errors import LcrlError
 from train.environments.text_reading import READER_CACHE
 from train.evaluation.evaluate import LoadedPolicy, load_single
@@ -19,6 +20,9 @@ from train.policies.route import ROUTER, routed
 
 __all__ = ["LoadedPolicy", "keep_checkpoint", "load_policy"]
 
+#: The key of a kept policy's ``meta.json`` that lists the modules it was kept without
+#: (:func:`keep_checkpoint` with ``acting_only``); loading it skips them.
+ACTING_ONLY = "acting_only"
 #: Files of a checkpoint that only resuming reads (replay arrays, optimiser and loop state).
 RESUME_ONLY = ("arrays.npz", "state.json", "state.safetensors")
 
@@ -40,14 +44,20 @@ def load_policy(
 
 
 def keep_checkpoint(
-    source: str | Path, dest: str | Path, canonical_reader: bool | None = None
+    source: str | Path,
+    dest: str | Path,
+    canonical_reader: bool | None = None,
+    acting_only: bool = False,
 ) -> Path:
     """Copy a run's latest checkpoint (or the checkpoint folder ``source``) to ``dest`` as a
     policy to keep: weights and configs, with its fitted canonical reader, and none of what
     only resuming reads (:data:`RESUME_ONLY`: replay data, optimiser state). With
     ``canonical_reader`` set, the kept policy reads instructions through the canonical
-    reader by default (True) or not (False). The copy is sealed (checksums) and replaces
-    ``dest`` whole; ``lcrl act``, ``lcrl eval`` and :func:`lcrl.load` take it.
+    reader by default (True) or not (False). With ``acting_only``, the modules only
+    learning reads (the algorithm's ``LEARNING_ONLY``: critics, target networks) are left
+    out too, named in ``meta.json`` under :data:`ACTING_ONLY`. The copy is sealed
+    (checksums) and replaces ``dest`` whole; ``lcrl act``, ``lcrl eval`` and
+    :func:`lcrl.load` take it.
 
     Raises:
         LcrlError: ``source`` is neither a checkpoint nor a run with one.
@@ -66,6 +76,10 @@ def keep_checkpoint(
     meta = json.loads((tmp / "meta.json").read_text())
     if canonical_reader is not None:
         meta["config"]["env"]["canonical_reader"] = canonical_reader
+    if acting_only and meta.get("algo") in algos.ALGOS:
+        learning = algos.ALGOS[meta["algo"]].agent.LEARNING_ONLY
+        dropped = [*meta.get(ACTING_ONLY, []), *drop_modules(tmp, learning)]
+        meta[ACTING_ONLY] = dropped
     meta.pop("checksums", None), meta.pop("meta_checksum", None)
     (tmp / "meta.json").write_text(json.dumps(meta, indent=1))
     if (latest / READER_CACHE).is_dir():
