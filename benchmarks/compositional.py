@@ -493,6 +493,7 @@ def main(argv: list[str] | None = None) -> int:
         "used, and report that as the headline",
     )
     parser.add_argument("--name", default="", help="the result's name (default: from --env)")
+    parser.add_argument("--note", default="", help="what changed since the file's last run")
     parser.add_argument(
         "--keep",
         default="",
@@ -576,6 +577,8 @@ def main(argv: list[str] | None = None) -> int:
     }
     if kept_models:
         payload["models"] = kept_models
+    if args.note:
+        payload["note"] = args.note
     kept = carry_over(payload, common.RESULTS_DIR / f"{name}.json")
     if new not in arms:
         raise SystemExit(f"the headline arm {new!r} has no runs here nor in the previous file")
@@ -609,6 +612,8 @@ def main(argv: list[str] | None = None) -> int:
         + "\n".join(lines)
         + f"\n\nHeadline ({new}): {verdict}.\n\n"
         + (f"{note}\n\n" if (note := selection_note(arms, new, args.test_seed)) else "")
+        + (f"{args.note}\n\n" if args.note else "")
+        + (f"Policies kept (to act): {', '.join(kept_models.values())}.\n\n" if kept_models else "")
         + combination_tables(per_combo)
         + selection_table(selection)
     )
@@ -621,7 +626,7 @@ def main(argv: list[str] | None = None) -> int:
 
     import matplotlib.pyplot as plt
 
-    fig, ax = plt.subplots(figsize=(7, 4))
+    fig, ax = plt.subplots(figsize=(9, 4))
     width = 0.8 / len(arms)
     for j, (arm, a) in enumerate(arms.items()):
         xs = [i + (j - (len(arms) - 1) / 2) * width for i in range(len(SETS))]
@@ -633,7 +638,7 @@ def main(argv: list[str] | None = None) -> int:
     ax.set_xticks(range(len(SETS)), ["seen", "held-out combinations", "paraphrases"])
     ax.set(ylim=(0, 1.02), ylabel="success (mean ± sd over seeds; dots: seeds)")
     ax.set_title(f"{args.preset}, {args.steps:,} steps, seeds {args.seeds}")
-    ax.legend()
+    ax.legend(loc="upper left", bbox_to_anchor=(1.01, 1.0), fontsize=8)  # beside the bars
     save_figure(name, fig, info)
     print(json.dumps(head, indent=1))
     return 0

@@ -216,3 +216,20 @@ def test_the_kept_camera_policy_acts_from_frames_reads_free_text_and_is_evaluate
     result = json.loads((MODELS.parent / "results" / "robosuite-camera.json").read_text())
     assert result["headline"]["model"] == "benchmarks/models/robosuite-camera"
     assert "`robosuite-camera/`" in (MODELS / "README.md").read_text()
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_the_kept_lang2d_grounded_policies_act_on_free_text(seed):
+    """The policies behind compositional-lang2d.json, kept to act: no critics, the
+    canonical reader on by default and fitted beside them (no refit when loaded)."""
+    import lcrl
+
+    folder = MODELS / "lang2d-grounded" / f"seed{seed}"
+    meta = json.loads((folder / "meta.json").read_text())
+    assert meta["acting_only"] == ["critic", "critic_target"]
+    assert meta["config"]["env"]["canonical_reader"] and (folder / "canonical-reader").is_dir()
+    policy = lcrl.load(folder)
+    obs, _ = policy.make_env().reset(seed=0)
+    action = policy.act(obs, "touch the red cube")
+    assert action.shape == (2,) and np.abs(action).max() <= 1.0
+    assert "`lang2d-grounded/`" in (MODELS / "README.md").read_text()

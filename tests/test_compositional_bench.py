@@ -362,7 +362,8 @@ def test_a_test_seed_headline_and_the_policies_kept(tmp_path, monkeypatch):
     for used in (0, 1):  # lcrl eval's default seed, a validation seed
         with pytest.raises(SystemExit):
             comp.main([*args, "--test-seed", str(used)])
-    assert comp.main([*args, "--test-seed", "13", "--keep", str(tmp_path / "models")]) == 0
+    keep = ["--keep", str(tmp_path / "models"), "--note", "re-measured on a test seed"]
+    assert comp.main([*args, "--test-seed", "13", *keep]) == 0
     out = json.loads((tmp_path / "results" / "comp-test.json").read_text())
     assert set(out["arms"]) == {"preset", "preset-canonical", "preset-canonical@seed13"}
     h = out["headline"]
@@ -372,7 +373,9 @@ def test_a_test_seed_headline_and_the_policies_kept(tmp_path, monkeypatch):
     assert "test seed 13, which no choice used" in out["selection"]
     assert out["arm_options"]["preset-canonical@seed13"] == []  # the preset as shipped
     assert kept == [("preset-s0", "seed0", True), ("preset-s1", "seed1", True)]
-    assert set(out["models"]) == {"0", "1"}
+    assert set(out["models"]) == {"0", "1"} and out["note"] == "re-measured on a test seed"
+    md = (tmp_path / "results" / "comp-test.md").read_text()
+    assert "re-measured on a test seed" in md and "Policies kept (to act)" in md
 
 
 def test_a_kept_checkpoint_has_weights_not_replay(tmp_path):
