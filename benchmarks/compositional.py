@@ -414,16 +414,15 @@ def evaluate_again(
 
 def keep_models(args: argparse.Namespace, arm: str, seeds: list[int]) -> dict[str, str]:
     """Keep the runs of ``arm`` in ``--keep``/seedS to act (:func:`keep_checkpoint`:
-    weights and configs without critics), reading through the canonical reader by default
-    where the arm's figures do; their folders by seed."""
+    weights and configs without critics), reading through the canonical reader by default,
+    fitted and kept beside them, where the arm's figures do; their folders by seed."""
     from train.policies.loading import keep_checkpoint
 
     reader = arm.split(TEST)[0].endswith(READ)
     kept = {}
     for seed in seeds:
-        dest = keep_checkpoint(
-            run_dir(args, arm, seed), Path(args.keep) / f"seed{seed}", reader, True
-        )
+        folder, source = Path(args.keep) / f"seed{seed}", run_dir(args, arm, seed)
+        dest = keep_checkpoint(source, folder, reader, acting_only=True, reader_cache=reader)
         kept[str(seed)] = str(dest)
     return kept
 

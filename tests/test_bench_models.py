@@ -233,3 +233,24 @@ def test_the_kept_lang2d_grounded_policies_act_on_free_text(seed):
     action = policy.act(obs, "touch the red cube")
     assert action.shape == (2,) and np.abs(action).max() <= 1.0
     assert "`lang2d-grounded/`" in (MODELS / "README.md").read_text()
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_the_kept_robosuite_reach_policies_act_on_the_privileged_state(seed, one_thread):
+    """The policies behind compositional-robosuite.json, kept to act (no critics)."""
+    pytest.importorskip("robosuite")
+    import lcrl
+
+    folder = MODELS / "robosuite-reach" / f"seed{seed}"
+    assert json.loads((folder / "meta.json").read_text())["acting_only"] == [
+        "critic", "critic_target",
+    ]  # fmt: skip
+    policy = lcrl.load(folder)
+    env = policy.make_env()
+    try:
+        obs, _ = env.reset(seed=0)
+        action = policy.act(obs, policy.instructions[0])
+        assert action.shape == (4,) and np.abs(action).max() <= 1.0
+    finally:
+        env.close()
+    assert "`robosuite-reach/`" in (MODELS / "README.md").read_text()

@@ -346,8 +346,8 @@ def test_a_test_seed_headline_and_the_policies_kept(tmp_path, monkeypatch):
     work = tmp_path / "work"
     kept: list[tuple[str, str, bool]] = []
 
-    def keep(source, dest, reader, acting_only=False):
-        kept.append((Path(source).name, Path(dest).name, reader and acting_only))
+    def keep(source, dest, reader, acting_only=False, reader_cache=True):
+        kept.append((Path(source).name, Path(dest).name, reader and acting_only and reader_cache))
         return Path(dest)
 
     monkeypatch.setattr("train.policies.loading.keep_checkpoint", keep)

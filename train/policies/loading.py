@@ -48,6 +48,7 @@ def keep_checkpoint(
     dest: str | Path,
     canonical_reader: bool | None = None,
     acting_only: bool = False,
+    reader_cache: bool = True,
 ) -> Path:
     """Copy a run's latest checkpoint (or the checkpoint folder ``source``) to ``dest`` as a
     policy to keep: weights and configs, with its fitted canonical reader, and none of what
@@ -55,9 +56,10 @@ def keep_checkpoint(
     ``canonical_reader`` set, the kept policy reads instructions through the canonical
     reader by default (True) or not (False). With ``acting_only``, the modules only
     learning reads (the algorithm's ``LEARNING_ONLY``: critics, target networks) are left
-    out too, named in ``meta.json`` under :data:`ACTING_ONLY`. The copy is sealed
-    (checksums) and replaces ``dest`` whole; ``lcrl act``, ``lcrl eval`` and
-    :func:`lcrl.load` take it.
+    out too, named in ``meta.json`` under :data:`ACTING_ONLY`. Without ``reader_cache``
+    the fitted canonical reader stays behind (a few MB; fitted again when asked for). The
+    copy is sealed (checksums) and replaces ``dest`` whole; ``lcrl act``, ``lcrl eval``
+    and :func:`lcrl.load` take it.
 
     Raises:
         LcrlError: ``source`` is neither a checkpoint nor a run with one.
@@ -82,7 +84,7 @@ def keep_checkpoint(
         meta[ACTING_ONLY] = dropped
     meta.pop("checksums", None), meta.pop("meta_checksum", None)
     (tmp / "meta.json").write_text(json.dumps(meta, indent=1))
-    if (latest / READER_CACHE).is_dir():
+    if reader_cache and (latest / READER_CACHE).is_dir():
         shutil.copytree(latest / READER_CACHE, tmp / READER_CACHE)
     seal_checkpoint(tmp)
     shutil.rmtree(out, ignore_errors=True)
