@@ -414,6 +414,15 @@ def test_a_kept_checkpoint_has_weights_not_replay(tmp_path):
     assert np.allclose(policy.act(obs, text), kept_policy.act(obs, text))
     with pytest.raises(LcrlError, match="neither a checkpoint nor a run"):
         keep_checkpoint(tmp_path / "nothing", tmp_path / "x")
+    # a policy made of others keeps its members (folders inside the checkpoint)
+    from train.policies.ensemble import write_ensemble
+
+    other = tmp_path / "other"
+    Trainer(tiny("lang2d-quick", other, total_steps=110, learning_starts=100, seed=1)).run()
+    ensemble = write_ensemble(tmp_path / "ens", [str(run), str(other)], False)
+    kept_ensemble = keep_checkpoint(ensemble, tmp_path / "ens-kept", acting_only=True)
+    assert (kept_ensemble / "members" / "1" / "meta.json").is_file()
+    assert np.allclose(lcrl.load(ensemble).act(obs, text), lcrl.load(kept_ensemble).act(obs, text))
     # lcrl export: the same copy, refusing to replace a folder unless told to
     from train.commands.cli import main
 

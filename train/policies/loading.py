@@ -75,6 +75,9 @@ def keep_checkpoint(
     for f in latest.iterdir():
         if f.is_file() and f.name not in RESUME_ONLY:
             shutil.copy2(f, tmp / f.name)
+        elif f.is_dir() and not f.name.startswith(".") and (reader_cache or f.name != READER_CACHE):
+            # the fitted reader; a router's experts, an ensemble's members
+            shutil.copytree(f, tmp / f.name)
     meta = json.loads((tmp / "meta.json").read_text())
     if canonical_reader is not None:
         meta["config"]["env"]["canonical_reader"] = canonical_reader
@@ -84,8 +87,6 @@ def keep_checkpoint(
         meta[ACTING_ONLY] = dropped
     meta.pop("checksums", None), meta.pop("meta_checksum", None)
     (tmp / "meta.json").write_text(json.dumps(meta, indent=1))
-    if reader_cache and (latest / READER_CACHE).is_dir():
-        shutil.copytree(latest / READER_CACHE, tmp / READER_CACHE)
     seal_checkpoint(tmp)
     shutil.rmtree(out, ignore_errors=True)
     tmp.rename(out)
