@@ -720,3 +720,28 @@ def test_the_hold_radius_is_set_when_acting_and_refused_where_it_cannot_apply(
     args = ["train", "lang2d-quick", "--env.perception-hold-radius", "0.05"]
     assert cli(*args, "--out", str(tmp_path / "refused")) == 2
     assert "set --env.perception MODEL too" in error_line(capsys.readouterr().err)
+
+
+def test_eval_acts_through_another_perception_model_where_one_applies(trained, tmp_path, capsys):
+    """``lcrl eval --perception MODEL`` swaps the model a camera policy acts through (what a
+    figure owes to the student and what to its perception); refused for a policy on the
+    state, beside --true-state, and for a folder that is not there."""
+    from helpers import tiny
+
+    from train.training.loop import Trainer
+
+    cfg = tiny("lang2d-quick", tmp_path / "run", total_steps=60, learning_starts=30)
+    cfg.env.perception = str(trained)
+    Trainer(cfg).run()
+    args = ["eval", str(tmp_path / "run"), "--episodes", "2", "--sets", "train", "--no-progress"]
+    out = tmp_path / "eval.json"
+    assert cli(*args, "--perception", str(trained), "--json", str(out)) == 0
+    assert f"--perception {trained}" in json.loads(out.read_text())["settings"]["command"]
+    assert cli(*args, "--perception", str(tmp_path / "nothing")) == 2
+    assert "no such folder" in error_line(capsys.readouterr().err)
+    assert cli(*args, "--perception", str(trained), "--true-state") == 2
+    assert "use one of them" in error_line(capsys.readouterr().err)
+    state = tiny("lang2d-quick", tmp_path / "state", total_steps=40, learning_starts=20)
+    Trainer(state).run()
+    assert cli("eval", str(tmp_path / "state"), "--perception", str(trained)) == 2
+    assert "acts on the simulator's state" in error_line(capsys.readouterr().err)

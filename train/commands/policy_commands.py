@@ -89,6 +89,10 @@ class EvalCommand:
     """A policy acting through perception: hold each object's estimated position while the
     gripper is farther than this from it (metres; ``--env.perception-hold-radius``; 0:
     every frame's own estimate). Default: the radius the policy was trained with."""
+    perception: str = ""
+    """A policy acting through perception: act through this perception model instead of
+    its own (a model folder, or a camera policy's checkpoint that carries one): which of
+    a student and its perception model a figure owes to."""
     out: str = ""
     """Write eval.json (every figure), eval.md and PNG figures to this folder; inside a
     run folder (e.g. RUN/evals/NAME) ``lcrl report RUN`` includes them."""
@@ -162,6 +166,16 @@ class EvalCommand:
             if self.hold_radius is not None:
                 raise LcrlError("--true-state reads no estimate: --hold-radius does not apply")
             overrides["perception"] = ""
+        if self.perception:
+            if not saved.perception or self.true_state:
+                raise LcrlError(
+                    "--perception replaces the perception model a camera policy acts through; "
+                    + ("--true-state replaces it too: use one of them" if self.true_state
+                       else "this checkpoint acts on the simulator's state")
+                )  # fmt: skip
+            if not Path(self.perception).is_dir():
+                raise LcrlError(f"--perception {self.perception}: no such folder")
+            overrides["perception"] = self.perception
         policy = load_policy(self.checkpoint, overrides or None, self.device)
         extra = self.episodes % len(tasks) if tasks else 0
         if extra and (not self.sets or "train" in self.sets):
@@ -208,6 +222,7 @@ class EvalCommand:
             "canonical_reader": bool(policy.cfg.env.canonical_reader),
             "hold_radius": self.hold_radius,
             "true_state": self.true_state,
+            "perception": self.perception or None,
             "command": self._command(),
         }
         doc = evaluation_document(policy.checkpoint.path, step, policy.cfg, results, settings)
@@ -241,6 +256,8 @@ class EvalCommand:
             parts.append(f"--hold-radius {self.hold_radius:g}")
         if self.true_state:
             parts.append("--true-state")
+        if self.perception:
+            parts.append(f"--perception {self.perception}")
         return " ".join(parts)
 
 
