@@ -293,6 +293,11 @@ class LoadedPolicy:
     checkpoint: Checkpoint
 
 
+#: The key of a kept policy's ``meta.json`` that lists the modules it was kept without
+#: (``lcrl export``: :func:`train.policies.loading.keep_checkpoint`); loading skips them.
+ACTING_ONLY = "acting_only"
+
+
 def resolve_checkpoint(path: str | Path) -> Path:
     """A checkpoint folder, or a run folder (its latest checkpoint)."""
     p = Path(path)
@@ -352,7 +357,7 @@ def load_single(
             f"{describe_problem(saved)}, the environment gives {describe_problem(problem)}"
         )
     agent = build_agent(meta.algo, problem, cfg, task.goal_space.embed, env)
-    left_out = set(ckpt.meta.get("acting_only", ()))  # kept to act (lcrl export)
+    left_out = set(ckpt.meta.get(ACTING_ONLY, ()))  # kept to act (lcrl export)
     for name, module in agent.modules().items():
         if name not in left_out:
             ckpt.load_module(name, module)

@@ -14,15 +14,12 @@ from lcrl import algos
 from lcrl.checkpoint import drop_modules, find_latest, seal_checkpoint
 from lcrl.errors import LcrlError
 from train.environments.text_reading import READER_CACHE
-from train.evaluation.evaluate import LoadedPolicy, load_single
+from train.evaluation.evaluate import ACTING_ONLY, LoadedPolicy, load_single
 from train.policies.ensemble import ENSEMBLE, ensembled
 from train.policies.route import ROUTER, routed
 
 __all__ = ["LoadedPolicy", "keep_checkpoint", "load_policy"]
 
-#: The key of a kept policy's ``meta.json`` that lists the modules it was kept without
-#: (:func:`keep_checkpoint` with ``acting_only``); loading it skips them.
-ACTING_ONLY = "acting_only"
 #: Files of a checkpoint that only resuming reads (replay arrays, optimiser and loop state).
 RESUME_ONLY = ("arrays.npz", "state.json", "state.safetensors")
 
@@ -56,7 +53,8 @@ def keep_checkpoint(
     ``canonical_reader`` set, the kept policy reads instructions through the canonical
     reader by default (True) or not (False). With ``acting_only``, the modules only
     learning reads (the algorithm's ``LEARNING_ONLY``: critics, target networks) are left
-    out too, named in ``meta.json`` under :data:`ACTING_ONLY`. Without ``reader_cache``
+    out too, named in ``meta.json`` under
+    :data:`train.evaluation.evaluate.ACTING_ONLY`. Without ``reader_cache``
     the fitted canonical reader stays behind (a few MB; fitted again when asked for). The
     copy is sealed (checksums) and replaces ``dest`` whole; ``lcrl act``, ``lcrl eval``
     and :func:`lcrl.load` take it.
