@@ -35,7 +35,7 @@ replay buffer. Then its latest checkpoint is evaluated:
   student's chain figure stays beside as ``chain2_distilled``, and the routed policy's
   budget is the sum over the runs it is made of.
 
-Writes ``benchmarks/results/robosuite-manipulation.{json,md,png}``. Headline: seen
+Writes ``benchmarks/results/robosuite-manipulation-rl.{json,md,png}``. Headline: seen
 success per family (``reach`` ... ``stack``, targets 0.90, 0.80, 0.70, 0.50, 0.30),
 ``chain2`` (target 0.60), ``steps``, ``updates`` and ``wall_clock_s`` (training seconds of
 the whole run on this machine, over all its sessions).
@@ -65,7 +65,7 @@ from benchmarks.common import (
 )
 from train.configs.presets import MANIPULATION_FAMILIES
 
-NAME = "robosuite-manipulation"
+NAME = "robosuite-manipulation-rl"
 PRESET = "robosuite-manip"
 SETS = ("train", "heldout", "paraphrase")
 #: Seen-instruction success per family, and two instructions in a row.

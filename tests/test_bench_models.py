@@ -157,6 +157,14 @@ def test_the_camera_builds_parts_are_kept_and_a_build_takes_them_up(tmp_path, on
     # perception's data is not kept (perception-ft reads it again): that stage runs again
     assert taken == ["perception", "demos-robosuite-manip", "teacher-put", "teacher-stack"]
     assert (out / "teachers" / "put" / "latest.json").is_file()
+    # a student of the state takes the teachers up and leaves the perception stages be
+    from train.commands.pipeline import robosuite_state
+
+    state = dataclasses.replace(robosuite_state(), out=str(tmp_path / "state"))
+    unused = ("perception-data", "perception")
+    taken = import_parts(tmp_path / "state", stages(state), PARTS, unused)
+    assert taken == ["demos-robosuite-manip", "teacher-put", "teacher-stack"]
+    assert not (tmp_path / "state" / "perception").exists()
     assert "`robosuite-camera-parts/`" in (MODELS / "README.md").read_text()
 
 
@@ -216,6 +224,44 @@ def test_the_kept_camera_policy_acts_from_frames_reads_free_text_and_is_evaluate
     result = json.loads((MODELS.parent / "results" / "robosuite-camera.json").read_text())
     assert result["headline"]["model"] == "benchmarks/models/robosuite-camera"
     assert "`robosuite-camera/`" in (MODELS / "README.md").read_text()
+
+
+STATE = MODELS / "robosuite-state"
+
+
+def test_the_kept_state_policy_follows_every_family_from_one_network(tmp_path, one_thread):
+    """The policy ``lcrl train robosuite-state`` keeps: one network (no router, no
+    ensemble) acting on the privileged state for all five families, the canonical reader
+    on by default and kept beside it; ``lcrl eval`` takes it in a fresh clone."""
+    pytest.importorskip("robosuite")
+    from helpers import cli
+
+    from benchmarks.protocol import check_single_policy
+    from lcrl.checkpoint import verify_checkpoint
+    from train.environments.text_reading import READER_CACHE
+
+    ckpt = verify_checkpoint(check_single_policy(STATE))
+    env = ckpt.meta["config"]["env"]
+    assert env["kind"] == "robosuite" and env["canonical_reader"] and not env["perception"]
+    assert sorted(env["families"]) == ["lift", "push", "put", "reach", "stack"]
+    assert (STATE / READER_CACHE).is_dir() and not list(STATE.glob("state*"))
+    import lcrl
+
+    policy = lcrl.load(STATE)
+    try:
+        assert policy.agent.name == "bc" and not policy.perceives
+        obs, _ = policy.env.reset(seed=3)
+        action = policy.act(obs, "put the red cylinder left of the green cube")
+        assert action.shape == policy.env.action_space.shape and np.isfinite(action).all()
+    finally:
+        policy.env.close()
+    out = tmp_path / "eval.json"
+    args = ["eval", str(STATE), "--episodes", "2", "--sets", "train", "--seed", "12"]
+    assert cli(*args, "--json", str(out), "--no-progress") == 0
+    assert json.loads(out.read_text())["sets"]["train"]["episodes"] == 2
+    result = json.loads((MODELS.parent / "results" / "robosuite-manipulation.json").read_text())
+    assert result["headline"]["model"] == "benchmarks/models/robosuite-state"
+    assert "`robosuite-state/`" in (MODELS / "README.md").read_text()
 
 
 @pytest.mark.parametrize("seed", [0, 1, 2])

@@ -124,6 +124,33 @@ def test_scripted_families_have_no_teacher_stage_and_a_trained_teacher_is_the_ba
     assert "--no-initial" in current.commands[0]
 
 
+def test_a_student_of_the_state_has_no_perception_stage(tmp_path):
+    """``lcrl train robosuite-state``: the camera build's teachers, one student that reads
+    the privileged state (``--state`` in every distill command), no perception stage."""
+    from train.commands.pipeline import CAMERA_ONLY, robosuite_state, stages
+
+    p = dataclasses.replace(robosuite_state(), out=str(tmp_path / "state"))
+    names = [s.name for s in stages(p)]
+    assert names == [
+        "demos-robosuite-manip", "teacher-put", "teacher-stack", "student", "eval", "keep"
+    ]  # fmt: skip
+    assert not set(names) & set(CAMERA_ONLY)
+    (student,) = [s for s in stages(p) if s.name == "student"]
+    args = student.commands[0]
+    assert "--state" in args and "--perception" not in args
+    assert args[args.index("--rounds") + 1] == "100"
+    assert student.needs == tuple(
+        f"{p.out}/teachers/{f}<teacher-{f}" for f in ("put", "stack")
+    )  # no perception model to wait for
+    more = dataclasses.replace(p, rounds_aug=5)
+    (aug,) = [s for s in stages(more) if s.name == "student-aug"]
+    cmd = aug.commands[0]
+    assert "--state" in cmd and "--new-perception" not in cmd
+    assert cmd[cmd.index("--rounds") + 1] == "105" and aug.needs[0].endswith("<student")
+    with pytest.raises(LcrlError, match="--state and --perception"):
+        stages(dataclasses.replace(p, perception="some/model"))
+
+
 def test_stages_writing_to_a_log_update_their_bars_twice_a_minute(monkeypatch):
     from train.commands.pipeline_steps import LOG_BAR_INTERVAL, child_env
 
@@ -195,6 +222,10 @@ def test_the_camera_benchmark_summarises_an_evaluation_with_intervals():
     assert abs(s["heldout_ratio"] - 0.75) < 1e-9 and s["intervals"]["push"] == [0.4, 0.6]
     low, high = s["intervals"]["heldout_ratio"]
     assert low < 0.75 < high
+    # a policy of the state is evaluated without --true-state: the same summary, no column
+    state = summarise({"sets": ev["sets"], "chain2": chain})
+    assert state["chain2"] == s["chain2"] and state["heldout_ratio"] == s["heldout_ratio"]
+    assert all(state["per_family"][f]["true_state_seen"] is None for f in FAMILIES)
     wide = ratio_interval((0.6, 50), (0.8, 50))
     narrow = ratio_interval((0.6, 5000), (0.8, 5000))
     assert wide[1] - wide[0] > 3 * (narrow[1] - narrow[0])

@@ -52,6 +52,7 @@ from typing import Any
 
 from lcrl.errors import LcrlError
 from train.commands.pipeline_parts import check_parts, export_parts, import_parts
+from train.commands.pipeline_settings import CameraPipeline, TeacherRecipe
 from train.commands.pipeline_steps import (
     Signals,
     keep_policy,
@@ -60,123 +61,9 @@ from train.commands.pipeline_steps import (
 from train.configs.sections import SCRIPTED
 from train.runtime.run_lock import lock_run, unlock_run
 
-
-@dataclass
-class TeacherRecipe:
-    """How one family's privileged-state teacher is trained."""
-
-    family: str
-    preset: str
-    """The ``lcrl train`` preset, or ``scripted``: the environment's scripted controller in
-    its memoryless form teaches the family (nothing to train)."""
-    steps: int
-    """Environment steps."""
-    demos: int = 0
-    """Scripted demonstrations recorded first and fine-tuned from (0: none)."""
-    extra: tuple[str, ...] = ()
-    """More ``lcrl train`` options."""
-    demo_preset: str = ""
-    """The preset whose families the demonstrations cover (empty: this family alone, with
-    ``preset``). Teachers that name the same one share one file, recorded once."""
-
-
-@dataclass
-class CameraPipeline:
-    """A camera policy for a whole grammar, built stage by stage (see the module)."""
-
-    env: str
-    """The simulator of ``lcrl perception collect`` (``robosuite``, ``lang2d``)."""
-    teachers: tuple[TeacherRecipe, ...]
-    """One recipe per family; the first trained teacher is the student's base (its
-    networks and instruction table)."""
-    out: str = "runs/camera"
-    """The pipeline's folder."""
-    stages: tuple[str, ...] = ()
-    """Stages to run (default: every one not done yet)."""
-    resume: bool = True
-    """Skip finished stages and continue a stopped one (``--no-resume``: refuse a folder
-    that holds a pipeline)."""
-    keep: str = ""
-    """Where the ``keep`` stage copies the final policy (empty: ``OUT/kept``)."""
-    perception: str = ""
-    """Use this perception model instead of building one (skips ``perception-data`` and
-    ``perception``)."""
-    image_size: int = 84
-    """Camera frame side in pixels."""
-    perception_episodes: int = 3000
-    """Episodes of ``perception-data`` (random and scripted)."""
-    perception_episode_steps: int = 20
-    """Steps of each such episode (more layouts, not longer episodes, is what helps)."""
-    perception_steps: int = 10_000
-    """Training steps of ``perception``."""
-    rounds: int = 30
-    """DAgger rounds of ``student``."""
-    episodes_per_round: int = 40
-    """Episodes the student (with the teachers' share) collects per round."""
-    updates_per_round: int = 2000
-    """Student updates per round, on everything gathered."""
-    student_hidden: tuple[int, ...] = (512, 512, 512)
-    """The student's hidden layers."""
-    chain: float = 0.5
-    """Probability that an achieved instruction is followed by another (chains)."""
-    initial: bool = True
-    """The student also reads the observation its instruction started from, as the
-    teachers do; ``--no-initial``: the current observation only (``lcrl distill
-    --no-initial``), so a chain's later instruction looks like a first one (a whole build
-    so: chains of two 0.12 against 0.08 on validation seed 1, but pooled 0.31 against
-    0.40: ``benchmarks/results/robosuite-camera-no-initial.md``)."""
-    student_frames: int = 400
-    """Episodes of the student collected for ``perception-ft``."""
-    max_episode_steps: int = 100
-    """The student's episode length (and that of the episodes of ``student-frames``)."""
-    perception_ft_steps: int = 4000
-    """Training steps of ``perception-ft``."""
-    rounds_ft: int = 10
-    """More DAgger rounds through the fine-tuned perception (``student-ft``)."""
-    rounds_aug: int = 0
-    """More DAgger rounds after those with every update's rows augmented
-    (``student-aug``, ``--augment``); 0: no such stage."""
-    augment: str = "colours"
-    """The augmentation of ``student-aug`` (``lcrl distill --augment``)."""
-    eval_episodes: int = 100
-    """Episodes per instruction set of ``eval``."""
-    eval_seed: int = 1
-    """Evaluation seed of ``eval`` (choose builds on other seeds)."""
-    seed: int = 0
-    """Seed of every stage's data and training."""
-    threads: int = 0
-    """Torch threads of each stage (0: automatic)."""
-    teacher_steps: int = 0
-    """Environment steps of every teacher (0: each recipe's own)."""
-    dry_run: bool = False
-    """Print the stages, whether each is done, and their commands; run nothing."""
-    reader: bool = True
-    """Free text through the canonical reader: the evaluation reads instructions through
-    it, and the kept policy has it on by default, fitted and kept beside it."""
-    extra_student: tuple[str, ...] = ()
-    """More ``lcrl distill`` options."""
-    parts: str = ""
-    """Start from the parts a build kept (``--export-parts``): the stages they hold are
-    done, their artefacts copied into ``--out`` (a stage whose data file a later stage
-    reads runs again)."""
-    export_parts: str = ""
-    """Write the finished stages before the student (records, weights and configs; no
-    data) to this folder, and stop."""
-    jobs: int = 1
-    """Stages run at once where one does not need another's output; each gets
-    ``cores // jobs`` torch threads unless ``--threads`` is given."""
-
-    @property
-    def families(self) -> tuple[str, ...]:
-        return tuple(t.family for t in self.teachers)
-
-    @property
-    def trained(self) -> tuple[TeacherRecipe, ...]:
-        """The recipes with a teacher to train (not ``scripted``)."""
-        return tuple(t for t in self.teachers if t.preset != SCRIPTED)
-
-
 STAGE_DIR = "stages"
+#: The stages of a student that acts through perception (left out with ``--state``).
+CAMERA_ONLY = ("perception-data", "perception", "student-frames", "perception-ft", "student-ft")
 
 
 @dataclass
@@ -214,7 +101,10 @@ def stages(p: CameraPipeline) -> list[Stage]:
     threads = ["--threads", str(p.threads)] if p.threads else []
     torch_threads = ["--torch-threads", str(p.threads)] if p.threads else []
     found: list[Stage] = []
-    if not p.perception:
+    if p.state and p.perception:
+        raise LcrlError("--state and --perception: a student of the privileged state reads none")
+    camera = not p.state
+    if camera and not p.perception:
         found.append(
             Stage(
                 "perception-data",
@@ -307,11 +197,12 @@ def stages(p: CameraPipeline) -> list[Stage]:
     student = out / "student"
     distill = ["distill", str(_teacher_dir(p, base.family)), "--out", str(student)]
     distill += ["--no-progress", "--eval-every", "0", "--eval-sets", "train", *torch_threads]
+    reads = ["--perception", _perception_model(p)] if camera else ["--state"]
     if _running(student):
-        distill += ["--resume", "--rounds", str(p.rounds), "--perception", _perception_model(p)]
+        distill += ["--resume", "--rounds", str(p.rounds), *reads]
     else:
         distill += [
-            "--perception", _perception_model(p), "--rounds", str(p.rounds),
+            *reads, "--rounds", str(p.rounds),
             "--episodes-per-round", str(p.episodes_per_round),
             "--updates-per-round", str(p.updates_per_round),
             "--hidden", *map(str, p.student_hidden), "--slot-mode", "attributes",
@@ -324,11 +215,13 @@ def stages(p: CameraPipeline) -> list[Stage]:
             *p.extra_student,
         ]  # fmt: skip
     teacher_needs = tuple(f"{_teacher_dir(p, t.family)}<teacher-{t.family}" for t in p.trained)
-    perception_need = () if p.perception else (f"{_perception_model(p)}<perception",)
+    perception_need = () if p.perception or not camera else (f"{_perception_model(p)}<perception",)
     found.append(
         Stage(
             "student",
-            "one student of every teacher (DAgger), acting from the camera through perception",
+            "one student of every teacher (DAgger), acting from the camera through perception"
+            if camera
+            else "one student of every teacher (DAgger), acting from the privileged state",
             [distill],
             needs=(*teacher_needs, *perception_need),
             outputs=(str(student),),
@@ -383,7 +276,7 @@ def stages(p: CameraPipeline) -> list[Stage]:
             outputs=(str(out / "perception-ft" / "model"),),
         )
     )  # fmt: skip
-    total = p.rounds + p.rounds_ft
+    total = p.rounds + (p.rounds_ft if camera else 0)
     reader = ["--canonical-reader"] if p.reader else []
     tuned = str(out / "perception-ft" / "model")
 
@@ -392,7 +285,7 @@ def stages(p: CameraPipeline) -> list[Stage]:
         return [
             "distill", str(_teacher_dir(p, base.family)), "--out", str(student), "--resume",
             "--rounds", str(rounds), "--no-progress", *torch_threads, *extra,
-            "--perception", tuned, "--new-perception", tuned,
+            *(["--perception", tuned, "--new-perception", tuned] if camera else ["--state"]),
         ]  # fmt: skip
 
     found.append(
@@ -410,7 +303,7 @@ def stages(p: CameraPipeline) -> list[Stage]:
                 "student-aug",
                 f"more DAgger rounds, every update's rows augmented ({p.augment})",
                 [more_rounds(total + p.rounds_aug, "--augment", p.augment)],
-                needs=(f"{student}<student-ft",),
+                needs=(f"{student}<{'student-ft' if camera else 'student'}",),
                 outputs=(str(student),),
             )
         )
@@ -443,6 +336,8 @@ def stages(p: CameraPipeline) -> list[Stage]:
             outputs=(p.keep or str(out / "kept"),),
         )
     )
+    if not camera:  # the student reads the state: nothing to fine-tune perception on
+        found = [s for s in found if s.name not in CAMERA_ONLY]
     return found
 
 
@@ -670,7 +565,8 @@ def run_pipeline(p: CameraPipeline) -> dict[str, Any]:
         print(f"lcrl: {note}", file=sys.stderr)
     (out / "pipeline.json").write_text(json.dumps(dataclasses.asdict(p), indent=1))
     if p.parts:
-        taken = import_parts(out, every, Path(p.parts))
+        unused = CAMERA_ONLY if p.state else ()
+        taken = import_parts(out, every, Path(p.parts), unused)
         print(f"from {p.parts}: {' '.join(taken) or 'nothing new'}", flush=True)
     signals = Signals()
     previous = {sig: signal.signal(sig, signals.handle) for sig in (signal.SIGINT, signal.SIGTERM)}
@@ -724,6 +620,18 @@ def robosuite_camera() -> CameraPipeline:
     )  # fmt: skip
 
 
+def robosuite_state() -> CameraPipeline:
+    """One privileged-state policy for the robosuite tabletop's five families: the
+    teachers of ``robosuite-camera``, and one student that reads the simulator's state
+    (``lcrl distill --state``) instead of the camera, 100 DAgger rounds over chains of
+    up to three instructions (the rounds of the best such student measured, chosen on
+    validation seed 1: ``docs/training.md``). The put and stack teachers are the parts
+    ``--parts benchmarks/models/robosuite-camera-parts`` holds."""
+    return dataclasses.replace(
+        robosuite_camera(), state=True, out="runs/robosuite-state", rounds=100, rounds_aug=0
+    )
+
+
 def lang2d_camera() -> CameraPipeline:
     """The same pipeline on the 2D tabletop's camera frames, sized for minutes (CI)."""
     return CameraPipeline(
@@ -755,7 +663,11 @@ def lang2d_camera() -> CameraPipeline:
 
 
 #: ``lcrl train NAME`` builds these instead of training one preset.
-PIPELINES = {"robosuite-camera": robosuite_camera, "lang2d-camera": lang2d_camera}
+PIPELINES = {
+    "robosuite-camera": robosuite_camera,
+    "robosuite-state": robosuite_state,
+    "lang2d-camera": lang2d_camera,
+}
 
 
 def pipeline_cli(name: str, argv: Sequence[str]) -> CameraPipeline:

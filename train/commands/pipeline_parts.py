@@ -105,12 +105,16 @@ def check_parts(parts: Path) -> None:
         raise LcrlError(f"--parts {parts}: no stages/ folder (write one with --export-parts)")
 
 
-def import_parts(out: Path, every: Sequence[StageLike], parts: Path) -> list[str]:
+def import_parts(
+    out: Path, every: Sequence[StageLike], parts: Path, unused: Sequence[str] = ()
+) -> list[str]:
     """Take up the stages that ``parts`` holds and ``out`` has not finished: copy their
     artefacts into ``out`` and their records; the names taken up. A stage whose output is
-    not in ``parts`` while a stage still to run needs it is left to run again."""
+    not in ``parts`` while a stage still to run needs it is left to run again; the stages
+    named in ``unused`` (those of a camera build, for a student of the state) are left
+    where they are."""
     check_parts(parts)
-    held = {f.stem: f for f in (parts / "stages").glob("*.json")}
+    held = {f.stem: f for f in (parts / "stages").glob("*.json") if f.stem not in unused}
     known = {s.name for s in every}
     unknown = sorted(set(held) - known)
     if unknown:

@@ -15,7 +15,7 @@ from typing import TYPE_CHECKING, Any
 from lcrl.errors import LcrlError
 
 if TYPE_CHECKING:
-    from train.commands.pipeline import CameraPipeline
+    from train.commands.pipeline_settings import CameraPipeline
 
 
 class Signals:

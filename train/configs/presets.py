@@ -225,7 +225,7 @@ def _robosuite_family(family: str) -> TrainConfig:
     returns. From 2,000 scripted demonstrations of the five families (``--finetune.demos``,
     ``--sac.demo-bc 1.0``), stack alone reached 0.66 to 0.76 seen success at 5k to 15k
     steps, where the same run with slots picked by position and 1-step returns was at 0.10
-    to 0.26 (benchmarks/results/robosuite-manipulation.md)."""
+    to 0.26 (benchmarks/results/robosuite-manipulation-rl.md)."""
     cfg = _robosuite_manip((family,))
     agent = AgentOptions(
         net=NetConfig(
