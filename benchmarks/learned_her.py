@@ -223,6 +223,12 @@ def main(argv: list[str] | None = None) -> int:
         "headline pools their evaluations (default: --seed alone, runs under WORK)",
     )
     parser.add_argument(
+        "--note",
+        default="",
+        help="what changed since the file's earlier figures and why (into the JSON's note "
+        "and the Markdown)",
+    )
+    parser.add_argument(
         "--validation-only",
         action="store_true",
         help="train the runs and report their last periodic evaluations (at the training "
@@ -302,6 +308,7 @@ def main(argv: list[str] | None = None) -> int:
             "target": f"gap_seen <= {target} and gap_heldout <= {target} (rule minus learned, "
             f"pooled over the seeds, at evaluation seed {args.eval_seed})",
             "previous": previous,
+            **({"note": args.note} if args.note else {}),
             "reached": reached,
             "machine": info,
             "settings": {**vars(args), "preset": PRESETS[args.env]},
@@ -354,6 +361,7 @@ def main(argv: list[str] | None = None) -> int:
             else ""
         )
         + "; the rule captioner judges the evaluations only.",
+        *(["", args.note] if args.note else []),
         "",
         f"| relabelling | seen | {' | '.join(fams)} | held-out combinations | paraphrases |",
         "|---|---:|" + "---:|" * len(fams) + "---:|---:|",
