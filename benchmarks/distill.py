@@ -33,6 +33,7 @@ from benchmarks.common import (
     save_markdown,
     success_bars,
 )
+from benchmarks.protocol import VALIDATION_SEEDS, check_test_seed
 
 NAME = "distill-robosuite"
 TARGET_GAP = 0.05
@@ -235,9 +236,12 @@ def push_stage(args: argparse.Namespace) -> dict:
         subprocess.run(cmd, check=True, env=child_env(), preexec_fn=die_with_parent)
     acting = ensemble or student
     # every evaluation, two at a time (one torch thread each)
-    jobs = {"teacher": (teacher, 0), "student": (acting, 0)}
+    final_seed = args.push_test_seed
+    if final_seed:
+        check_test_seed(final_seed, (0, *VALIDATION_SEEDS))
+    jobs = {"teacher": (teacher, final_seed), "student": (acting, final_seed)}
     if ensemble is not None:
-        jobs.update({f"member-{i}": (run, 0) for i, run in enumerate(members)})
+        jobs.update({f"member-{i}": (run, final_seed) for i, run in enumerate(members)})
     if args.push_recheck:
         jobs.update(
             {"recheck-teacher": (teacher, RECHECK_SEED), "recheck-student": (acting, RECHECK_SEED)}
@@ -283,6 +287,7 @@ def push_stage(args: argparse.Namespace) -> dict:
             "seeds": seeds,
         },
         "student_distill_s": seconds,
+        "final_seed": final_seed,
         "final": {
             "teacher": {"success": t["success"], "ci": t["ci"]},
             "student": {"success": s["success"], "ci": s["ci"]},
@@ -306,6 +311,11 @@ def push_stage(args: argparse.Namespace) -> dict:
                 for who in ("teacher", "student")
             },
         }
+    if args.keep_push:
+        from train.policies.loading import keep_checkpoint
+
+        kept = keep_checkpoint(members[0], Path(args.keep_push), acting_only=True)
+        out["kept"] = str(kept)
     if args.push_noise_check:
         out["teacher_on_estimates"] = teacher_on_estimates(
             teacher, args.perception, args.push_noise_check, args.push_hold_radius
@@ -377,6 +387,21 @@ def build_parser() -> argparse.ArgumentParser:
         metavar="N",
         help="also evaluate the push teacher and student on N other episodes (evaluation "
         f"seed {RECHECK_SEED})",
+    )
+    parser.add_argument(
+        "--push-test-seed",
+        type=int,
+        default=0,
+        metavar="T",
+        help="evaluate the push teacher and student at this test seed (one no choice used; "
+        "default 0: the seed the push variants were chosen on)",
+    )
+    parser.add_argument(
+        "--keep-push",
+        default="",
+        metavar="DIR",
+        help="keep the push student (weights, configs and its perception model; acting "
+        "only) in DIR",
     )
     parser.add_argument(
         "--push-lr",
@@ -459,7 +484,23 @@ def main(argv: list[str] | None = None) -> int:
         if not path.is_file():
             parser.error(f"--push-only keeps reach's figures from {path}, which is missing")
         payload = json.loads(path.read_text())
+        earlier = payload.get("push")
         payload["push"] = {**push_stage(args), "command": command(), "machine": info}
+        if args.push_test_seed and earlier and not earlier.get("final_seed"):
+            # the build chosen on seed 0's episodes, measured again at a test seed
+            payload["push_seed0_choice"] = {
+                "summary": "the push headline before it was measured at a test seed: "
+                "chosen on, and reported from, the same seed-0 episodes",
+                "build": earlier,
+            }
+        if args.push_test_seed:
+            payload["headline_note"] = (
+                f"The push headline is one network (the student of seed {args.seed}), "
+                f"rebuilt by the command and evaluated once, with its teacher, at test seed "
+                f"{args.push_test_seed}, which no choice used; its variant was chosen on "
+                "seed 0 (push_seed0_choice). It is kept in "
+                f"{args.keep_push or 'no folder (no --keep-push)'}."
+            )
         # reach's command, then this one (an earlier push command is replaced)
         reach = payload.setdefault("reach_command", payload["command"].split(" && ")[0])
         payload["command"] = f"{reach} && {command()}"

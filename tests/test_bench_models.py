@@ -101,6 +101,32 @@ def test_the_kept_push_teacher_acts_on_the_privileged_state(one_thread):
     assert "`push-teacher/`" in (MODELS / "README.md").read_text()
 
 
+def test_the_kept_push_student_acts_from_frames_as_one_network(one_thread):
+    """The push student behind distill-robosuite.json's headline: one network (not an
+    ensemble) acting through its own perception model, without its learning state."""
+    pytest.importorskip("robosuite")
+    import lcrl
+    from benchmarks.protocol import check_single_policy
+    from lcrl.checkpoint import verify_checkpoint
+
+    folder = check_single_policy(MODELS / "push-student")
+    ckpt = verify_checkpoint(folder)
+    assert "perception" in ckpt.meta and ckpt.meta["config"]["env"]["families"] == ["push"]
+    assert not list(folder.glob("state*")) and not list(folder.glob("arrays.npz"))
+    policy = lcrl.load(folder)
+    try:
+        assert policy.perceives and policy.agent.name == "bc"
+        obs, _ = policy.env.reset(seed=5)
+        action = policy.act(obs, "push the red cube left")
+        assert action.shape == policy.env.action_space.shape and np.isfinite(action).all()
+    finally:
+        policy.env.close()
+    result = json.loads((MODELS.parent / "results" / "distill-robosuite.json").read_text())
+    assert result["push"]["kept"] == "benchmarks/models/push-student"
+    assert result["push"]["final_seed"] == 17
+    assert "`push-student/`" in (MODELS / "README.md").read_text()
+
+
 def test_every_kept_checkpoint_carries_checksums_that_hold():
     """Each kept checkpoint records the SHA-256 of every file beside its meta.json, and
     the files match them (a model changed by hand must be sealed again)."""

@@ -308,3 +308,25 @@ def test_distill_push_stage_rechecks_on_other_episodes(push_stage, tmp_path, mon
     assert again["commands"][1].startswith(f"lcrl eval {tmp_path / 'student'} --episodes 200")
     _, plain = push_stage()
     assert "recheck" not in plain
+
+
+def test_distill_push_stage_measures_at_a_test_seed(tmp_path, monkeypatch):
+    """--push-test-seed T evaluates the push teacher and student at T (refused for the
+    choice seeds 0 to 3), and the push section records it."""
+    import benchmarks.distill as distill
+    from lcrl.errors import LcrlError
+
+    seeds = []
+    monkeypatch.setattr(distill, "distill", lambda *a, **kw: 1.0)
+    monkeypatch.setattr(distill, "rows", lambda path: [{"step": 1.0}])
+
+    def fake_evaluate(run, episodes, sets, seed=0):
+        seeds.append(seed)
+        return {"train": {"success": 0.5, "ci": [0.4, 0.6]}}
+
+    monkeypatch.setattr(distill, "evaluate", fake_evaluate)
+    base = ["--perception", "p", "--push-teacher", str(tmp_path / "t"), "--push-only"]
+    out = distill.push_stage(distill.build_parser().parse_args([*base, "--push-test-seed", "17"]))
+    assert seeds == [17, 17] and out["final_seed"] == 17
+    with pytest.raises(LcrlError, match="used for choices"):
+        distill.push_stage(distill.build_parser().parse_args([*base, "--push-test-seed", "1"]))
