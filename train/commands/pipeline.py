@@ -330,7 +330,9 @@ def stages(p: CameraPipeline) -> list[Stage]:
     found.append(
         Stage(
             "keep",
-            "the final policy, its perception model and its reader, weights and configs only",
+            "the final policy, its perception model and its reader, weights and configs only"
+            if camera
+            else "the final policy and its reader, weights and configs only",
             [],
             needs=(f"{student}<student",),
             outputs=(p.keep or str(out / "kept"),),
