@@ -5,7 +5,7 @@
     python -m benchmarks.robosuite_camera --jobs 2        # two stages at a time where they can
     python -m benchmarks.robosuite_camera --parts benchmarks/models/robosuite-camera-parts
                                                           # from the kept perception and teachers
-    python -m benchmarks.robosuite_camera --build robosuite-state \
+    python -m benchmarks.robosuite_camera --build robosuite-privileged \
         --parts benchmarks/models/robosuite-camera-parts  # the same teachers, a student of
                                                           # the privileged state
 
@@ -17,7 +17,7 @@ instruction set, chains of two, and (for the camera policy) the same policy on t
 state.
 
 Writes ``benchmarks/results/robosuite-camera.{json,md,png}`` (``--build robosuite-camera``,
-the default) or ``robosuite-manipulation.{json,md,png}`` (``robosuite-state``); the
+the default) or ``robosuite-manipulation.{json,md,png}`` (``robosuite-privileged``); the
 headline holds the seen success of each family, ``chain2``, ``heldout_ratio`` and
 ``paraphrase_ratio`` (pooled over families), ``wall_clock_s`` (every stage, the teachers
 included), ``model`` and ``eval_seed``.
@@ -106,17 +106,17 @@ BUILDS = {
             "otherwise: paraphrase_ratio 0.69 both)",
         ),
     ),
-    "robosuite-state": Build(
+    "robosuite-privileged": Build(
         name="robosuite-manipulation",
         title="One privileged-state policy for every robosuite family",
         reads="the simulator's privileged state",
         targets=STATE_TARGETS,
-        work="runs/robosuite-state",
-        model="benchmarks/models/robosuite-state",
+        work="runs/robosuite-privileged",
+        model="benchmarks/models/robosuite-privileged",
         eval_seed=17,
         true_state=False,
         tried=(
-            "the robosuite-state pipeline as shipped (train/commands/pipeline.py), one build "
+            "the robosuite-privileged pipeline as shipped (train/commands/pipeline.py), one build "
             "from the kept put and stack teachers of robosuite-camera-parts; its settings are "
             "those of the best distilled state student measured before (100 rounds, chosen on "
             "validation seed 1: docs/training.md); no choice was made on this build",
@@ -130,7 +130,7 @@ BUILDS = {
         "(put and stack from runs of their own, chains of two from a router over experts, "
         "on seed 0, its wall clock without the experts); those figures are now "
         "robosuite-manipulation-rl.json, beside this one. The headline is the single network "
-        "lcrl train robosuite-state builds, evaluated once on test seed 17, and wall_clock_s "
+        "lcrl train robosuite-privileged builds, evaluated once on test seed 17, and wall_clock_s "
         "counts every stage, the teachers included.",
     ),
 }

@@ -184,9 +184,9 @@ def test_the_camera_builds_parts_are_kept_and_a_build_takes_them_up(tmp_path, on
     assert taken == ["perception", "demos-robosuite-manip", "teacher-put", "teacher-stack"]
     assert (out / "teachers" / "put" / "latest.json").is_file()
     # a student of the state takes the teachers up and leaves the perception stages be
-    from train.commands.pipeline import robosuite_state
+    from train.commands.pipeline import robosuite_privileged
 
-    state = dataclasses.replace(robosuite_state(), out=str(tmp_path / "state"))
+    state = dataclasses.replace(robosuite_privileged(), out=str(tmp_path / "state"))
     unused = ("perception-data", "perception")
     taken = import_parts(tmp_path / "state", stages(state), PARTS, unused)
     assert taken == ["demos-robosuite-manip", "teacher-put", "teacher-stack"]
@@ -252,11 +252,11 @@ def test_the_kept_camera_policy_acts_from_frames_reads_free_text_and_is_evaluate
     assert "`robosuite-camera/`" in (MODELS / "README.md").read_text()
 
 
-STATE = MODELS / "robosuite-state"
+STATE = MODELS / "robosuite-privileged"
 
 
 def test_the_kept_state_policy_follows_every_family_from_one_network(tmp_path, one_thread):
-    """The policy ``lcrl train robosuite-state`` keeps: one network (no router, no
+    """The policy ``lcrl train robosuite-privileged`` keeps: one network (no router, no
     ensemble) acting on the privileged state for all five families, the canonical reader
     on by default and kept beside it; ``lcrl eval`` takes it in a fresh clone."""
     pytest.importorskip("robosuite")
@@ -286,8 +286,8 @@ def test_the_kept_state_policy_follows_every_family_from_one_network(tmp_path, o
     assert cli(*args, "--json", str(out), "--no-progress") == 0
     assert json.loads(out.read_text())["sets"]["train"]["episodes"] == 2
     result = json.loads((MODELS.parent / "results" / "robosuite-manipulation.json").read_text())
-    assert result["headline"]["model"] == "benchmarks/models/robosuite-state"
-    assert "`robosuite-state/`" in (MODELS / "README.md").read_text()
+    assert result["headline"]["model"] == "benchmarks/models/robosuite-privileged"
+    assert "`robosuite-privileged/`" in (MODELS / "README.md").read_text()
 
 
 @pytest.mark.parametrize("seed", [0, 1, 2])

@@ -124,12 +124,20 @@ def test_scripted_families_have_no_teacher_stage_and_a_trained_teacher_is_the_ba
     assert "--no-initial" in current.commands[0]
 
 
-def test_a_student_of_the_state_has_no_perception_stage(tmp_path):
-    """``lcrl train robosuite-state``: the camera build's teachers, one student that reads
-    the privileged state (``--state`` in every distill command), no perception stage."""
-    from train.commands.pipeline import CAMERA_ONLY, robosuite_state, stages
+def test_no_pipeline_takes_the_name_of_a_preset():
+    """``lcrl train NAME`` runs a pipeline before a preset: a shared name would hide one."""
+    from train.commands.pipeline import PIPELINES
+    from train.configs.presets import PRESETS
 
-    p = dataclasses.replace(robosuite_state(), out=str(tmp_path / "state"))
+    assert not set(PIPELINES) & set(PRESETS)
+
+
+def test_a_student_of_the_state_has_no_perception_stage(tmp_path):
+    """``lcrl train robosuite-privileged``: the camera build's teachers, one student that reads
+    the privileged state (``--state`` in every distill command), no perception stage."""
+    from train.commands.pipeline import CAMERA_ONLY, robosuite_privileged, stages
+
+    p = dataclasses.replace(robosuite_privileged(), out=str(tmp_path / "state"))
     names = [s.name for s in stages(p)]
     assert names == [
         "demos-robosuite-manip", "teacher-put", "teacher-stack", "student", "eval", "keep"

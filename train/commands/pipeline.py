@@ -622,7 +622,7 @@ def robosuite_camera() -> CameraPipeline:
     )  # fmt: skip
 
 
-def robosuite_state() -> CameraPipeline:
+def robosuite_privileged() -> CameraPipeline:
     """One privileged-state policy for the robosuite tabletop's five families: the
     teachers of ``robosuite-camera``, and one student that reads the simulator's state
     (``lcrl distill --state``) instead of the camera, 100 DAgger rounds over chains of
@@ -630,7 +630,7 @@ def robosuite_state() -> CameraPipeline:
     validation seed 1: ``docs/training.md``). The put and stack teachers are the parts
     ``--parts benchmarks/models/robosuite-camera-parts`` holds."""
     return dataclasses.replace(
-        robosuite_camera(), state=True, out="runs/robosuite-state", rounds=100, rounds_aug=0
+        robosuite_camera(), state=True, out="runs/robosuite-privileged", rounds=100, rounds_aug=0
     )
 
 
@@ -667,7 +667,7 @@ def lang2d_camera() -> CameraPipeline:
 #: ``lcrl train NAME`` builds these instead of training one preset.
 PIPELINES = {
     "robosuite-camera": robosuite_camera,
-    "robosuite-state": robosuite_state,
+    "robosuite-privileged": robosuite_privileged,
     "lang2d-camera": lang2d_camera,
 }
 

@@ -51,7 +51,7 @@ class CameraPipeline:
     state: bool = False
     """The student reads the teachers' privileged state (``lcrl distill --state``) instead
     of the camera: no perception stages, one privileged-state policy for every family
-    (``lcrl train robosuite-state``)."""
+    (``lcrl train robosuite-privileged``)."""
     image_size: int = 84
     """Camera frame side in pixels."""
     perception_episodes: int = 3000
