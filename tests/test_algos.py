@@ -357,6 +357,51 @@ def test_sac_target_critic_moves_by_tau():
         assert not value.requires_grad
 
 
+def test_sac_temperature_step_is_adams_step_on_the_temperature_loss():
+    """The temperature's gradient, written in closed form, is autograd's gradient of
+    ``-(log_alpha * (log pi + target_entropy)).mean()``: one step equals Adam's step on
+    that loss."""
+    prob = problem(False)
+    agent = make_agent("sac", 0, prob, SACConfig(alpha_lr=0.05))
+    captured = {}
+    policy = agent._policy
+
+    def spy(obs, goal, with_mean=False):
+        out = policy(obs, goal, with_mean)
+        if with_mean:  # the actor step's log-probabilities
+            captured["logp"] = out[1].detach().clone()
+        return out
+
+    agent._policy = spy
+    start = agent.log_alpha.detach().clone()
+    agent.update(batches(prob, 1)[0])
+    log_alpha = start.clone().requires_grad_(True)
+    opt = torch.optim.Adam([log_alpha], lr=0.05)
+    (-(log_alpha * (captured["logp"] + agent.target_entropy)).mean()).backward()
+    opt.step()
+    torch.testing.assert_close(agent.log_alpha.detach(), log_alpha.detach())
+
+
+def test_batched_value_layer_matches_per_member_linear_layers():
+    """The ensemble's one-output layer (a product and a sum, not bmm) gives each member's
+    ``x @ W_k + b_k`` and the same gradients, for shared and per-member inputs."""
+    from lcrl.nets.layers import BatchedLinear
+
+    torch.manual_seed(0)
+    layer = BatchedLinear(3, 5, 1)
+    for x in (torch.randn(7, 5), torch.randn(3, 7, 5)):
+        x = x.requires_grad_(True)
+        out = layer(x)
+        xs = x if x.dim() == 3 else x.expand(3, 7, 5)
+        expected = torch.baddbmm(layer.bias, xs, layer.weight)
+        torch.testing.assert_close(out, expected)
+        w = torch.randn_like(out)
+        grads = torch.autograd.grad((out * w).sum(), (x, layer.weight, layer.bias))
+        ref = torch.autograd.grad((expected * w).sum(), (x, layer.weight, layer.bias))
+        for g, r in zip(grads, ref, strict=True):
+            torch.testing.assert_close(g, r)
+
+
 def test_td3_targets_move_with_policy_delay():
     tau = 0.25
     prob = problem(False)

@@ -246,9 +246,10 @@ class SAC(Agent):
             self.perceiver_opt.step()
         self.critic.requires_grad_(True)
         if self.cfg.autotune_alpha:
-            alpha_loss = -(self.log_alpha * (logp.detach() + self.target_entropy)).mean()
-            self.alpha_opt.zero_grad()
-            alpha_loss.backward()
+            # the gradient of -(log_alpha * (logp + target_entropy)).mean() in closed form
+            # (one autograd pass fewer per update)
+            with torch.no_grad():
+                self.alpha_opt.grad.copy_(-(logp.detach().float() + self.target_entropy).mean())
             self.alpha_opt.step()
         with torch.no_grad():
             self._target_flat.lerp_(self.critic_opt.flat, self.cfg.tau)

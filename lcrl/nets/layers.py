@@ -148,6 +148,12 @@ class BatchedLinear(nn.Module):
             self.bias.uniform_(-bound, bound)
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
+        if self.weight.shape[2] == 1:
+            # one output per member (the critics' values): a batched matrix-vector product,
+            # which bmm runs about 6x slower on the CPU than a product and a sum, forward
+            # and backward
+            w = self.weight.transpose(1, 2).to(x.dtype)
+            return (x * w).sum(-1, keepdim=True) + self.bias.to(x.dtype)
         if x.dim() == 2:
             x = x.expand(self.weight.shape[0], *x.shape)
         return torch.baddbmm(self.bias, x, self.weight)
