@@ -382,6 +382,21 @@ def test_sac_temperature_step_is_adams_step_on_the_temperature_loss():
     torch.testing.assert_close(agent.log_alpha.detach(), log_alpha.detach())
 
 
+def test_sac_acting_samples_what_the_policy_samples():
+    """``act`` draws its action without the log-probability, but the same action as
+    ``_policy`` from the same generator state."""
+    prob = problem(False)
+    agent = make_agent("sac", 0, prob)
+    batch = batches(prob, 1)[0]
+    state = agent.gen.get_state()
+    acted = agent.act(batch.obs, batch.goal)
+    agent.gen.set_state(state)
+    with torch.no_grad():
+        o, g = agent.obs_tensors(batch.obs), agent.goal_tensor(batch.goal)
+        expected = agent._policy(o, g)[0].numpy()
+    np.testing.assert_array_equal(acted, expected)
+
+
 def test_batched_value_layer_matches_per_member_linear_layers():
     """The ensemble's one-output layer (a product and a sum, not bmm) gives each member's
     ``x @ W_k + b_k`` and the same gradients, for shared and per-member inputs."""

@@ -205,8 +205,10 @@ class SAC(Agent):
             g = self.goal_tensor(goal, embedded)
             if deterministic:
                 a = torch.tanh(self.actor(o, g).chunk(2, -1)[0])
-            else:
-                a = self._policy(o, g)[0]
+            else:  # the sample of _policy, without its log-probability
+                mean, log_std = self.actor(o, g).chunk(2, -1)
+                noise = torch.randn(mean.shape, generator=self.gen, device=self.device)
+                a = torch.tanh(mean + log_std.clamp(-20.0, 2.0).exp() * noise)
         self.acts += 1
         return a.cpu().numpy()
 
