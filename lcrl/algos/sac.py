@@ -183,12 +183,18 @@ class SAC(Agent):
         )
         self._task_norms: np.ndarray | None = None
 
+    def _gaussian(
+        self, obs: Mapping[str, torch.Tensor], goal: torch.Tensor
+    ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """The policy's mean, clamped log standard deviation and a draw of its noise."""
+        mean, log_std = self.actor(obs, goal).chunk(2, -1)
+        noise = torch.randn(mean.shape, generator=self.gen, device=self.device)
+        return mean, log_std.clamp(-20.0, 2.0), noise
+
     def _policy(
         self, obs: Mapping[str, torch.Tensor], goal: torch.Tensor, with_mean: bool = False
     ) -> Any:
-        mean, log_std = self.actor(obs, goal).chunk(2, -1)
-        log_std = log_std.clamp(-20.0, 2.0)
-        noise = torch.randn(mean.shape, generator=self.gen, device=self.device)
+        mean, log_std, noise = self._gaussian(obs, goal)
         a, logp = gaussian_log_prob_tanh(mean, log_std, noise)
         return (a, logp, torch.tanh(mean)) if with_mean else (a, logp)
 
@@ -206,9 +212,8 @@ class SAC(Agent):
             if deterministic:
                 a = torch.tanh(self.actor(o, g).chunk(2, -1)[0])
             else:  # the sample of _policy, without its log-probability
-                mean, log_std = self.actor(o, g).chunk(2, -1)
-                noise = torch.randn(mean.shape, generator=self.gen, device=self.device)
-                a = torch.tanh(mean + log_std.clamp(-20.0, 2.0).exp() * noise)
+                mean, log_std, noise = self._gaussian(o, g)
+                a = torch.tanh(mean + log_std.exp() * noise)
         self.acts += 1
         return a.cpu().numpy()
 
