@@ -46,8 +46,11 @@ reads a finished run there instead of training it again when its config is the s
 write a checkpoint with their replay buffer at every evaluation, and a run stopped before
 its budget (the machine shut down) goes on from its last checkpoint when the same command
 runs again; its time is the training seconds of all its parts (``train_s`` of eval.csv).
-With ``--reuse`` the runs already finished are kept, so the 9 task-balancing runs (about
-an hour each at one thread) may span several sessions of the same command.
+With ``--reuse`` the runs already finished are kept, so the 9 task-balancing runs (11 to
+20 minutes each at one thread, two side by side) may span several sessions of the same
+command. ``--keep DIR`` keeps every run of the invocation to act in ``DIR/<run>/seedS``
+(weights and configs: about 0.5 MB each); ``benchmarks/models/multitask`` holds those of
+the figures in the file.
 """
 
 from __future__ import annotations
@@ -170,6 +173,15 @@ def train_one(cfg: TrainConfig) -> float:
         shutil.rmtree(cfg.out, ignore_errors=True)
     Trainer(cfg).run()
     return time.perf_counter() - t0
+
+
+def keep_run(cfg: TrainConfig, folder: Path) -> str:
+    """Keep run ``cfg``'s final policy in ``folder`` to act and be evaluated again
+    (:func:`train.policies.loading.keep_checkpoint`: weights and configs, no critics,
+    replay or optimiser state); returns the folder."""
+    from train.policies.loading import keep_checkpoint
+
+    return str(keep_checkpoint(cfg.out, folder, None, acting_only=True))
 
 
 def _rows(path: Path, until: int) -> list[dict[str, float]]:
@@ -400,6 +412,13 @@ def main(argv: list[str] | None = None) -> int:
         help="read a finished run with the same config in runs/bench/multitask-<run> (cut at "
         "this budget) instead of training it again",
     )
+    parser.add_argument(
+        "--keep",
+        default="",
+        help="keep every run of this invocation to act (weights and configs, no critics or "
+        "replay) in KEEP/<run>/seedS",
+    )
+    parser.add_argument("--note", default="", help="what changed since the file's last figures")
     add_report_only(parser, "the runs in runs/bench/")
     args = parser.parse_args(argv)
     info = machine()
@@ -434,8 +453,10 @@ def main(argv: list[str] | None = None) -> int:
             print(f"== {key}: {cfg.out}", flush=True)
             seconds[key] = train_one(cfg)
     results = {}
-    for (name, _), key in keys.items():
+    for (name, seed), key in keys.items():
         results[key] = {"run": name, **summarise(name, configs[key], seconds[key])}
+        if args.keep:
+            results[key]["kept"] = keep_run(configs[key], Path(args.keep) / name / f"seed{seed}")
     keep_timings(NAME, results)
     carry_over(results, set(args.runs))
     any_cfg = next(iter(configs.values()))
@@ -447,6 +468,8 @@ def main(argv: list[str] | None = None) -> int:
     payload.update(
         command=command(), machine=info, seeds=args.seeds, tasks=list(tasks), runs=results
     )
+    if args.note:
+        payload["note"] = args.note
     save_json(NAME, payload)
     table = markdown(results, tasks, any_cfg.eval_episodes)
     if headline:
@@ -462,6 +485,8 @@ def main(argv: list[str] | None = None) -> int:
             + " (uniform, pcgrad and gradnorm: task ids).\n\n"
             + table
         )
+    if args.note:
+        table += f"\n\n## What changed in this measurement\n\n{args.note}"
     print(table)
     save_markdown(NAME, TITLE, table, info)
     figure(results, tasks, info)

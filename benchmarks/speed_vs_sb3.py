@@ -2,7 +2,7 @@
 
 Run from the repository root (needs ``pip install -e '.[bench]'``)::
 
-    python benchmarks/speed_vs_sb3.py            # 2 rounds of 1,500 timed steps, 1 and 2 threads
+    python benchmarks/speed_vs_sb3.py            # 5 rounds of 1,500 timed steps, 1 and 2 threads
 
 Both train SAC with hindsight relabelling (``future``, k=4) on gymnasium-robotics
 ``FetchReach-v4`` from one environment each, with the same networks (two hidden layers of
@@ -155,14 +155,24 @@ def like_for_like_headline(ratios: dict[str, dict[str, float]]) -> dict[str, obj
     return headline
 
 
+def paired_ratios(rates: dict[str, dict[str, list[float]]]) -> dict[str, list[float]]:
+    """Per thread count, lcrl's float32 rate over SB3's in each round (the two ran next to
+    each other in time, so each ratio saw about the same machine load)."""
+    return {
+        n: [round(a / b, 3) for a, b in zip(per["lcrl"], per["sb3"], strict=True)]
+        for n, per in rates.items()
+    }
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--steps", type=int, default=1_500, help="timed steps per round")
-    parser.add_argument("--rounds", type=int, default=2, help="alternating rounds")
+    parser.add_argument("--rounds", type=int, default=5, help="alternating rounds")
     parser.add_argument("--threads", type=int, nargs="+", default=[1, 2])
     parser.add_argument(
         "--learn-seeds", type=int, default=3, help="seeds of the learning check per precision"
     )
+    parser.add_argument("--note", default="", help="what changed since the file's last figures")
     args = parser.parse_args(argv)
     info = machine()
     rates: dict[str, dict[str, list[float]]] = {}
@@ -192,8 +202,17 @@ def main(argv: list[str] | None = None) -> int:
     for n, per in rates.items():
         for k, v in per.items():
             rows.append(f"| {n} | {k} | {', '.join(f'{x:.1f}' for x in v)} | {med[n][k]:.1f} |")
-    rows += ["", "| torch threads | lcrl (fp32) / SB3 | lcrl bf16 / SB3 |", "|---:|---:|---:|"]
-    rows += [f"| {n} | {r['lcrl']:.2f}x | {r['lcrl-bf16']:.2f}x |" for n, r in ratios.items()]
+    paired = paired_ratios(rates)
+    rows += [
+        "",
+        "| torch threads | lcrl (fp32) / SB3 | lcrl bf16 / SB3 | fp32 ratio of each round |",
+        "|---:|---:|---:|---|",
+    ]
+    rows += [
+        f"| {n} | {r['lcrl']:.2f}x | {r['lcrl-bf16']:.2f}x | "
+        f"{', '.join(f'{x:.2f}' for x in paired[n])} |"
+        for n, r in ratios.items()
+    ]
     rows += [
         "",
         "Headline: lcrl in float32 against SB3 in float32 (like for like); bfloat16 "
@@ -221,6 +240,8 @@ def main(argv: list[str] | None = None) -> int:
                 for p, v in success.items()
             ),
         ]
+    if args.note:
+        rows += ["", "## What changed in this measurement", "", args.note]
     table = "\n".join(rows)
     print(table)
     save_json(
@@ -233,6 +254,8 @@ def main(argv: list[str] | None = None) -> int:
             "rates": rates,
             "median": med,
             "ratios": ratios,
+            "round_ratios": paired,
+            **({"note": args.note} if args.note else {}),
             "learning_check": {"preset": "fetch-reach", "success": success},
             "steps": args.steps,
             "rounds": args.rounds,

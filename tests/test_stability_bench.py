@@ -102,3 +102,15 @@ def test_the_protocol_refuses_a_validation_seed_a_composite_or_unlike_peers(tmp_
     protocol.check_like_for_like({"precision": "float32"}, {"precision": "float32"})
     with pytest.raises(LcrlError, match="precision 'bfloat16' against 'float32'"):
         protocol.check_like_for_like({"precision": "bfloat16"}, {"precision": "float32"})
+
+
+def test_the_speed_ratio_of_each_round_pairs_the_rounds_that_ran_next_to_each_other():
+    pytest.importorskip("matplotlib")
+    from benchmarks.speed_vs_sb3 import like_for_like_headline, paired_ratios
+
+    rates = {"1": {"lcrl": [90.0, 60.0], "lcrl-bf16": [100.0, 80.0], "sb3": [60.0, 50.0]}}
+    assert paired_ratios(rates) == {"1": [1.5, 1.2]}
+    ratios = {"1": {"lcrl": 1.4, "lcrl-bf16": 1.8}, "2": {"lcrl": 1.6, "lcrl-bf16": 1.7}}
+    head = like_for_like_headline(ratios)
+    assert (head["ratio_1thread"], head["ratio_2threads"], head["precision"]) == (1.4, 1.6, "fp32")
+    assert head["ratio_1thread_bf16"] == 1.8
