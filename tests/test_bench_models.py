@@ -326,3 +326,23 @@ def test_the_kept_robosuite_reach_policies_act_on_the_privileged_state(seed, one
     finally:
         env.close()
     assert "`robosuite-reach/`" in (MODELS / "README.md").read_text()
+
+
+@pytest.mark.parametrize("run", ["ids", "ids-pcgrad", "ids-gradnorm", "lang", "lang-pcgrad"])
+def test_the_kept_multitask_policies_act_and_are_the_results_runs(run):
+    """The policies behind multitask.json, every arm and seed kept to act (no critics):
+    task-id arms take a task id, language arms an instruction."""
+    import lcrl
+
+    result = json.loads((MODELS.parent / "results" / "multitask.json").read_text())
+    for seed in (0, 1, 2):
+        folder = MODELS / "multitask" / run / f"seed{seed}"
+        kept = result["runs"][f"{run}-s{seed}"]["kept"]
+        assert kept == f"benchmarks/models/multitask/{run}/seed{seed}"
+        meta = json.loads((folder / "meta.json").read_text())
+        assert meta["acting_only"] == ["critic", "critic_target"] and meta["step"] == 30_000
+    policy = lcrl.load(MODELS / "multitask" / run / "seed0")
+    obs, _ = policy.make_env().reset(seed=0)
+    action = policy.act(obs, 3 if run.startswith("ids") else "reach the yellow cube")
+    assert action.shape == (2,) and np.abs(action).max() <= 1.0
+    assert "`multitask/`" in (MODELS / "README.md").read_text()
