@@ -235,6 +235,13 @@ def main(argv: list[str] | None = None) -> int:
         "seed: the validation figures variants are chosen on) in WORK/validation.json; no "
         "evaluation at --eval-seed",
     )
+    parser.add_argument(
+        "--keep",
+        default="",
+        metavar="DIR",
+        help="keep every evaluated run to act in DIR/<rule|learned>/seedS (weights and "
+        "configs, no critics or replay), named in the JSON under kept",
+    )
     args = parser.parse_args(argv)
     if args.env == "robosuite" and not args.perception:
         parser.error("--env robosuite trains the image policy: pass --perception MODEL")
@@ -266,6 +273,7 @@ def main(argv: list[str] | None = None) -> int:
         }
         for ns in per_seed
     }
+    kept = keep_runs(args.keep, per_seed, runs) if args.keep else {}
     curves = {str(ns.seed): {n: curve(Path(ns.work) / n) for n in runs} for ns in per_seed}
     agreement = {str(ns.seed): last_agreement(Path(ns.work) / "learned") for ns in per_seed}
     misses = push_failures(per_seed, runs, args.push_episodes) if args.env == "lang2d" else {}
@@ -308,6 +316,7 @@ def main(argv: list[str] | None = None) -> int:
             "target": f"gap_seen <= {target} and gap_heldout <= {target} (rule minus learned, "
             f"pooled over the seeds, at evaluation seed {args.eval_seed})",
             "previous": previous,
+            **({"kept": kept} if kept else {}),
             **({"note": args.note} if args.note else {}),
             "reached": reached,
             "machine": info,
@@ -445,6 +454,24 @@ def main(argv: list[str] | None = None) -> int:
     save_figure(name, fig, info)
     print(json.dumps(headline, indent=1))
     return 0
+
+
+def keep_runs(
+    folder: str, per_seed: list[argparse.Namespace], runs: tuple[str, ...]
+) -> dict[str, dict[str, str]]:
+    """Keep each seed's runs to act in ``folder/<run>/seedS``
+    (:func:`train.policies.loading.keep_checkpoint`, no critics); returns the folders,
+    per seed and run."""
+    from train.policies.loading import keep_checkpoint
+
+    kept: dict[str, dict[str, str]] = {}
+    for ns in per_seed:
+        dest = {n: Path(folder) / n / f"seed{ns.seed}" for n in runs}
+        kept[str(ns.seed)] = {
+            n: str(keep_checkpoint(Path(ns.work) / n, d, None, acting_only=True))
+            for n, d in dest.items()
+        }
+    return kept
 
 
 def report_validation(

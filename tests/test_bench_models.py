@@ -346,3 +346,23 @@ def test_the_kept_multitask_policies_act_and_are_the_results_runs(run):
     action = policy.act(obs, 3 if run.startswith("ids") else "reach the yellow cube")
     assert action.shape == (2,) and np.abs(action).max() <= 1.0
     assert "`multitask/`" in (MODELS / "README.md").read_text()
+
+
+def test_the_kept_learned_her_policies_act_and_are_the_results_runs():
+    """The six policies behind learned-her-lang2d.json (rule and learned relabelling, seeds
+    0 to 2), kept to act: each is the 30k-step run the file evaluated."""
+    import lcrl
+
+    result = json.loads((MODELS.parent / "results" / "learned-her-lang2d.json").read_text())
+    for seed in (0, 1, 2):
+        for run in ("rule", "learned"):
+            kept = result["kept"][str(seed)][run]
+            assert kept == f"benchmarks/models/learned-her-lang2d/{run}/seed{seed}"
+            meta = json.loads((MODELS.parent.parent / kept / "meta.json").read_text())
+            assert meta["acting_only"] == ["critic", "critic_target"]
+            assert 30_000 <= meta["step"] <= 30_010
+    policy = lcrl.load(MODELS / "learned-her-lang2d" / "learned" / "seed0")
+    obs, _ = policy.make_env().reset(seed=0)
+    action = policy.act(obs, "push the red cube left")
+    assert action.shape == (2,) and np.abs(action).max() <= 1.0
+    assert "`learned-her-lang2d/`" in (MODELS / "README.md").read_text()

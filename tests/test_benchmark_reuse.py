@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -295,3 +296,23 @@ def test_captioner_benchmark_trains_its_models_apart_with_one_progress_bar():
     assert all(p.threads == 1 for p in parts.values())
     quiet = side_by_side_parts(dataclasses.replace(cfg, progress=False))
     assert not any(p.progress for p in quiet.values())
+
+
+def test_learned_her_keeps_each_seeds_runs_to_act(tmp_path):
+    import argparse
+    import shutil
+
+    from benchmarks.learned_her import keep_runs
+
+    models = Path(__file__).resolve().parent.parent / "benchmarks" / "models"
+    work = tmp_path / "work"
+    for run in ("rule", "learned"):  # a kept policy is a checkpoint folder too
+        shutil.copytree(models / "learned-her-lang2d" / run / "seed1", work / run)
+    ns = argparse.Namespace(seed=1, work=str(work))
+    kept = keep_runs(str(tmp_path / "keep"), [ns], ("rule", "learned"))
+    assert kept == {"1": {r: str(tmp_path / "keep" / r / "seed1") for r in ("rule", "learned")}}
+    for run in ("rule", "learned"):
+        folder = tmp_path / "keep" / run / "seed1"
+        meta = json.loads((folder / "meta.json").read_text())
+        assert meta["acting_only"] == ["critic", "critic_target"]
+        assert (folder / "weights.safetensors").is_file()
