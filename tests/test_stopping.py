@@ -308,7 +308,11 @@ def test_a_signal_at_any_instant_of_start_up_stops_the_console_script(tmp_path, 
         stdout, err = proc.communicate(timeout=30)
     except subprocess.TimeoutExpired:
         proc.kill()
-        raise AssertionError(f"the command ignored {sig.name} sent after {delay} s") from None
+        stdout, err = proc.communicate()  # what it said, to tell where it was
+        raise AssertionError(
+            f"the command ignored {sig.name} sent after {delay} s; stdout ends "
+            f"{stdout[-800:]!r}, stderr ends {err[-2000:]!r}"
+        ) from None
     assert time.monotonic() - sent < 10
     assert proc.returncode == 128 + sig, (stdout, err)
     assert "Traceback" not in err and "Exception ignored" not in err
