@@ -380,6 +380,15 @@ def record_once(path: Path, argv: Sequence[str]) -> Path:
     return path
 
 
+def keep_to_act(run: str | Path, dest: str | Path) -> str:
+    """Keep run ``run``'s final policy in ``dest`` to act and be evaluated again
+    (:func:`train.policies.loading.keep_checkpoint`: weights and configs, no critics,
+    replay or optimiser state); returns the folder."""
+    from train.policies.loading import keep_checkpoint
+
+    return str(keep_checkpoint(run, dest, None, acting_only=True))
+
+
 def keep_timings(name: str, results: dict[str, Any], keys: Sequence[str] = ("seconds",)) -> None:
     """Runs read back from their folders (which do not say how long they trained) keep the
     ``keys`` that the previous ``results/<name>.json`` measured for the same curve."""

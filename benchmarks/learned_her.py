@@ -35,6 +35,7 @@ from benchmarks.common import (
     curve,
     die_with_parent,
     evaluate,
+    keep_to_act,
     machine,
     save_figure,
     save_json,
@@ -459,17 +460,13 @@ def main(argv: list[str] | None = None) -> int:
 def keep_runs(
     folder: str, per_seed: list[argparse.Namespace], runs: tuple[str, ...]
 ) -> dict[str, dict[str, str]]:
-    """Keep each seed's runs to act in ``folder/<run>/seedS``
-    (:func:`train.policies.loading.keep_checkpoint`, no critics); returns the folders,
-    per seed and run."""
-    from train.policies.loading import keep_checkpoint
-
+    """Keep each seed's runs to act in ``folder/<run>/seedS`` (:func:`keep_to_act`, no
+    critics); returns the folders, per seed and run."""
     kept: dict[str, dict[str, str]] = {}
     for ns in per_seed:
-        dest = {n: Path(folder) / n / f"seed{ns.seed}" for n in runs}
+        dest = Path(folder)
         kept[str(ns.seed)] = {
-            n: str(keep_checkpoint(Path(ns.work) / n, d, None, acting_only=True))
-            for n, d in dest.items()
+            n: keep_to_act(Path(ns.work) / n, dest / n / f"seed{ns.seed}") for n in runs
         }
     return kept
 

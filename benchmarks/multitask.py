@@ -78,6 +78,7 @@ from benchmarks.common import (
     add_report_only,
     command,
     keep_timings,
+    keep_to_act,
     machine,
     one_thread_worker,
     save_figure,
@@ -173,15 +174,6 @@ def train_one(cfg: TrainConfig) -> float:
         shutil.rmtree(cfg.out, ignore_errors=True)
     Trainer(cfg).run()
     return time.perf_counter() - t0
-
-
-def keep_run(cfg: TrainConfig, folder: Path) -> str:
-    """Keep run ``cfg``'s final policy in ``folder`` to act and be evaluated again
-    (:func:`train.policies.loading.keep_checkpoint`: weights and configs, no critics,
-    replay or optimiser state); returns the folder."""
-    from train.policies.loading import keep_checkpoint
-
-    return str(keep_checkpoint(cfg.out, folder, None, acting_only=True))
 
 
 def _rows(path: Path, until: int) -> list[dict[str, float]]:
@@ -456,7 +448,9 @@ def main(argv: list[str] | None = None) -> int:
     for (name, seed), key in keys.items():
         results[key] = {"run": name, **summarise(name, configs[key], seconds[key])}
         if args.keep:
-            results[key]["kept"] = keep_run(configs[key], Path(args.keep) / name / f"seed{seed}")
+            results[key]["kept"] = keep_to_act(
+                configs[key].out, Path(args.keep) / name / f"seed{seed}"
+            )
     keep_timings(NAME, results)
     carry_over(results, set(args.runs))
     any_cfg = next(iter(configs.values()))
