@@ -223,7 +223,7 @@ def main(argv: list[str] | None = None) -> int:
     )
     save_markdown(NAME, "Checkpoint save time and size", body, info)
 
-    fig, axes = new_figure(1, 2, figsize=(9, 3.6))
+    fig, axes = new_figure(ncols=2, figsize=(9, 3.6))
     steps = sorted({r["step"] for r in rows})
     x = np.arange(len(steps))
     for ax, key, label in zip(

@@ -21,17 +21,26 @@ the objects the gripper is within 5 cm of (``near_*``) and the fraction of frame
 every presence flag is right. Wall-clock of each phase is recorded, also in
 ``WORK/times.json`` (what ``benchmarks/image_policy.py`` counts when it reuses the model).
 ``--eval-only`` evaluates ``WORK/model`` again and writes the results.
+
+The held-out episodes of ``--data`` chose the build (its data, steps and start); with
+``--test-data FILE`` (episodes of a seed no choice used) the headline is the figures on
+those, the held-out episodes' beside as ``validation_*``, and ``--test-models MODEL ...``
+are evaluated on the same test episodes beside. ``--keep DIR`` copies the model (weights
+and settings, a few hundred KB) into the repository, e.g. ``benchmarks/models/``.
 """
 
 from __future__ import annotations
 
 import argparse
 import json
+import shutil
 import sys
 import time
 from pathlib import Path
+from typing import Any
 
 from benchmarks.common import (
+    RESULTS_DIR,
     machine,
     new_figure,
     save_figure,
@@ -46,6 +55,64 @@ TARGETS = {"position_error_cm": 1.0, "presence_accuracy": 0.99}
 
 def _round(x: float | None, digits: int) -> float | None:
     return None if x is None else round(x, digits)
+
+
+def _figures(res: dict[str, Any], layouts: dict[str, Any] | None) -> dict[str, Any]:
+    """The headline figures of one evaluation (and of the new layouts, when given)."""
+    out = {
+        "position_error_cm": round(res["position_error_cm"], 3),
+        "presence_accuracy": round(res["presence_accuracy"], 4),
+        "position_error_cm_without_hold": _round(res.get("position_error_cm_without_hold"), 3),
+        "hold_radius": res.get("hold_radius", 0.0),
+        "presence_accuracy_per_frame": _round(res.get("presence_accuracy_per_frame"), 4),
+        "within_reach_margin": round(res["within_reach_margin"], 3),
+        "within_push_distance": round(res["within_push_distance"], 3),
+        "frames_all_present_right": _round(res.get("frames_all_present_right"), 4),
+        "near_position_error_cm": _round(res.get("near_position_error_cm"), 3),
+        "near_frames_all_present_right": _round(res.get("near_frames_all_present_right"), 4),
+        "frames_all_present_right_per_frame": _round(
+            res.get("frames_all_present_right_per_frame"), 4
+        ),
+    }
+    if layouts is not None:
+        out["position_error_cm_new_layouts"] = round(layouts["position_error_cm"], 3)
+        out["presence_accuracy_new_layouts"] = round(layouts["presence_accuracy"], 4)
+    return out
+
+
+def _collected_by(paths: list[str]) -> dict[str, str]:
+    """How each caption dataset was collected, from the settings its file records."""
+    from captioner.caption_files import CaptionDataset
+
+    out = {}
+    for path in dict.fromkeys(p for p in paths if p):
+        with CaptionDataset(path) as ds:
+            c = ds.meta.get("collect", {})
+            frames = ds.num_observations
+        out[path] = (
+            f"{c.get('episodes')} episodes ({' and '.join(c.get('sources', []))}) of up to "
+            f"{c.get('max_episode_steps')} steps, seed {c.get('seed')}, {frames} frames"
+        )
+    return out
+
+
+def _previous(path: Path) -> dict[str, Any] | None:
+    """The headline, date and commit of the result file this run replaces."""
+    if not path.is_file():
+        return None
+    old = json.loads(path.read_text())
+    if "headline" not in old:
+        return None
+    return {
+        "headline": old["headline"],
+        "date": old.get("date", old.get("machine", {}).get("date", "unknown")),
+        "git": old.get("git", "unknown"),
+        "command": old.get("command", ""),
+    }
+
+
+def _model_name(model: str, work: Path) -> str:
+    return "this model" if model == str(work / "model") else model
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -91,7 +158,21 @@ def main(argv: list[str] | None = None) -> int:
         help="evaluate WORK/model again (trained by an earlier run of this command) and "
         "write the results; its training times come from WORK/times.json",
     )
+    parser.add_argument(
+        "--test-data",
+        default="",
+        help="a caption dataset of a seed no choice used: the headline's episodes",
+    )
+    parser.add_argument(
+        "--test-models",
+        nargs="*",
+        default=[],
+        help="more perception models evaluated on --test-data beside",
+    )
+    parser.add_argument("--keep", default="", help="copy the model into this folder")
     args = parser.parse_args(argv)
+    if args.test_models and not args.test_data:
+        parser.error("--test-models needs --test-data")
     if not args.hold_radius >= 0:
         parser.error(f"--hold-radius must be >= 0, got {args.hold_radius}")
 
@@ -117,7 +198,15 @@ def main(argv: list[str] | None = None) -> int:
         overwrite=True,
         progress=False,
     )
-    for path in [args.data, args.init, args.layouts, *args.eval_data, *args.extra_data]:
+    for path in [
+        args.data,
+        args.init,
+        args.layouts,
+        args.test_data,
+        *args.eval_data,
+        *args.extra_data,
+        *args.test_models,
+    ]:
         if path and not Path(path).exists():
             parser.error(f"no such file or folder: {path}")
     data = args.data or str(work / "train.h5")
@@ -148,6 +237,9 @@ def main(argv: list[str] | None = None) -> int:
         heldout = train(cfg)
         times["train_s"] = time.perf_counter() - t0
         (work / "times.json").write_text(json.dumps(times, indent=1))
+    if args.keep:
+        shutil.copytree(work / "model", args.keep, dirs_exist_ok=True)
+        print(f"kept the model in {args.keep}")
     if args.no_results:
         return 0
     layouts = PerceptionEvalCommand(str(work / "model"), data=layouts_path).run()
@@ -156,24 +248,26 @@ def main(argv: list[str] | None = None) -> int:
     }
     history = json.loads((work / "model" / "model" / "history.json").read_text())
 
-    headline = {
-        "position_error_cm": round(heldout["position_error_cm"], 3),
-        "presence_accuracy": round(heldout["presence_accuracy"], 4),
-        "position_error_cm_without_hold": _round(heldout.get("position_error_cm_without_hold"), 3),
-        "hold_radius": heldout.get("hold_radius", 0.0),
-        "presence_accuracy_per_frame": _round(heldout.get("presence_accuracy_per_frame"), 4),
-        "position_error_cm_new_layouts": round(layouts["position_error_cm"], 3),
-        "presence_accuracy_new_layouts": round(layouts["presence_accuracy"], 4),
-        "within_reach_margin": round(heldout["within_reach_margin"], 3),
-        "within_push_distance": round(heldout["within_push_distance"], 3),
-        "frames_all_present_right": _round(heldout.get("frames_all_present_right"), 4),
-        "near_position_error_cm": _round(heldout.get("near_position_error_cm"), 3),
-        "near_frames_all_present_right": _round(heldout.get("near_frames_all_present_right"), 4),
-        "frames_all_present_right_per_frame": _round(
-            heldout.get("frames_all_present_right_per_frame"), 4
-        ),
-        "wall_clock_s": round(times["collect_s"] + times["train_s"], 1),
-    }
+    test = {}
+    if args.test_data:  # the headline's episodes; each model judged held and frame by frame
+        for model in [str(work / "model"), *args.test_models]:
+            test[model] = {
+                "held": PerceptionEvalCommand(model, data=args.test_data).run(),
+                "each_frame_alone": PerceptionEvalCommand(
+                    model, data=args.test_data, hold_radius=0.0
+                ).run(),
+            }
+    headline = _figures(heldout, layouts)
+    if test:
+        mine = test[str(work / "model")]
+        validation = headline
+        headline = _figures(mine["held"], None)
+        headline["position_error_cm_without_hold"] = round(
+            mine["each_frame_alone"]["position_error_cm"], 3
+        )
+        headline["test_data"] = args.test_data
+        headline.update({f"validation_{k}": v for k, v in validation.items()})
+    headline["wall_clock_s"] = round(times["collect_s"] + times["train_s"], 1)
     for path, res in extra.items():
         name = Path(path).stem
         headline[f"position_error_cm_{name}"] = _round(res.get("position_error_cm"), 3)
@@ -186,6 +280,8 @@ def main(argv: list[str] | None = None) -> int:
         "presence_accuracy": headline["presence_accuracy"] >= TARGETS["presence_accuracy"],
     }
     info = machine()
+    sources = _collected_by([data, *args.extra_data, args.test_data, layouts_path])
+    previous = _previous(RESULTS_DIR / f"{NAME}.json")
     save_json(
         NAME,
         {
@@ -196,13 +292,21 @@ def main(argv: list[str] | None = None) -> int:
             "settings": vars(args),
             "times": times,
             "heldout_episodes": heldout,
+            "test_episodes": test,
             "new_layouts": layouts,
             "more_datasets": extra,
             "history": history,
+            "datasets": sources,
+            **({"previous": previous} if previous else {}),
         },
     )
     rows = [
-        ("held-out episodes", heldout),
+        *(
+            (f"test: {args.test_data}, {_model_name(m, work)}{how}", r[key])
+            for m, r in test.items()
+            for key, how in (("held", ""), ("each_frame_alone", ", each frame alone"))
+        ),
+        ("held-out episodes" + (" (validation)" if test else ""), heldout),
         (f"new layouts ({Path(layouts_path).name})", layouts),
         *((Path(path).name, res) for path, res in extra.items()),
     ]
@@ -250,11 +354,26 @@ def main(argv: list[str] | None = None) -> int:
         + "\n\nPositions are judged as policies read them: an object's position is held "
         f"while the gripper stays farther than {heldout.get('hold_radius', 0.0) * 100:.0f} cm "
         "from it (object permanence, `lcrl.perception.HeldSlots`; 0 cm: every frame alone); "
-        "'each frame alone' judges every frame's own estimate." + f"\n\nTargets: {verdict}.\n"
+        "'each frame alone' judges every frame's own estimate."
+        + (
+            f" The headline is this model on {args.test_data}, episodes of a seed no choice "
+            "used; the held-out episodes of the training dataset chose the build."
+            if test
+            else ""
+        )
+        + f"\n\nTargets: {verdict}.\n\nThe datasets, as their files record them:\n\n"
+        + "".join(f"- {path}: {how}\n" for path, how in sources.items())
+        + (
+            f"\nThe file's previous headline ({previous['date']}, git {previous['git']}): "
+            + ", ".join(f"{k} {v}" for k, v in previous["headline"].items() if k in TARGETS)
+            + ".\n"
+            if previous
+            else ""
+        )
     )
     save_markdown(NAME, "Perception on the robosuite tabletop", body, info)
 
-    fig, axes = new_figure(1, 2, figsize=(9, 3.6))
+    fig, axes = new_figure(ncols=2, figsize=(9, 3.6))
     axes[0].plot([h["step"] for h in history], [h["position_loss"] for h in history])
     axes[0].set_yscale("log")
     axes[0].set_xlabel("step")

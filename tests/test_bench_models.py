@@ -14,7 +14,9 @@ import pytest
 MODELS = Path(__file__).resolve().parent.parent / "benchmarks" / "models"
 
 
-@pytest.mark.parametrize("name", ["perception-3k", "perception-push", "perception-push-student"])
+@pytest.mark.parametrize(
+    "name", ["perception-3k", "perception-push", "perception-push-student", "perception-80x3"]
+)
 def test_a_kept_perception_model_reads_robosuite_frames(name):
     from lcrl.perception import load_model
 
@@ -27,6 +29,18 @@ def test_a_kept_perception_model_reads_robosuite_frames(name):
     figures = json.loads((MODELS / name / "eval.json").read_text())
     assert figures  # the evaluation its README quotes is kept beside it
     assert f"`{name}/`" in (MODELS / "README.md").read_text()
+
+
+def test_the_perception_headline_is_the_kept_model_on_a_test_set():
+    """``perception-robosuite.json``'s headline is the kept ``perception-80x3`` on episodes of
+    a seed no choice used, the held-out episodes that chose the build beside."""
+    result = json.loads((MODELS.parent / "results" / "perception-robosuite.json").read_text())
+    assert "--keep benchmarks/models/perception-80x3" in result["command"]
+    headline = result["headline"]
+    assert headline["test_data"] in result["datasets"]
+    assert "validation_position_error_cm" in headline
+    tested = result["test_episodes"]["data/perception-80x3/model"]["held"]
+    assert headline["position_error_cm"] == round(tested["position_error_cm"], 3)
 
 
 def test_the_kept_2d_perception_model_reads_96_px_frames():
