@@ -30,6 +30,7 @@ import dataclasses
 import json
 import subprocess
 import sys
+from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
@@ -159,11 +160,12 @@ def evaluate(
     work: Path,
     parallel: int = 2,
     true_state: bool = True,
+    extra: Sequence[str] = (),
 ) -> dict[str, Any]:
     """The kept model's evaluations on ``seed``: sets, chains of two, the true state (with
     ``true_state``); run ``parallel`` at a time, each on its share of the cores (an
-    evaluation already done is read)."""
-    base = [*LCRL, "eval", model, "--episodes", str(episodes), "--seed", str(seed)]
+    evaluation already done is read). ``extra``: more ``lcrl eval`` options for each."""
+    base = [*LCRL, "eval", model, "--episodes", str(episodes), "--seed", str(seed), *extra]
     wanted = [(n, e) for n, e in EVALUATIONS if true_state or n != "true_state"]
     jobs = []
     for name, extra in wanted:

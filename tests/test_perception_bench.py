@@ -4,6 +4,8 @@ figures on those episodes, the held-out episodes that chose the build beside as
 
 from __future__ import annotations
 
+import json
+
 import pytest
 
 from benchmarks import perception
@@ -44,3 +46,25 @@ def test_a_missing_test_set_is_named_before_any_work(tmp_path, capsys):
     with pytest.raises(SystemExit):
         perception.main(["--test-data", str(tmp_path / "none.h5"), "--work", str(tmp_path)])
     assert "no such file or folder" in capsys.readouterr().err
+
+
+def test_the_perception_swap_reads_push_and_lift_from_an_evaluation_done(tmp_path):
+    from benchmarks.perception_swap import _pair
+
+    fams = {
+        "push": {"success": 0.62, "ci": [0.5, 0.7], "episodes": 94},
+        "lift": {"success": 0.8, "ci": [0.7, 0.9], "episodes": 106},
+    }
+    doc = {"sets": {"train": {"success": 0.72, "episodes": 200, "families": fams}}}
+    (tmp_path / "pushlift-seed1.json").write_text(json.dumps(doc))
+    pair = _pair(tmp_path, "no/model/needed", 1, 200, [])  # read, not run again
+    assert (pair["push"], pair["lift"], pair["pooled"]) == (0.62, 0.8, 0.72)
+    assert pair["family_episodes"] == {"push": 94, "lift": 106}
+
+
+def test_the_perception_swap_names_a_missing_model(capsys):
+    from benchmarks.perception_swap import main
+
+    with pytest.raises(SystemExit):
+        main(["--perception", "no/such/model"])
+    assert "no such file or folder: no/such/model" in capsys.readouterr().err
