@@ -262,9 +262,6 @@ def main(argv: list[str] | None = None) -> int:
         mine = test[str(work / "model")]
         validation = headline
         headline = _figures(mine["held"], None)
-        headline["position_error_cm_without_hold"] = round(
-            mine["each_frame_alone"]["position_error_cm"], 3
-        )
         headline["test_data"] = args.test_data
         headline.update({f"validation_{k}": v for k, v in validation.items()})
     headline["wall_clock_s"] = round(times["collect_s"] + times["train_s"], 1)
