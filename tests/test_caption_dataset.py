@@ -327,3 +327,38 @@ def _copy(src, dst):
 
     shutil.copy(src, dst)
     return dst
+
+
+def test_policy_episodes_are_labelled_with_every_family_of_the_dataset(tmp_path):
+    """A policy trained on one family (a put or stack teacher) also reaches and moves
+    objects: its episodes carry the labels of every family the dataset holds, so that no
+    frame teaches the captioner a false negative."""
+    from helpers import tiny
+
+    from train.commands.captions import PolicyEpisodes
+    from train.training.loop import Trainer
+
+    cfg = tiny("lang2d-quick", tmp_path / "run", total_steps=60, learning_starts=30)
+    cfg.env.families = ("reach",)
+    Trainer(cfg).run()
+    out = tmp_path / "p.h5"
+    config = CollectConfig(
+        out=str(out), sources=("policy",), policy=str(tmp_path / "run"), episodes=3,
+        max_episode_steps=8, progress=False,
+    )  # fmt: skip
+    episodes = PolicyEpisodes(config, FAMILIES_2D)
+    assert episodes.captioner.families == FAMILIES_2D
+    assert PolicyEpisodes(config).captioner.families == ("reach",)  # the policy's own
+    said = []  # what the dataset-family captioner said of each frame of an episode
+    caption = episodes.captioner.caption
+    episodes.captioner.caption = lambda s0, s: said.append(caption(s0, s)) or said[-1]
+    texts, sets = ds.instruction_table(ds.make_split(0, FAMILIES_2D))
+    writer = CaptionDatasetWriter(tmp_path / "w.h5", texts, sets, (64, 64, 3), 2, {})
+    got = episodes.episode(config, 3, writer)
+    writer.discard()
+    assert len(said) == len(got["frames"]) > 1
+    assert got["labels"] == [writer.ids([m.text for m in c]) for c in said]
+    collect(config)
+    with CaptionDataset(out) as data:
+        assert data.meta["families"] == list(FAMILIES_2D)
+        assert data.num_episodes == 3

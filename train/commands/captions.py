@@ -22,6 +22,7 @@ from captioner.dataset import (
     CollectConfig,
     collect as collect_dataset,
 )
+from captioner.rule import RuleCaptioner
 from lcrl.errors import LcrlError
 from train.environments.simulators import ENVS, EnvConfig, canonical_kind
 from train.environments.tasks import find_language_wrapper
@@ -35,12 +36,14 @@ class PolicyEpisodes:
 
     Args:
         cfg: the collection config (``policy`` is the checkpoint or run folder).
+        families: the families every frame is labelled with (the dataset's); empty:
+            those the policy was trained on.
 
     Raises:
         LcrlError: the policy was trained on another env, or from images.
     """
 
-    def __init__(self, cfg: CollectConfig) -> None:
+    def __init__(self, cfg: CollectConfig, families: tuple[str, ...] = ()) -> None:
         p = load_policy(cfg.policy)
         kind = p.cfg.env.kind
         if kind != canonical_kind(cfg.env) or p.cfg.env.image_obs:
@@ -51,6 +54,12 @@ class PolicyEpisodes:
             )
         extra = {**p.cfg.env.extra, "image": True, "image_size": cfg.image_size}
         self.policy: LoadedPolicy = load_policy(cfg.policy, env_overrides={"extra": extra})
+        # every frame is labelled with the dataset's families, not only those the policy
+        # was trained on: a put teacher's episodes also reach and lift, and a frame left
+        # without those labels would teach the captioner a false negative
+        wrapper = find_language_wrapper(self.policy.env)
+        rule = wrapper.captioner
+        self.captioner = RuleCaptioner(families, rule.thresholds) if families else rule
 
     def episode(self, cfg: CollectConfig, seed: int, writer: CaptionDatasetWriter) -> dict:
         """One episode of the policy from reset seed ``seed``, labelled by the rule
@@ -76,7 +85,7 @@ class PolicyEpisodes:
             scenes.append(base.scene())
             if terminated or truncated:
                 break
-        labels = [writer.ids([i.text for i in wrapper.captioner.caption(s0, s)]) for s in scenes]
+        labels = [writer.ids([i.text for i in self.captioner.caption(s0, s)]) for s in scenes]
         ids = writer.ids([wrapper.meaning.text])
         return {
             "frames": np.stack(frames),
@@ -151,5 +160,6 @@ def collect(cfg: CollectConfig) -> Path:
     ``cfg.policy`` when the sources ask for them."""
     simulator = caption_simulator(cfg.env)
     cfg.validate(simulator)
-    policy = PolicyEpisodes(cfg) if "policy" in cfg.sources else None
+    families = cfg.resolved_families(simulator)
+    policy = PolicyEpisodes(cfg, families) if "policy" in cfg.sources else None
     return collect_dataset(cfg, simulator, policy)
