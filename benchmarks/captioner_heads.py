@@ -140,8 +140,9 @@ def train_heads(args: Any, train: Path, model: Path) -> None:
     run_jobs(jobs, args.parallel)
 
 
-def evaluate(args: Any, train: Path, test: Path) -> dict[str, Any]:
-    """Validation and test figures of every checkpoint (cached beside it)."""
+def evaluate(args: Any, train: Path, test: Path, **more: Path) -> dict[str, Any]:
+    """Validation and test figures of every checkpoint (cached beside it), and its
+    figures on the datasets of ``more`` (``split=path``)."""
     import torch
 
     from captioner.dataset import CaptionDataset
@@ -152,7 +153,7 @@ def evaluate(args: Any, train: Path, test: Path) -> dict[str, Any]:
     for head in args.heads:
         for seed in args.seeds:
             ckpt = checkpoint(args, head, seed)
-            for split, data_path in (("val", train), ("test", test)):
+            for split, data_path in (("val", train), ("test", test), *more.items()):
                 path = ckpt / f"eval-{split}.json"
                 if not path.is_file():
                     lc = LearnedCaptioner.load(ckpt)
