@@ -230,6 +230,21 @@ def headline_of(results: dict[str, Any]) -> dict[str, Any]:
     return head
 
 
+def judged_headline(head: dict[str, Any], targets: dict[str, float]) -> dict[str, Any]:
+    """A result's ``headline``, ``command`` (the full command's: ``--report-only`` rebuilds
+    the figures from its checkpoints), ``machine``, ``targets``, ``reached`` and
+    ``verdict``."""
+    reached = {k: bool(head.get(k, 0.0) >= v) for k, v in targets.items()}
+    return {
+        "headline": head,
+        "command": command().replace(" --report-only", ""),
+        "machine": machine(),
+        "targets": targets,
+        "reached": reached,
+        "verdict": verdict(reached),
+    }
+
+
 def figure(args: Any, results: dict[str, Any]) -> Any:
     fig, axes = new_figure(ncols=2, figsize=(11, 4.2))
     keys = [
@@ -342,8 +357,8 @@ def main(argv: list[str] | None = None) -> int:
         train_heads(args, train, model)
     results = evaluate(args, train, test)
     head = headline_of(results)
-    targets = TARGETS[args.env]
-    reached = {k: bool(head.get(k, 0.0) >= v) for k, v in targets.items()}
+    judged = judged_headline(head, TARGETS[args.env])
+    targets, reached = judged["targets"], judged["reached"]
     name = f"captioner-{args.env}"
     path = RESULTS_DIR / f"{name}.json"
     previous = json.loads(path.read_text()) if path.is_file() else {}
@@ -353,13 +368,7 @@ def main(argv: list[str] | None = None) -> int:
         "git": previous.get("git"),
     }
     payload = {
-        "headline": head,
-        # the figures are the full command's: --report-only rebuilds them from its checkpoints
-        "command": command().replace(" --report-only", ""),
-        "machine": machine(),
-        "targets": targets,
-        "reached": reached,
-        "verdict": verdict(reached),
+        **judged,
         "env": args.env,
         "protocol": (
             f"choices on each run's validation episodes (20% of the training dataset, "

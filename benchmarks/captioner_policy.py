@@ -39,19 +39,17 @@ from benchmarks.captioner_heads import (
     by_family,
     datasets,
     evaluate,
+    judged_headline,
     summary,
     train_heads,
 )
 from benchmarks.common import (
     LCRL,
     add_report_only,
-    command,
-    machine,
     new_figure,
     publish,
     record_once,
     run_jobs,
-    verdict,
 )
 
 CAMERA = "benchmarks/models/robosuite-camera"
@@ -207,16 +205,8 @@ def main(argv: list[str] | None = None) -> int:
         if not args.report_only:
             train_heads(a, data[arm], model)
         results[arm] = evaluate(a, data[arm], test, **tests)
-    head = headline_of(results)
-    targets = TARGETS["robosuite"]
-    reached = {k: bool(head.get(k, 0.0) >= v) for k, v in targets.items()}
     payload = {
-        "headline": head,
-        "command": command().replace(" --report-only", ""),
-        "machine": machine(),
-        "targets": targets,
-        "reached": reached,
-        "verdict": verdict(reached),
+        **judged_headline(headline_of(results), TARGETS["robosuite"]),
         "protocol": (
             "3 training seeds per arm; every test set evaluated once; no setting chosen here "
             "(captioner_heads' steps, loss and thresholds); val: the episodes each training "
@@ -237,8 +227,8 @@ def main(argv: list[str] | None = None) -> int:
     }
     body = "\n\n".join(
         [
-            f"**{verdict(reached)}** (the with-policy arm on the random and scripted test "
-            "set). Targets: " + ", ".join(f"`{k}` >= {v}" for k, v in targets.items()),
+            f"**{payload['verdict']}** (the with-policy arm on the random and scripted test "
+            "set). Targets: " + ", ".join(f"`{k}` >= {v}" for k, v in payload["targets"].items()),
             payload["protocol"] + ".",
             table(results),
             "Exact match per family on the policies' test sets, pooled over seeds "

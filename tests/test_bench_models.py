@@ -12,6 +12,7 @@ import numpy as np
 import pytest
 
 MODELS = Path(__file__).resolve().parent.parent / "benchmarks" / "models"
+RESULTS = MODELS.parent / "results"
 
 
 @pytest.mark.parametrize(
@@ -73,6 +74,29 @@ def test_the_kept_factored_captioner_captions_and_scores_robosuite_frames():
     figures = json.loads((MODELS / "captioner-factored-robosuite" / "eval.json").read_text())
     assert figures["heldout_combinations"]["exact_match"] >= 0.85
     assert "`captioner-factored-robosuite/`" in (MODELS / "README.md").read_text()
+
+
+def test_the_kept_robosuite_captioners_trained_with_policy_episodes_match_their_figures():
+    """The three with-policy captioners of captioner-robosuite-policy.json: each loads,
+    scores frames, and the seed means of their test figures are the file's headline."""
+    from captioner.learned import LearnedCaptioner
+
+    folder = MODELS / "captioner-factored-robosuite-policy"
+    head = json.loads((RESULTS / "captioner-robosuite-policy.json").read_text())["headline"]
+    held, auc = [], []
+    for seed in range(3):
+        lc = LearnedCaptioner.load(folder / f"seed{seed}" / "model")
+        assert lc.factored is not None and lc.cfg.head == "factored"
+        frames = np.random.default_rng(seed).integers(0, 256, (2, 84, 84, 3), dtype=np.uint8)
+        proprio = np.zeros((2, lc.proprio_dim), np.float32)
+        probs = lc.score_matrix(["lift the red cube"], frames, frames, proprio, proprio)
+        assert probs.shape == (2, 1) and ((probs >= 0) & (probs <= 1)).all()
+        test = json.loads((folder / f"seed{seed}" / "eval-test.json").read_text())
+        held.append(test["heldout_combinations"]["exact_match"])
+        auc.append(test["heldout_combinations"]["auc"])
+    assert round(float(np.mean(held)), 3) == head["heldout_combinations_exact_match"]
+    assert round(float(np.mean(auc)), 3) == head["heldout_combinations_reward_auc"]
+    assert "`captioner-factored-robosuite-policy/`" in (MODELS / "README.md").read_text()
 
 
 @pytest.mark.parametrize("seed", [0, 1, 2])
