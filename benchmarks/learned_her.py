@@ -5,12 +5,25 @@ beside the rule captioner's, same preset, seed and budget.
         --captioner runs/bench/captioner-robosuite-perception --target-clip 1.0
     python benchmarks/learned_her.py --env lang2d --captioner runs/bench/captioner-lang2d-perception
 
-robosuite: the image policy of ``robosuite-image-reach`` (it acts through ``--perception``);
+    python -m benchmarks.learned_her --env robosuite \
+        --perception benchmarks/models/perception-3k/model \
+        --captioner 'benchmarks/models/captioner-factored-robosuite-policy/seed{seed}/model' \
+        --families reach push lift --max-episode-steps 100 --steps 50000 \
+        --eval-every 25000 --eval-episodes 30 --target-clip 1.0 --seeds 0 1 2 \
+        --keep benchmarks/models/learned-her-robosuite
+
+robosuite: the image policy of ``robosuite-image-reach`` (it acts through ``--perception``;
+``--families`` widens it beyond reach);
 relabelling candidates and rewards come from the learned models (``--relabel.captioner
 learned --relabel.reward learned``), which read the frames through their own perception
 model, or from the rule captioner. lang2d: the ``lang2d`` preset (privileged-state policy,
 reach and push), relabelled the same two ways. The two runs train side by side, one
 torch thread each; the final figures are ``lcrl eval`` with 100 episodes per set.
+
+With ``--keep DIR`` every seed's policies are kept in ``DIR/<rule|learned>/seedS`` and its
+evaluations in ``DIR/seedS.json``; a later invocation with the same settings reads those
+seeds back instead of training them, so the seeds of a long benchmark can be trained in
+different sessions (``--seeds 0 1`` now, ``--seeds 0 1 2`` later).
 
 Writes ``benchmarks/results/learned-her-<env>.{json,md,png}`` and adds
 ``learned_her_seen`` and ``rule_her_seen`` to the ``headline`` of
@@ -22,6 +35,7 @@ from __future__ import annotations
 import argparse
 import csv
 import json
+import shlex
 import subprocess
 import sys
 import time
@@ -55,10 +69,16 @@ def run_args(args: argparse.Namespace, name: str) -> list[str]:
     cmd += ["--total-steps", str(args.steps), "--eval-every", str(args.eval_every)]
     cmd += ["--eval-episodes", str(args.eval_episodes), "--seed", str(args.seed)]
     cmd += ["--overwrite", "--no-progress"]
+    if getattr(args, "families", None):
+        cmd += ["--env.families", *args.families]
+    if getattr(args, "max_episode_steps", 0):
+        cmd += ["--env.max-episode-steps", str(args.max_episode_steps)]
     if args.perception:
         cmd += ["--env.perception", args.perception]
     if args.target_clip:
         cmd += ["--sac.target-clip", str(args.target_clip)]
+    if getattr(args, "extra", ""):
+        cmd += shlex.split(args.extra)
     if name == "learned":
         labels = getattr(args, "labels", "learned")
         cmd += ["--relabel.captioner", labels, "--relabel.reward", "learned"]
@@ -130,6 +150,25 @@ def main(argv: list[str] | None = None) -> int:
     )
     parser.add_argument("--perception", default="", help="the policy's (robosuite)")
     parser.add_argument("--work", default="")
+    parser.add_argument(
+        "--families",
+        nargs="+",
+        default=[],
+        help="instruction families of both runs (--env.families; default the preset's: "
+        "robosuite-image-reach reach alone, lang2d reach and push)",
+    )
+    parser.add_argument(
+        "--max-episode-steps",
+        type=int,
+        default=0,
+        help="--env.max-episode-steps of both runs (0: the preset's)",
+    )
+    parser.add_argument(
+        "--extra",
+        default="",
+        help='more lcrl train options for both runs, e.g. "--finetune.demos FILE '
+        '--sac.demo-bc 1.0" (scripted demonstrations in the replay buffer from the start)',
+    )
     parser.add_argument("--steps", type=int, default=30_000)
     parser.add_argument("--eval-every", type=int, default=5_000)
     parser.add_argument("--eval-episodes", type=int, default=50)
@@ -241,7 +280,8 @@ def main(argv: list[str] | None = None) -> int:
         default="",
         metavar="DIR",
         help="keep every evaluated run to act in DIR/<rule|learned>/seedS (weights and "
-        "configs, no critics or replay), named in the JSON under kept",
+        "configs, no critics or replay), named in the JSON under kept, and each seed's "
+        "evaluations in DIR/seedS.json: a later invocation reads those seeds back",
     )
     args = parser.parse_args(argv)
     if args.env == "robosuite" and not args.perception:
@@ -259,25 +299,34 @@ def main(argv: list[str] | None = None) -> int:
         return 0
     info = machine()
     seconds: dict[str, dict[str, float]] = {}
-    for i, ns in enumerate(per_seed):
-        reused = args.reuse_rule[i] if args.reuse_rule else ""
-        seconds[str(ns.seed)] = train_pair(ns, reused)
     sets = ("train", "heldout", "paraphrase")
     runs = ("rule", "learned")
+    records = {str(ns.seed): read_record(args.keep, ns) for ns in per_seed}
+    fresh = [ns for ns in per_seed if records[str(ns.seed)] is None]
+    for i, ns in enumerate(per_seed):
+        if records[str(ns.seed)] is None:
+            reused = args.reuse_rule[i] if args.reuse_rule else ""
+            seconds[str(ns.seed)] = train_pair(ns, reused)
     if args.validation_only:
-        report_validation(args, per_seed, runs, sets)
+        report_validation(args, fresh, runs, sets)
         return 0
-    final = {
-        str(ns.seed): {
-            n: evaluate(Path(ns.work) / n, args.final_episodes, sets, seed=args.eval_seed)
-            for n in runs
-        }
-        for ns in per_seed
-    }
-    kept = keep_runs(args.keep, per_seed, runs) if args.keep else {}
-    curves = {str(ns.seed): {n: curve(Path(ns.work) / n) for n in runs} for ns in per_seed}
-    agreement = {str(ns.seed): last_agreement(Path(ns.work) / "learned") for ns in per_seed}
-    misses = push_failures(per_seed, runs, args.push_episodes) if args.env == "lang2d" else {}
+    final = evaluate_pairs(fresh, runs, sets, args.final_episodes, args.eval_seed)
+    kept = keep_runs(args.keep, fresh, runs) if args.keep else {}
+    curves = {str(ns.seed): {n: curve(Path(ns.work) / n) for n in runs} for ns in fresh}
+    agreement = {str(ns.seed): last_agreement(Path(ns.work) / "learned") for ns in fresh}
+    for ns in fresh if args.keep else ():
+        s = str(ns.seed)
+        write_record(args.keep, ns, final[s], curves[s], seconds[s], agreement[s], kept[s])
+    for s, record in records.items():  # seeds trained and evaluated by an earlier invocation
+        if record is not None:
+            final[s], curves[s], seconds[s] = record["final"], record["curves"], record["seconds"]
+            agreement[s], kept[s] = record["agreement"], record["kept"]
+    order = [str(ns.seed) for ns in per_seed]
+    final, curves, seconds, agreement = (
+        {s: d[s] for s in order} for d in (final, curves, seconds, agreement)
+    )
+    kept = {s: kept[s] for s in order if s in kept}
+    misses = push_failures(fresh, runs, args.push_episodes) if args.env == "lang2d" else {}
     pooled = {n: {k: pool([final[s][n][k] for s in final]) for k in sets} for n in runs}
     gaps = [final[s]["rule"]["train"]["success"] - final[s]["learned"]["train"]["success"]
             for s in final]  # fmt: skip
@@ -354,8 +403,9 @@ def main(argv: list[str] | None = None) -> int:
         update_captioner_markdown(captioner_file.with_suffix(".md"), headline)
 
     seed_word = "seed" if len(seeds) == 1 else "seeds"
-    # the families the preset trains on (robosuite-image-reach: reach alone)
-    fams = [f for f in ("push", "reach") if any(f in pooled[n]["train"]["families"] for n in runs)]
+    # the families the runs train on (robosuite-image-reach: reach alone, unless --families)
+    trained = {f for n in runs for f in pooled[n]["train"]["families"]}
+    fams = [f for f in ("reach", "push", "lift") if f in trained]
     lines = [
         f"{seed_word.capitalize()} {', '.join(map(str, seeds))}; `lcrl eval` with "
         f"{args.final_episodes} episodes per set and seed at evaluation seed "
@@ -455,6 +505,88 @@ def main(argv: list[str] | None = None) -> int:
     save_figure(name, fig, info)
     print(json.dumps(headline, indent=1))
     return 0
+
+
+def evaluate_pairs(
+    per_seed: list[argparse.Namespace],
+    runs: tuple[str, ...],
+    sets: tuple[str, ...],
+    episodes: int,
+    seed: int,
+) -> dict[str, dict[str, dict]]:
+    """``lcrl eval`` of every seed's runs at evaluation ``seed``, two at a time (one torch
+    thread each): per seed, per run, per set. An evaluation already written after the run
+    finished, of the same sets and episodes (``lcrl eval RUN --episodes N --seed S --json
+    RUN/eval-seedS.json``, started by hand while other runs trained), is read back."""
+    from concurrent.futures import ThreadPoolExecutor
+
+    def one(run: Path) -> dict:
+        done = run / f"eval-seed{seed}.json"
+        if seed and done.is_file() and done.stat().st_mtime > (run / "report.md").stat().st_mtime:
+            got = json.loads(done.read_text())["sets"]
+            if set(got) == set(sets) and all(got[k]["episodes"] == episodes for k in sets):
+                return got
+        return evaluate(run, episodes, sets, seed)
+
+    with ThreadPoolExecutor(max_workers=2) as pool_:
+        jobs = {
+            (str(ns.seed), n): pool_.submit(one, Path(ns.work) / n) for ns in per_seed for n in runs
+        }
+        return {str(ns.seed): {n: jobs[str(ns.seed), n].result() for n in runs} for ns in per_seed}
+
+
+def record_commands(ns: argparse.Namespace) -> dict[str, list[str]]:
+    """The two lcrl train commands of a seed, without where they were written (``--out``)."""
+    out = {}
+    for name in ("rule", "learned"):
+        cmd = run_args(ns, name)
+        at = cmd.index("--out")
+        out[name] = cmd[cmd.index("train") : at] + cmd[at + 2 :]
+    return out
+
+
+def read_record(folder: str, ns: argparse.Namespace) -> dict | None:
+    """The evaluations of a seed's pair of runs that an earlier invocation kept in
+    ``folder/seedS.json`` (:func:`write_record`), when they were trained by the same
+    commands; None otherwise (the seed is trained and evaluated now)."""
+    path = Path(folder, f"seed{ns.seed}.json") if folder else None
+    if path is None or not path.is_file():
+        return None
+    record = json.loads(path.read_text())
+    wanted = {"commands": record_commands(ns), "eval_seed": ns.eval_seed}
+    wanted["final_episodes"] = ns.final_episodes
+    if {k: record.get(k) for k in wanted} != wanted:
+        raise SystemExit(
+            f"{path}: kept by runs of other settings; remove it to train seed {ns.seed} again"
+        )
+    print(f"seed {ns.seed}: evaluations read from {path}")
+    return record
+
+
+def write_record(
+    folder: str,
+    ns: argparse.Namespace,
+    final: dict,
+    curves: dict,
+    seconds: dict,
+    agreement: dict,
+    kept: dict,
+) -> None:
+    """Keep a seed's evaluations beside its kept policies (``folder/seedS.json``), so that
+    a later invocation with more seeds pools them without training them again: a benchmark
+    of several seeds spans sessions."""
+    record = {
+        "commands": record_commands(ns),
+        "eval_seed": ns.eval_seed,
+        "final_episodes": ns.final_episodes,
+        "final": final,
+        "curves": curves,
+        "seconds": seconds,
+        "agreement": agreement,
+        "kept": kept,
+    }
+    Path(folder).mkdir(parents=True, exist_ok=True)
+    Path(folder, f"seed{ns.seed}.json").write_text(json.dumps(record, indent=1))
 
 
 def keep_runs(

@@ -223,6 +223,7 @@ NOT_LEARNING = (
     "checkpoint_every",
     "keep_checkpoints",
     "save_buffer",
+    "torch_threads",
 )
 
 

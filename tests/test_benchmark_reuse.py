@@ -316,3 +316,36 @@ def test_learned_her_keeps_each_seeds_runs_to_act(tmp_path):
         meta = json.loads((folder / "meta.json").read_text())
         assert meta["acting_only"] == ["critic", "critic_target"]
         assert (folder / "weights.safetensors").is_file()
+
+
+def test_learned_her_seeds_kept_by_an_earlier_invocation_are_read_back_only_if_alike(tmp_path):
+    import argparse
+
+    from benchmarks.learned_her import read_record, run_args, write_record
+
+    ns = argparse.Namespace(
+        env="robosuite",
+        work=str(tmp_path / "work" / "seed1"),
+        steps=1000,
+        eval_every=500,
+        eval_episodes=5,
+        seed=1,
+        perception="p/model",
+        target_clip=1.0,
+        captioner="cap/seed{seed}/model",
+        threshold=0.5,
+        families=["reach", "push", "lift"],
+        max_episode_steps=100,
+        eval_seed=1000,
+        final_episodes=100,
+    )
+    keep = str(tmp_path / "kept")
+    assert read_record(keep, ns) is None
+    final = {"rule": {"train": {"success": 0.9}}, "learned": {"train": {"success": 0.8}}}
+    write_record(keep, ns, final, {"rule": []}, {"rule": 10.0}, {}, {"rule": "k/rule/seed1"})
+    assert "--env.families" in run_args(ns, "rule") and "cap/seed1/model" in run_args(ns, "learned")
+    moved = argparse.Namespace(**{**vars(ns), "work": str(tmp_path / "elsewhere")})
+    assert read_record(keep, moved)["final"] == final  # where the runs were written: no matter
+    for change in ({"threshold": 0.7}, {"eval_seed": 7}, {"steps": 2000}):
+        with pytest.raises(SystemExit, match="other settings"):
+            read_record(keep, argparse.Namespace(**{**vars(ns), **change}))

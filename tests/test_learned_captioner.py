@@ -852,3 +852,36 @@ def test_reward_positives_follow_the_onset_delay(dataset):
         idx, ids, y = sampler.reward_batch(512, 0.5, 0.5)
         for j, i, t in zip(idx, ids, y, strict=True):
             assert (int(i) in sampler.labels(int(j))) == bool(t)
+
+
+def test_demonstrations_are_relabelled_by_the_learned_models_from_their_frames(
+    trained, tmp_path, capsys, one_thread
+):
+    """``--finetune.demos`` beside learned relabelling: the demonstrations' stored camera
+    frames are read by the learned captioner and reward model like the run's own episodes
+    (never the rule captioner's labels); a file without frames is refused in one line."""
+    from helpers import cli, error_line
+
+    from train.training.loop import Trainer
+
+    demos, plain = tmp_path / "demos.h5", tmp_path / "plain.h5"
+    args = ["demos", "record", "--preset", "lang2d", "--families", "reach", "push"]
+    args += ["--episodes", "4", "--no-progress"]
+    assert cli(*args, "--images", "--image-size", "32", "--out", str(demos)) == 0
+    assert cli(*args, "--out", str(plain)) == 0
+    cfg = _small_run(
+        tmp_path / "run", trained, captioner="learned", reward="learned", min_logprob=-1e9
+    )
+    cfg = dataclasses.replace(cfg, total_steps=120, learning_starts=100)
+    cfg.finetune.demos, cfg.finetune.pretrain_updates = str(demos), 4
+    trainer = Trainer(cfg)
+    trainer.run()
+    lab = trainer.task.labeller
+    assert lab.kept + lab.skipped >= 4  # the four demonstrations were read from their frames
+    assert trainer.buffer.demo[: trainer.buffer.size].any()
+
+    args = ["train", "lang2d", "--relabel.captioner", "learned", "--relabel.reward", "learned"]
+    args += ["--relabel.checkpoint", str(trained), "--finetune.demos", str(plain)]
+    assert cli(*args, "--out", str(tmp_path / "p"), "--total-steps", "50") == 2
+    line = error_line(capsys.readouterr().err)
+    assert "stores no camera frames" in line and "--images" in line

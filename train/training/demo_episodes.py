@@ -143,6 +143,8 @@ def buffer_episode(data: DemoDataset, e: int, path: str, task: Any, env: Any) ->
         text = ep["instruction"]
         goal = task.ids[text] if text is not None and text in task.ids else 0
         records: list[Any] = scenes_from_arrays(ep["scene"])
+        if getattr(task, "labeller", None) is not None:  # learned labels read the frames
+            records = _with_frames(records, ep["obs"], path)
     else:  # state goals: the stored achieved and desired goals
         missing = [k for k in ("achieved_goal", "desired_goal") if k not in ep["obs"]]
         if missing:
@@ -162,6 +164,21 @@ def buffer_episode(data: DemoDataset, e: int, path: str, task: Any, env: Any) ->
         "demo": np.full(t, ep["source"] not in NOT_DEMONSTRATIONS, bool),
         **task.episode_fields(records, goal, env),
     }
+
+
+def _with_frames(
+    scenes: list[SceneState], obs: Mapping[str, np.ndarray], path: str
+) -> list[tuple[SceneState, np.ndarray, np.ndarray]]:
+    """Each step's scene with its camera frame and the robot's state, as a learned
+    captioner and reward model read them (:meth:`LanguageTask.step_record`)."""
+    missing = [k for k in ("image", "proprio") if k not in obs]
+    if missing:
+        raise LcrlError(
+            f"{path} stores no camera frames ({' or '.join(missing)}), which learned "
+            "relabelling reads: record it with lcrl demos record --images"
+        )
+    frames, proprio = np.asarray(obs["image"]), np.asarray(obs["proprio"], np.float32)
+    return [(s, frames[i], proprio[i]) for i, s in enumerate(scenes)]
 
 
 def scenes_from_arrays(scene: Mapping[str, np.ndarray]) -> list[SceneState]:
