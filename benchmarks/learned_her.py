@@ -269,6 +269,14 @@ def main(argv: list[str] | None = None) -> int:
         "and the Markdown)",
     )
     parser.add_argument(
+        "--tried",
+        nargs="+",
+        default=[],
+        metavar="TEXT",
+        help="variants screened before this command (each a sentence: what, on which seeds, "
+        "what it gave), listed in the JSON's tried",
+    )
+    parser.add_argument(
         "--validation-only",
         action="store_true",
         help="train the runs and report their last periodic evaluations (at the training "
@@ -368,6 +376,7 @@ def main(argv: list[str] | None = None) -> int:
             "previous": previous,
             **({"kept": kept} if kept else {}),
             **({"note": args.note} if args.note else {}),
+            **({"tried": args.tried} if args.tried else {}),
             "reached": reached,
             "machine": info,
             "settings": {**vars(args), "preset": PRESETS[args.env]},
@@ -451,7 +460,8 @@ def main(argv: list[str] | None = None) -> int:
     first = next(iter(curves.values()))
     lines += [
         "",
-        "Learning curves (seen instructions, 50 episodes per point), mean over seeds:",
+        f"Learning curves (seen instructions, {args.eval_episodes} episodes per point at the "
+        "training seed: the validation evaluations), mean over seeds:",
         "",
         "| run | " + " | ".join(str(int(r["step"])) for r in first["rule"]) + " |",
         "|---|" + "---:|" * len(first["rule"]),

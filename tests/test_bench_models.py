@@ -404,3 +404,36 @@ def test_the_kept_learned_her_policies_act_and_are_the_results_runs():
     action = policy.act(obs, "push the red cube left")
     assert action.shape == (2,) and np.abs(action).max() <= 1.0
     assert "`learned-her-lang2d/`" in (MODELS / "README.md").read_text()
+
+
+def test_the_kept_robosuite_learned_her_policies_are_the_results_runs(one_thread):
+    """The camera policies behind learned-her-robosuite.json (reach, push and lift; rule and
+    learned relabelling, each training seed), kept to act, with each seed's evaluations
+    kept beside them (``seedS.json``) as the figures the file pools."""
+    result = json.loads((RESULTS / "learned-her-robosuite.json").read_text())
+    kept, folder = result["kept"], MODELS / "learned-her-robosuite"
+    assert sorted(kept) == sorted(result["final"]) and len(kept) == result["headline"]["seeds"]
+    for seed, runs in kept.items():
+        record = json.loads((folder / f"seed{seed}.json").read_text())
+        assert record["kept"] == runs and record["eval_seed"] == result["headline"]["eval_seed"]
+        for run, path in runs.items():
+            assert path == f"benchmarks/models/learned-her-robosuite/{run}/seed{seed}"
+            meta = json.loads((MODELS.parent.parent / path / "meta.json").read_text())
+            assert meta["acting_only"] == ["critic", "critic_target"]
+            assert meta["step"] >= result["headline"]["steps"]
+            assert sorted(meta["config"]["env"]["families"]) == ["lift", "push", "reach"]
+            for name in ("train", "heldout"):
+                got = record["final"][run][name]["success"]
+                assert got == pytest.approx(result["final"][seed][run][name]["success"])
+    assert "`learned-her-robosuite/`" in (MODELS / "README.md").read_text()
+    pytest.importorskip("robosuite")
+    import lcrl
+
+    policy = lcrl.load(folder / "learned" / f"seed{next(iter(kept))}")
+    env = policy.make_env()
+    try:
+        obs, _ = env.reset(seed=0)
+        action = policy.act(obs, "pick up the red cube")
+        assert action.shape == (4,) and np.abs(action).max() <= 1.0
+    finally:
+        env.close()
