@@ -8,9 +8,14 @@ beside the rule captioner's, same preset, seed and budget.
     python -m benchmarks.learned_her --env robosuite \
         --perception benchmarks/models/perception-3k/model \
         --captioner 'benchmarks/models/captioner-factored-robosuite-policy/seed{seed}/model' \
-        --families reach push lift --max-episode-steps 100 --steps 50000 \
-        --eval-every 25000 --eval-episodes 30 --target-clip 1.0 --seeds 0 1 2 \
+        --families reach push lift --max-episode-steps 100 --steps 30000 \
+        --eval-every 10000 --eval-episodes 30 --target-clip 1.0 --seeds 0 1 2 \
+        --extra "--finetune.demos data/demos-image-rpl-600i.h5 --sac.demo-bc 1.0" \
         --keep benchmarks/models/learned-her-robosuite
+
+(the demonstrations, with their camera frames for the learned models to read: ``lcrl demos
+record --preset robosuite-image-reach --families reach push lift --max-episode-steps 100
+--episodes 600 --seed 11 --images --out data/demos-image-rpl-600i.h5``)
 
 robosuite: the image policy of ``robosuite-image-reach`` (it acts through ``--perception``;
 ``--families`` widens it beyond reach);
@@ -589,7 +594,14 @@ def write_record(
         "commands": record_commands(ns),
         "eval_seed": ns.eval_seed,
         "final_episodes": ns.final_episodes,
-        "final": final,
+        # every figure of the evaluations but the episode-by-episode rows
+        "final": {
+            run: {
+                k: {x: y for x, y in res.items() if x != "episode_results"}
+                for k, res in sets.items()
+            }
+            for run, sets in final.items()
+        },
         "curves": curves,
         "seconds": seconds,
         "agreement": agreement,
