@@ -885,3 +885,32 @@ def test_demonstrations_are_relabelled_by_the_learned_models_from_their_frames(
     assert cli(*args, "--out", str(tmp_path / "p"), "--total-steps", "50") == 2
     line = error_line(capsys.readouterr().err)
     assert "stores no camera frames" in line and "--images" in line
+
+
+def test_an_episode_is_perceived_once_for_its_captions_and_rewards():
+    """The labeller reads an episode's captions and rewards from the same frames against
+    its first: perception sees each frame once (N + 1 frames, not 4N), and the scores are
+    those of perceiving every pair on its own."""
+    from pathlib import Path
+
+    from captioner.learned import LearnedLabeller
+
+    model = Path(__file__).parents[1] / "benchmarks/models/captioner-factored-robosuite-policy"
+    lc = LearnedCaptioner.load(model / "seed0" / "model")
+    assert lc.perception is not None
+    rng = np.random.default_rng(0)
+    frames = rng.integers(0, 256, (5, *lc.frame_shape), dtype=np.uint8)
+    proprio = rng.normal(size=(5, lc.proprio_dim)).astype(np.float32)
+    seen = []
+    observe = lc.perception.observation
+    lc.perception.observation = lambda x, *a, **k: seen.append(len(x)) or observe(x, *a, **k)
+    table = ["reach the red cube", "push the red cube left", "lift the red cube"]
+    lab = LearnedLabeller(lc, table, 3, min_logprob=-1e9, threshold=0.0)
+    lab.labels(frames, proprio)
+    lab.achieved(frames, proprio, [0, 1, 2])
+    assert sum(seen) == len(frames) + 1
+    first, p0 = np.repeat(frames[:1], 5, 0), np.repeat(proprio[:1], 5, 0)
+    together = lc.score_matrix(table, first, frames, p0, proprio)
+    alone = [lc.score_matrix(table, frames[:1], frames[i : i + 1], proprio[:1], proprio[i : i + 1])
+             for i in range(5)]  # fmt: skip
+    np.testing.assert_allclose(together, np.concatenate(alone), rtol=1e-4, atol=1e-5)
