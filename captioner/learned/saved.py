@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import hashlib
 from collections.abc import Sequence
 from dataclasses import asdict
 from pathlib import Path
@@ -384,8 +385,6 @@ class LearnedCaptioner:
 
 def _digest(*arrays: np.ndarray) -> bytes:
     """A fingerprint of arrays' shapes and contents (the frames perceived last)."""
-    import hashlib
-
     h = hashlib.blake2b(digest_size=16)
     for a in arrays:
         h.update(str(a.shape).encode())
