@@ -416,10 +416,20 @@ def perception_loss(
 
 
 # --- checkpoints ---------------------------------------------------------------------------
+#: The repository's folder of kept models: a relative path under it that is not found from
+#: the working folder is looked up in the repository (the camera presets' default
+#: perception model works from any folder of an editable install).
+KEPT_MODELS = Path("benchmarks/models")
+_REPOSITORY = Path(__file__).resolve().parent.parent
+
+
 def _checkpoint_dir(path: str | Path) -> Path:
     """The checkpoint folder of a perception model: ``lcrl perception train --out`` (the
     folder or its ``model`` checkpoint), or a policy checkpoint that carries one."""
     p = Path(path)
+    kept = _REPOSITORY / p
+    if not p.exists() and p.parts[:2] == KEPT_MODELS.parts and kept.exists():
+        p = kept  # a model kept in the repository, named from another folder
     if (p / "model" / "meta.json").is_file():
         p = p / "model"
     if not (p / "meta.json").is_file():

@@ -307,6 +307,19 @@ def test_perception_that_does_not_fit_the_env_is_refused(trained, tmp_path, caps
     assert "no perception model at" in error_line(capsys.readouterr().err)
 
 
+def test_the_kept_perception_model_is_found_from_any_folder(tmp_path, monkeypatch):
+    """The camera presets name the kept model by its path in the repository; from another
+    working folder it is looked up there, and a missing one is still refused."""
+    from lcrl.perception import model_meta
+    from train.configs.presets import PERCEPTION_KEPT
+
+    monkeypatch.chdir(tmp_path)
+    assert not Path(PERCEPTION_KEPT).exists()
+    assert model_meta(PERCEPTION_KEPT)["frame_shape"][0] == 84
+    with pytest.raises(LcrlError, match="no perception model at benchmarks/models/none"):
+        model_meta("benchmarks/models/none/model")
+
+
 def test_cached_estimates_equal_recomputed_ones(trained, tmp_path):
     """The replay buffer stores perception's estimate (with the slot features) computed
     once per frame; recomputed from the same frames and proprioception (presence from the
