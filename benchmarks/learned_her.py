@@ -11,7 +11,8 @@ beside the rule captioner's, same preset, seed and budget.
         --families reach push lift --max-episode-steps 100 --steps 30000 \
         --eval-every 10000 --eval-episodes 30 --target-clip 1.0 --seeds 0 1 2 \
         --extra "--finetune.demos data/demos-image-rpl-600i.h5 --sac.demo-bc 1.0" \
-        --threshold 0.9 --eval-seed 1001 --keep benchmarks/models/learned-her-robosuite
+        --threshold 0.9 --labels reward --end learned --eval-seed 1002 \
+        --keep benchmarks/models/learned-her-robosuite
 
 (the demonstrations, with their camera frames for the learned models to read: ``lcrl demos
 record --preset robosuite-image-reach --families reach push lift --max-episode-steps 100
