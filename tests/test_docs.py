@@ -10,16 +10,17 @@ with ``...``) and the pages of :data:`PYTHON_EXCERPTS`.
 How each command runs, in the order of its page, in a fresh folder per page (so a page's
 commands build on each other as they would for a reader):
 
-* ``lcrl ...`` runs in-process (``train.commands.cli.main``) with tiny-size options appended (later
-  options win): ``lcrl train`` gets :data:`TINY_TRAIN`, ``lcrl eval`` 2 episodes, ``lcrl
-  act`` 1 episode, ``lcrl demos record`` 4 episodes, ``lcrl caption`` 2 gradient steps of
-  small networks, and so on (:func:`shrink`). Nothing gets ``--overwrite``: a page that
-  writes twice to one place fails, as it would for a reader. Inputs a page uses but
-  does not make itself (``runs/main``, a demonstration file, ``mine.txt``, a robomimic
-  file) are made first (:meth:`Workspace.provide`): a tiny ``lang2d-quick`` run for most
-  run names, a tiny ``lang2d-tasks`` / ``lang2d-bc`` / ``state2d`` run for names with
-  ``tasks`` / ``bc`` / ``state``. ``printf TEXT | lcrl ...`` feeds TEXT to the standard
-  input. ``--agent.device cuda`` becomes ``cpu`` on a machine without CUDA.
+* ``lcrl ...`` runs in-process (``train.commands.cli.main``) with tiny-size options appended
+  (later options win): ``lcrl train`` gets :data:`TINY_TRAIN`, ``lcrl eval`` 2 episodes,
+  ``lcrl act`` 1 episode, ``lcrl demos record`` 4 episodes, ``lcrl caption`` 2 gradient
+  steps of small networks, a canonical reader 2 members of 40 steps, and so on
+  (:func:`shrink`). Nothing gets ``--overwrite``: a page that writes twice to one place
+  fails, as it would for a reader. Inputs a page uses but does not make itself
+  (``runs/main``, a demonstration file, ``mine.txt``, a robomimic file) are made first
+  (:meth:`Workspace.provide`): a tiny ``lang2d-quick`` run for most run names, a tiny
+  ``lang2d-tasks`` / ``lang2d-bc`` / ``state2d`` run for names with ``tasks`` / ``bc`` /
+  ``state``. ``printf TEXT | lcrl ...`` feeds TEXT to the standard input. ``--agent.device
+  cuda`` becomes ``cpu`` on a machine without CUDA.
 * ``python examples/X.py ARGS`` runs the example.
 * ``python benchmarks/X.py ARGS`` and ``python -m MODULE ARGS`` take hours, so only their
   arguments are checked: the script runs up to its ``ArgumentParser.parse_args`` and stops
@@ -44,6 +45,7 @@ import runpy
 import shlex
 import shutil
 import sys
+import time
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -540,12 +542,17 @@ def _run_page(page: Path, slow: bool, tmp_path: Path, cache: Cache) -> None:
             continue
         if (step.code is not None and slow) or (step.code is None and is_slow(step.argv) != slow):
             continue
+        start = time.perf_counter()
         ws.run(step)
-        print(f"ran {step}")  # shown with pytest -s
+        print(f"ran {step} ({time.perf_counter() - start:.1f} s)")  # shown with pytest -s
 
 
 @pytest.mark.parametrize("page", PAGES, ids=lambda p: p.relative_to(ROOT).as_posix())
-def test_page_commands_run(page, tmp_path, cache):
+def test_page_commands_run(page, tmp_path, cache, monkeypatch):
+    # a canonical reader a tiny run needs is fitted at tiny size too (how well a full one
+    # reads: tests/test_text_reader.py); the slow pages' kept models load theirs as kept
+    monkeypatch.setattr("train.environments.text_reading.CANONICAL_MEMBERS", 2)
+    monkeypatch.setattr("train.environments.text_reading.READER_STEPS", 40)
     _run_page(page, False, tmp_path, cache)
 
 
