@@ -23,3 +23,12 @@ def one_thread():
     torch.set_num_threads(1)
     yield
     torch.set_num_threads(before)
+
+
+@pytest.fixture
+def tiny_canonical_reader(monkeypatch):
+    """Canonical readers fitted in the test at tiny size (2 members of 40 steps) where what
+    is checked is that one is fitted, saved and loaded; how well a full one reads is
+    tests/test_text_reader.py's own test."""
+    monkeypatch.setattr("train.environments.text_reading.CANONICAL_MEMBERS", 2)
+    monkeypatch.setattr("train.environments.text_reading.READER_STEPS", 40)

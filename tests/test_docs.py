@@ -548,11 +548,9 @@ def _run_page(page: Path, slow: bool, tmp_path: Path, cache: Cache) -> None:
 
 
 @pytest.mark.parametrize("page", PAGES, ids=lambda p: p.relative_to(ROOT).as_posix())
-def test_page_commands_run(page, tmp_path, cache, monkeypatch):
-    # a canonical reader a tiny run needs is fitted at tiny size too (how well a full one
-    # reads: tests/test_text_reader.py); the slow pages' kept models load theirs as kept
-    monkeypatch.setattr("train.environments.text_reading.CANONICAL_MEMBERS", 2)
-    monkeypatch.setattr("train.environments.text_reading.READER_STEPS", 40)
+def test_page_commands_run(page, tmp_path, cache, tiny_canonical_reader):
+    # a canonical reader a tiny run needs is fitted at tiny size too; the slow pages' kept
+    # models load theirs as kept
     _run_page(page, False, tmp_path, cache)
 
 

@@ -286,7 +286,9 @@ def test_the_canonical_decoder_gives_valid_meanings():
     assert state["output"] == "canonical" and set(state["seen"]) == set(SLOT_VALUES)
 
 
-def test_a_run_with_the_canonical_reader_saves_it_and_eval_can_add_one(tmp_path, monkeypatch):
+def test_a_run_with_the_canonical_reader_saves_it_and_eval_can_add_one(
+    tmp_path, tiny_canonical_reader
+):
     """Training with --env.canonical-reader keeps the policy's goal width and saves the
     reader; queries read through it. A checkpoint without a reader gets one fitted by
     ``lcrl eval --canonical-reader``; a --env.text-reader checkpoint cannot swap readers."""
@@ -294,10 +296,7 @@ def test_a_run_with_the_canonical_reader_saves_it_and_eval_can_add_one(tmp_path,
     from train.environments.simulators import check_env_config
     from train.environments.text_reading import CanonicalEncoder
 
-    # two members of 40 steps instead of five of 600: saving, loading and fitting for eval
-    # are what is checked (how well a canonical reader reads: the test above)
-    monkeypatch.setattr("train.environments.text_reading.CANONICAL_MEMBERS", 2)
-    monkeypatch.setattr("train.environments.text_reading.READER_STEPS", 40)
+    # saving, loading and fitting for eval are what is checked (tiny_canonical_reader)
     out = tmp_path / "run"
     cfg = tiny("lang2d-grounded", out, total_steps=200)
     cfg.env.canonical_reader = True
