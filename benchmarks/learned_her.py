@@ -210,10 +210,11 @@ def main(argv: list[str] | None = None) -> int:
     )
     parser.add_argument(
         "--labels",
-        choices=("learned", "reward"),
+        choices=("learned", "reward", "both"),
         default="learned",
         help="the learned run's relabelling candidates (--relabel.captioner): the learned "
-        "captioner's captions, or every training instruction the reward model judges achieved",
+        "captioner's captions, every training instruction the reward model judges achieved, "
+        "or both together",
     )
     parser.add_argument(
         "--confirm",

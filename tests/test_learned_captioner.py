@@ -318,8 +318,19 @@ def test_labeller_thresholds_and_candidates(trained, dataset):
         strict_confirm = LearnedLabeller(lc, table, num_train, threshold=1.01, confirm=True)
         nothing_hit = strict_confirm.achieved(frames, proprio, cands)
         assert not any(strict_confirm.confirmed(labels, nothing_hit))
+        # reward labels: the training ids judged achieved, with the captions too (both)
+        every = everything.achieved(frames, proprio, range(len(table)))
+        judged = [[c for c in a if c < num_train] for a in every]
+        alone = LearnedLabeller(lc, table, num_train, captioner=False, reward_labels=True)
+        assert alone.judged(labels, every) == judged
+        union = LearnedLabeller(lc, table, num_train, reward_labels=True)
+        assert union.judged(labels, every) == [
+            sorted(set(a) | set(b)) for a, b in zip(labels, judged, strict=True)
+        ]
+        pairs = list(zip(labels, judged, strict=True))
+        assert any(set(a) - set(b) for a, b in pairs) and any(set(b) - set(a) for a, b in pairs)
         with pytest.raises(LcrlError, match="reward-model labels need"):
-            LearnedLabeller(lc, table, num_train, captioner=True, reward_labels=True)
+            LearnedLabeller(lc, table, num_train, reward=False, reward_labels=True)
         with pytest.raises(LcrlError, match="confirmation needs both"):
             LearnedLabeller(lc, table, num_train, reward=False, confirm=True)
         # the online check of one pair agrees with the episode's batch scoring
@@ -360,26 +371,31 @@ def test_learned_rewards_do_not_end_training_episodes_at_the_privileged_success(
         assert find_language_wrapper(trainer.envs[0]).terminate_on_success is ends, reward
 
 
+@pytest.mark.parametrize("labels", ["reward", "both"])
 def test_reward_model_labels_relabel_with_every_instruction_it_rewards(
-    trained, tmp_path, one_thread
+    trained, tmp_path, one_thread, labels
 ):
     from train.training.loop import Trainer
 
-    cfg = _small_run(tmp_path / "run", trained, captioner="reward", reward="learned", threshold=0.3)
+    cfg = _small_run(tmp_path / "run", trained, captioner=labels, reward="learned", threshold=0.3)
     trainer = Trainer(cfg)
     trainer.run()
     lab = trainer.task.labeller
-    assert lab.reward_labels and not lab.use_captioner and lab.kept + lab.skipped == 0
+    assert lab.reward_labels and lab.use_captioner is (labels == "both")
+    assert (lab.kept + lab.skipped > 0) is (labels == "both")  # captions read or not
     gs = trainer.buffer.goal_space
     high = trainer.buffer.high
     slots = np.flatnonzero(gs._nlab[:high] > 0)
     assert slots.size > 0
     num_train = trainer.task.num_train
-    for j in range(high):  # the candidates are exactly the training ids rewarded there
+    every = np.arange(num_train)
+    for j in range(high):  # every training id rewarded there is a candidate
         ids = set(gs._labels[j, : gs._nlab[j]].tolist())
-        every = np.arange(num_train)
         rewarded = set(every[gs.achieved(np.full(num_train, j), every)].tolist())
-        assert ids <= rewarded and len(ids) == min(len(rewarded), gs.max_labels), j
+        if labels == "reward":  # ... and nothing else
+            assert ids <= rewarded and len(ids) == min(len(rewarded), gs.max_labels), j
+        elif len(ids) < gs.max_labels:
+            assert rewarded <= ids, j
 
 
 def test_learned_rewards_can_end_training_episodes_where_they_judge_success(
@@ -449,8 +465,10 @@ def test_learned_relabelling_settings_are_checked(trained, tmp_path):
         Trainer(_small_run(tmp_path / "g", trained, reward="rule", agree=True))
     with pytest.raises(LcrlError, match=r"relabel\.confirm .* needs relabel\.captioner=learned"):
         Trainer(_small_run(tmp_path / "d", trained, reward="learned", confirm=True))
-    with pytest.raises(LcrlError, match=r"relabel\.captioner=reward .* needs relabel\.reward"):
-        Trainer(_small_run(tmp_path / "r", trained, captioner="reward"))
+    for labels in ("reward", "both"):
+        needs = rf"relabel\.captioner={labels} .* needs relabel\.reward"
+        with pytest.raises(LcrlError, match=needs):
+            Trainer(_small_run(tmp_path / "r", trained, captioner=labels))
     with pytest.raises(LcrlError, match=r"relabel\.end must be one of"):
         Trainer(_small_run(tmp_path / "e", trained, reward="learned", end="success"))
     with pytest.raises(LcrlError, match=r"relabel\.end=learned .* needs relabel\.reward=learned"):

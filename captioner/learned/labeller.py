@@ -42,7 +42,7 @@ class LearnedLabeller:
             the reward model judges it achieved there (:meth:`confirmed`).
         reward_labels: the relabelling candidates of each observation are the training
             instructions the reward model judges achieved there, every one of them scored
-            (no captioner).
+            (with ``captioner`` too: together with the captions read there).
     """
 
     def __init__(
@@ -79,8 +79,8 @@ class LearnedLabeller:
         if confirm and not (captioner and reward):
             raise LcrlError("confirmation needs both the learned captioner and the reward model")
         self.confirm = bool(confirm)
-        if reward_labels and (captioner or not reward):
-            raise LcrlError("reward-model labels need the reward model and no learned captioner")
+        if reward_labels and not reward:
+            raise LcrlError("reward-model labels need the reward model")
         self.reward_labels = bool(reward_labels)
         self.num_train = int(num_train)
         self.skipped = 0  # captions dropped by the threshold
@@ -173,6 +173,17 @@ class LearnedLabeller:
             rewarded = set(hit)
             kept.append([i for i in ids if i in rewarded])
         return kept
+
+    def judged(
+        self, labels: Sequence[Sequence[int]], achieved: Sequence[Sequence[int]]
+    ) -> list[list[int]]:
+        """With ``reward_labels``: each observation's relabelling candidates, the training
+        ids among what the reward model judges ``achieved`` there, together with the
+        captions' ``labels`` there when the captioner is on too."""
+        out = [[i for i in a if i < self.num_train] for a in achieved]
+        if self.use_captioner:
+            out = [sorted(set(c) | set(j)) for c, j in zip(labels, out, strict=True)]
+        return out
 
     def achieved(
         self,

@@ -239,10 +239,10 @@ class TrainConfig:
                     f"relabel.{name} {what}: it needs relabel.captioner=learned and "
                     "relabel.reward=learned"
                 )
-        if self.relabel.captioner == "reward" and self.relabel.reward != "learned":
+        if self.relabel.captioner in ("reward", "both") and self.relabel.reward != "learned":
             raise LcrlError(
-                "relabel.captioner=reward relabels with what the learned reward model judges "
-                "achieved: it needs relabel.reward=learned"
+                f"relabel.captioner={self.relabel.captioner} relabels with what the learned "
+                "reward model judges achieved: it needs relabel.reward=learned"
             )
         family_thresholds(self.relabel.family_thresholds)  # raises on a bad entry
         if self.relabel.end not in EPISODE_ENDS:

@@ -38,7 +38,7 @@ class BufferConfig:
 BUFFER_STORAGE = ("host", "device")
 
 
-RELABELLERS = ("rule", "learned", "reward")
+RELABELLERS = ("rule", "learned", "reward", "both")
 
 
 REWARDERS = ("rule", "learned", "captioner")
@@ -53,7 +53,8 @@ class RelabelConfig:
     """Relabelling candidates: ``rule``, ``learned`` (the learned captioner's captions of
     each step, read from the camera frames) or ``reward`` (every training instruction the
     learned reward model judges achieved at each step, all of them scored; needs
-    ``reward=learned`` and no captioner)."""
+    ``reward=learned`` and no captioner) or ``both`` (the learned captions together with
+    every training instruction the reward model judges achieved; needs ``reward=learned``)."""
     reward: str = "rule"
     """Rewards of stored transitions: ``rule``, ``learned`` (the learned reward model,
     scored once per stored episode for every candidate) or ``captioner`` (the learned

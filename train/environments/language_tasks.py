@@ -245,7 +245,7 @@ class LanguageTask(Task):
             out["achieved"] = lab.achieved(frames, proprio, cands, out["labels"])
             lab.compare("rewards", out["achieved"], labels, among=cands)
             if lab.reward_labels:  # relabel with what the reward model judges achieved
-                out["labels"] = [[i for i in a if i < lab.num_train] for a in out["achieved"]]
+                out["labels"] = lab.judged(out["labels"], out["achieved"])
             elif lab.use_captioner:  # with confirm: only the labels rewarded where read
                 out["labels"] = lab.confirmed(out["labels"], out["achieved"])
         if lab.use_captioner or lab.reward_labels:
