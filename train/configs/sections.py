@@ -51,10 +51,10 @@ class RelabelConfig:
 
     captioner: str = "rule"
     """Relabelling candidates: ``rule``, ``learned`` (the learned captioner's captions of
-    each step, read from the camera frames) or ``reward`` (every training instruction the
+    each step, read from the camera frames), ``reward`` (every training instruction the
     learned reward model judges achieved at each step, all of them scored; needs
-    ``reward=learned`` and no captioner) or ``both`` (the learned captions together with
-    every training instruction the reward model judges achieved; needs ``reward=learned``)."""
+    ``reward=learned``, no captioner) or ``both`` (those captions and those instructions
+    together; needs ``reward=learned``)."""
     reward: str = "rule"
     """Rewards of stored transitions: ``rule``, ``learned`` (the learned reward model,
     scored once per stored episode for every candidate) or ``captioner`` (the learned
