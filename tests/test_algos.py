@@ -168,6 +168,9 @@ class ConstCritics(nn.Module):
     def forward(self, obs, goal, action=None):
         return torch.full((self.members, goal.shape[0], 1), self.value)
 
+    def min_value(self, obs, goal, action=None):
+        return self(obs, goal, action).min(0).values
+
 
 class ConstQ(nn.Module):
     """Stand-in for a DQN target network: fixed per-action values."""
@@ -1207,6 +1210,9 @@ class ValuedAround(nn.Module):
     def forward(self, obs, goal, action):
         bonus = self.sign * 100.0 * (action - self.centre).pow(2).sum(-1, keepdim=True)
         return self.critic(obs, goal, action) + bonus
+
+    def min_value(self, obs, goal, action):
+        return self(obs, goal, action).min(0).values
 
 
 @pytest.mark.parametrize("sign", [-1.0, 1.0])

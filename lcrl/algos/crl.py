@@ -159,7 +159,7 @@ class CRL(Agent):
 
         self.critic.requires_grad_(False)
         pi = torch.tanh(self.actor(obs, goal))
-        q = self.critic(obs, goal, pi).min(0).values.squeeze(-1)
+        q = self.critic.min_value(obs, goal, pi).squeeze(-1)
         actor_loss = -(q / q.abs().mean().detach().clamp_min(1e-6)).mean()
         if cfg.bc_alpha:
             actor_loss = actor_loss + cfg.bc_alpha * (pi - act).pow(2).mean()

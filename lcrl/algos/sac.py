@@ -362,7 +362,7 @@ class SAC(Agent):
                 continue
             o, g, a_taken, _, w = self._take(u, rows, u.actor_obs)
             a, logp, mean_action = self._policy(o, g, with_mean=True)
-            q_pi = self.critic(o, g, a).min(0).values.squeeze(-1)
+            q_pi = self.critic.min_value(o, g, a).squeeze(-1)
             loss = _weighted_mean(u.alpha * logp - self.q_weight * q_pi, w)
             rel = u.relabelled if rows is None else u.relabelled[rows]
             bc_loss = None
@@ -510,7 +510,7 @@ class SAC(Agent):
         self.critic.requires_grad_(False)
         try:
             a, logp = self._policy(obs, goal)
-            q_pi = self.critic(obs, goal, a).min(0).values.squeeze(-1)
+            q_pi = self.critic.min_value(obs, goal, a).squeeze(-1)
             (alpha * logp - q_pi).mean().backward()
         finally:
             self.critic.requires_grad_(True)
@@ -531,7 +531,7 @@ class SAC(Agent):
         (:meth:`Agent.bound_targets`) and to ``sac.target_clip`` when set."""
         with torch.no_grad():
             next_a, next_logp = self._policy(nobs, goal)
-            target_q = self.critic_target(nobs, goal, next_a).min(0).values.squeeze(-1)
+            target_q = self.critic_target.min_value(nobs, goal, next_a).squeeze(-1)
             y = rew + boot * (target_q - alpha * next_logp)
             y = self.bound_targets(y)
             clip = self.cfg.target_clip

@@ -140,7 +140,7 @@ class TD3(Agent):
             noise = torch.randn(act.shape, generator=self.gen, device=self.device)
             noise = (cfg.policy_noise * noise).clamp(-cfg.noise_clip, cfg.noise_clip)
             next_a = (torch.tanh(self.actor_target(nobs, goal)) + noise).clamp(-1.0, 1.0)
-            target_q = self.critic_target(nobs, goal, next_a).min(0).values.squeeze(-1)
+            target_q = self.critic_target.min_value(nobs, goal, next_a).squeeze(-1)
             y = self.bound_targets(rew + boot * target_q)
         q = self.critic(obs, goal, act).squeeze(-1)
         critic_loss = 0.5 * (q - y).pow(2).mean(-1).sum()

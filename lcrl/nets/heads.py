@@ -13,6 +13,7 @@ from torch import nn
 
 from lcrl.errors import LcrlError
 from lcrl.nets.encoders import build_encoders, goal_encoder_spec
+from lcrl.nets.fused import EnsembleMin, EnsembleMLP
 from lcrl.nets.layers import FUSIONS, BatchedLinear, NetConfig, mlp
 
 
@@ -256,6 +257,48 @@ class GoalConditionedEnsemble(nn.Module):
             x = torch.cat([x, action], -1)
         return x, g
 
+    def _inputs(
+        self, obs: Mapping[str, torch.Tensor], goal: torch.Tensor, action: torch.Tensor | None
+    ) -> torch.Tensor:
+        """The batched layers' input: ``(B, in)`` shared by the members, else ``(n, B, in)``."""
+        if self.shared:
+            return torch.cat(self._features(0, obs, goal, action), -1)
+        return torch.stack(
+            [torch.cat(self._features(i, obs, goal, action), -1) for i in range(self.n)]
+        )
+
+    def _params(self) -> list[torch.Tensor]:
+        return [p for layer in self.layers for p in (layer.weight, layer.bias)]
+
+    def _fusable(self, h: torch.Tensor) -> bool:
+        """Whether the batched layers run as one :mod:`lcrl.nets.fused` function: float32
+        outside autocast and compilation, without task heads."""
+        return (
+            not self.task_heads
+            and h.dtype == torch.float32
+            and self.layers[0].weight.dtype == torch.float32
+            and not torch.is_autocast_enabled(h.device.type)
+            and not torch.compiler.is_compiling()
+        )
+
+    def min_value(
+        self,
+        obs: Mapping[str, torch.Tensor],
+        goal: torch.Tensor,
+        action: torch.Tensor | None = None,
+    ) -> torch.Tensor:
+        """``min_k Q_k`` per row, ``(B, out)``. With frozen parameters (an actor's loss)
+        and one output its backward pass runs each row through the smallest member only
+        (:class:`lcrl.nets.fused.EnsembleMin`); the same gradient as ``self(...).min(0)``."""
+        if self.batched and self.layers[-1].weight.shape[2] == 1:
+            h = self._inputs(obs, goal, action)
+            frozen = not any(p.requires_grad for p in self._params())
+            if frozen and self._fusable(h):
+                return EnsembleMin.apply(h, *self._params())
+            if self._fusable(h):
+                return EnsembleMLP.apply(h, *self._params()).min(0).values
+        return self(obs, goal, action).min(0).values
+
     def selection_logits(self, obs: Mapping[str, torch.Tensor], goal: torch.Tensor) -> torch.Tensor:
         """Each member's logits of the object slots the goal picks, ``(n, B, heads,
         count)``."""
@@ -279,12 +322,9 @@ class GoalConditionedEnsemble(nn.Module):
                 x, g = self._features(i, obs, goal, action)
                 outs.append(self.heads[i](x, g, task))
             return torch.stack(outs).float()
-        if self.shared:
-            h = torch.cat(self._features(0, obs, goal, action), -1)
-        else:
-            h = torch.stack(
-                [torch.cat(self._features(i, obs, goal, action), -1) for i in range(self.n)]
-            )
+        h = self._inputs(obs, goal, action)
+        if self._fusable(h):
+            return EnsembleMLP.apply(h, *self._params())
         last = len(self.layers) - (0 if self.task_heads else 1)
         for k, layer in enumerate(self.layers):
             h = layer(h)
