@@ -2,12 +2,10 @@
 autograd through :class:`lcrl.nets.layers.BatchedLinear` layers and ReLUs, in fewer and
 cheaper kernels.
 
-Autograd runs a ReLU's backward as a separate kernel with a new tensor, a one-output
-layer's weight gradient as a product and a sum over a ``(n, B, H)`` temporary, and then
-copies every gradient once more into ``.grad``. :class:`EnsembleMLP` masks the gradient in
-place, takes the one-output layer's weight gradient as one batched product and skips
-what no input asks for; on this machine's CPU a float32 critic step of two 256x256
-members at batch 256 takes about a quarter less time (``benchmarks/update_floor.py``).
+Autograd takes a one-output layer's weight gradient as a product and a sum over an
+``(n, B, H)`` temporary, and runs each layer's backward node by node. :class:`EnsembleMLP`
+takes that weight gradient as one batched product, each ReLU's gradient as one kernel, and
+skips what no input asks for. ``benchmarks/update_floor.py`` times the whole update.
 
 :class:`EnsembleMin` is the actor's view of frozen critics, ``min_k Q_k``: the gradient of
 a row flows through the member that is smallest there only, so its backward pass runs
