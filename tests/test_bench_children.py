@@ -70,3 +70,36 @@ def test_a_pool_worker_that_trains_beside_others_keeps_one_thread():
     ctx = multiprocessing.get_context("spawn")
     with ProcessPoolExecutor(1, mp_context=ctx, initializer=one_thread_worker) as pool:
         assert pool.submit(_trainer_threads).result(timeout=120) == 1
+
+
+@pytest.mark.parametrize(
+    ("flags", "expected"),
+    [
+        ("fpu sse2 avx avx2 fma", "avx2"),
+        ("avx2 avx512f avx512bw", "avx512"),
+        ("avx2 avx512f avx512_bf16", "avx512, bf16"),
+        ("fpu sse2", ""),
+    ],
+)
+def test_result_files_name_the_cpu_s_vector_instructions(tmp_path, flags, expected):
+    """Two machines of one model name can differ 2x in float32 products: the machine
+    line says which instructions the figures had."""
+    from train.runtime.machine import cpu_features, machine_line
+
+    info = tmp_path / "cpuinfo"
+    info.write_text(f"processor\t: 0\nmodel name\t: AMD EPYC\nflags\t\t: {flags}\n")
+    assert cpu_features(str(info)) == expected
+    assert cpu_features(str(tmp_path / "missing")) == ""
+    line = machine_line(
+        {
+            "cpu": "AMD EPYC",
+            "cpu_features": expected,
+            "cores": 2,
+            "memory_gib": 23.5,
+            "python": "3.11",
+            "torch": "2.13.0",
+            "torch_threads": 1,
+            "date": "2026-12-06",
+        }
+    )
+    assert line.startswith(f"AMD EPYC ({expected}), 2 cores" if expected else "AMD EPYC, 2 cores")

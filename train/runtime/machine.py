@@ -207,6 +207,24 @@ def cpu_name() -> str:
     return platform.processor() or platform.machine()
 
 
+def cpu_features(cpuinfo: str = "/proc/cpuinfo") -> str:
+    """The CPU's widest vector instructions and whether it multiplies bfloat16 natively,
+    from ``/proc/cpuinfo`` (``"avx2"``, ``"avx512"``, ``"avx512, bf16"``; ``""`` where
+    unknown): two machines of one model name can differ by 2x in float32 products."""
+    try:
+        with open(cpuinfo) as f:
+            flags = next(
+                (line.split(":", 1)[1].split() for line in f if line.startswith("flags")), []
+            )
+    except OSError:
+        return ""
+    wide = next((w for w in ("avx512f", "avx2", "avx") if w in flags), "")
+    out = [wide.removesuffix("f")] if wide else []
+    if "avx512_bf16" in flags or "amx_bf16" in flags:
+        out.append("bf16")
+    return ", ".join(out)
+
+
 def machine() -> dict[str, Any]:
     """CPU, cores, memory, Python and torch versions, GPU if any."""
     cpu = cpu_name()
@@ -218,6 +236,7 @@ def machine() -> dict[str, Any]:
         pass
     info: dict[str, Any] = {
         "cpu": cpu,
+        "cpu_features": cpu_features(),
         "cores": os.cpu_count(),
         "memory_gib": mem_gib,
         "python": platform.python_version(),
@@ -233,8 +252,9 @@ def machine() -> dict[str, Any]:
 def machine_line(info: dict[str, Any]) -> str:
     """One-line machine description for figure captions and tables."""
     gpu = f", {info['gpu']}" if "gpu" in info else ""
+    features = f" ({info['cpu_features']})" if info.get("cpu_features") else ""
     return (
-        f"{info['cpu']}, {info['cores']} cores, {info['memory_gib']} GiB{gpu}; "
+        f"{info['cpu']}{features}, {info['cores']} cores, {info['memory_gib']} GiB{gpu}; "
         f"Python {info['python']}, torch {info['torch']} ({info['torch_threads']} threads); "
         f"{info['date']}"
     )
