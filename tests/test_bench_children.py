@@ -82,8 +82,7 @@ def test_a_pool_worker_that_trains_beside_others_keeps_one_thread():
     ],
 )
 def test_result_files_name_the_cpu_s_vector_instructions(tmp_path, flags, expected):
-    """Two machines of one model name can differ 2x in float32 products: the machine
-    line says which instructions the figures had."""
+    """The machine line says which vector instructions the figures had."""
     from train.runtime.machine import cpu_features, machine_line
 
     info = tmp_path / "cpuinfo"
