@@ -290,14 +290,14 @@ class GoalConditionedEnsemble(nn.Module):
         """``min_k Q_k`` per row, ``(B, out)``. With frozen parameters (an actor's loss)
         and one output its backward pass runs each row through the smallest member only
         (:class:`lcrl.nets.fused.EnsembleMin`); the same gradient as ``self(...).min(0)``."""
-        if self.batched and self.layers[-1].weight.shape[2] == 1:
-            h = self._inputs(obs, goal, action)
-            frozen = not any(p.requires_grad for p in self._params())
-            if frozen and self._fusable(h):
-                return EnsembleMin.apply(h, *self._params())
-            if self._fusable(h):
-                return EnsembleMLP.apply(h, *self._params()).min(0).values
-        return self(obs, goal, action).min(0).values
+        if not self.batched:
+            return self(obs, goal, action).min(0).values
+        h = self._inputs(obs, goal, action)
+        params = self._params()
+        one_output = params[-2].shape[2] == 1
+        if self._fusable(h) and one_output and not any(p.requires_grad for p in params):
+            return EnsembleMin.apply(h, *params)
+        return self._batched(h, goal).min(0).values
 
     def selection_logits(self, obs: Mapping[str, torch.Tensor], goal: torch.Tensor) -> torch.Tensor:
         """Each member's logits of the object slots the goal picks, ``(n, B, heads,
@@ -315,14 +315,17 @@ class GoalConditionedEnsemble(nn.Module):
         goal: torch.Tensor,
         action: torch.Tensor | None = None,
     ) -> torch.Tensor:
-        task = goal.argmax(-1) if self.task_heads else None
         if not self.batched:
+            task = goal.argmax(-1) if self.task_heads else None
             outs = []
             for i in range(self.n):
                 x, g = self._features(i, obs, goal, action)
                 outs.append(self.heads[i](x, g, task))
             return torch.stack(outs).float()
-        h = self._inputs(obs, goal, action)
+        return self._batched(self._inputs(obs, goal, action), goal)
+
+    def _batched(self, h: torch.Tensor, goal: torch.Tensor) -> torch.Tensor:
+        """The batched layers (and task heads) on their input ``h``: ``(n, B, out)``."""
         if self._fusable(h):
             return EnsembleMLP.apply(h, *self._params())
         last = len(self.layers) - (0 if self.task_heads else 1)
@@ -331,5 +334,5 @@ class GoalConditionedEnsemble(nn.Module):
             if k < last:
                 h = F.relu(h)
         if self.task_heads:
-            return self.out_heads(h, task).float()
+            return self.out_heads(h, goal.argmax(-1)).float()
         return h.float()
