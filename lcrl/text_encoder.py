@@ -48,7 +48,7 @@ import importlib
 import os
 import sqlite3
 import warnings
-from collections.abc import Sequence
+from collections.abc import Iterator, Sequence
 from dataclasses import dataclass
 from typing import Any
 
@@ -246,8 +246,9 @@ class FrozenTextEncoder:
         """The frozen model's last hidden state of every token, not pooled (uncached).
 
         Token-level readers (attention over the words of an instruction) start here.
-        Each text is run on its own length, as :meth:`encode` does, so its states do not
-        depend on the other texts; rows are then padded to the longest.
+        Texts are run in batches of one token count, as :meth:`encode` runs them, so a
+        text's states do not depend on the other texts; rows are then padded to the
+        longest.
 
         Args:
             texts: The texts.
@@ -261,18 +262,17 @@ class FrozenTextEncoder:
             TextEncoderError: as :meth:`encode`.
         """
         items = _check_texts(texts)
-        enc = self._tokenizer(
-            items, truncation=True, max_length=self._max_length, return_attention_mask=True
-        )
-        longest = max((len(ids) for ids in enc["input_ids"]), default=0)
+        with torch.inference_mode():
+            found: list[tuple[list[int], np.ndarray]] = [
+                (rows, self._model(**batch)[0].float().cpu().numpy())
+                for rows, batch in self._batches(items)
+            ]
+        longest = max((hidden.shape[1] for _, hidden in found), default=0)
         states = np.zeros((len(items), longest, self.dim), np.float32)
         mask = np.zeros((len(items), longest), bool)
-        with torch.inference_mode():
-            for i in range(len(items)):
-                batch = {k: torch.tensor([enc[k][i]] * 2, device=self._device) for k in enc}
-                hidden = self._model(**batch)[0][0].float().cpu().numpy()
-                states[i, : len(hidden)] = hidden
-                mask[i, : len(hidden)] = True
+        for rows, hidden in found:
+            states[rows, : hidden.shape[1]] = hidden[: len(rows)]
+            mask[rows, : hidden.shape[1]] = True
         return states, mask
 
     def cache_size(self) -> int:
@@ -297,6 +297,23 @@ class FrozenTextEncoder:
 
     def _forward(self, texts: list[str]) -> list[np.ndarray]:
         """Run the model on ``texts`` (distinct, not cached); return one vector per text."""
+        out: list[np.ndarray | None] = [None] * len(texts)
+        with torch.inference_mode():
+            for rows, batch in self._batches(texts):
+                vectors = self._pool(batch).cpu().numpy()
+                for j, i in enumerate(rows):
+                    vec = vectors[j].copy()
+                    vec.setflags(write=False)
+                    out[i] = vec
+        return out  # type: ignore[return-value]
+
+    def _batches(self, texts: list[str]) -> Iterator[tuple[list[int], dict[str, torch.Tensor]]]:
+        """``texts`` tokenised in batches of one token count each: the indices of its rows
+        and the model's inputs.
+
+        No batch holds padding, so a text's outputs do not depend on its batch-mates. A
+        one-row batch would take a different (matrix-vector) kernel whose rounding
+        differs: it runs two copies of the row, so results match any other batch."""
         enc = self._tokenizer(
             texts,
             truncation=True,
@@ -305,30 +322,19 @@ class FrozenTextEncoder:
             return_attention_mask=True,
         )
         keys = list(enc.keys())
-        # Group by token count so no batch holds padding: a text's vector then does not
-        # depend on its batch-mates.
         by_length: dict[int, list[int]] = {}
         for i, ids in enumerate(enc["input_ids"]):
             by_length.setdefault(len(ids), []).append(i)
-        out: list[np.ndarray | None] = [None] * len(texts)
-        with torch.inference_mode():
-            for length in sorted(by_length):
-                group = by_length[length]
-                for start in range(0, len(group), self._batch_size):
-                    rows = group[start : start + self._batch_size]
-                    # A one-row batch takes a different (matrix-vector) kernel whose
-                    # rounding differs; run two copies so results match any other batch.
-                    run_rows = rows if len(rows) > 1 else rows * 2
-                    batch = {
-                        k: torch.tensor([enc[k][i] for i in run_rows], device=self._device)
-                        for k in keys
-                    }
-                    vectors = self._pool(batch).cpu().numpy()
-                    for j, i in enumerate(rows):
-                        vec = vectors[j].copy()
-                        vec.setflags(write=False)
-                        out[i] = vec
-        return out  # type: ignore[return-value]
+        for length in sorted(by_length):
+            group = by_length[length]
+            for start in range(0, len(group), self._batch_size):
+                rows = group[start : start + self._batch_size]
+                run_rows = rows if len(rows) > 1 else rows * 2
+                batch = {
+                    k: torch.tensor([enc[k][i] for i in run_rows], device=self._device)
+                    for k in keys
+                }
+                yield rows, batch
 
     def _pool(self, batch: dict[str, torch.Tensor]) -> torch.Tensor:
         """Masked mean of the last hidden states, L2-normalised, as float32."""

@@ -71,21 +71,39 @@ class TokenReader(nn.Module):
 
     def forward(self, states: torch.Tensor, mask: torch.Tensor) -> dict[str, torch.Tensor]:
         """Logits per slot for token states ``(B, T, dim)`` with their mask ``(B, T)``."""
-        x = (states - self.mean) / self.std
+        return self.read((states - self.mean) / self.std, mask)
+
+    def read(self, x: torch.Tensor, mask: torch.Tensor) -> dict[str, torch.Tensor]:
+        """Logits per slot for token states already standardised by ``mean`` and ``std``."""
         w = self.query(x).masked_fill(~mask.unsqueeze(-1), -1e9).softmax(1)  # (B, T, Q)
-        pooled = torch.einsum("btq,btd->bqd", w, x)
+        pooled = torch.bmm(w.transpose(1, 2), x)  # (B, Q, dim)
         if not self.per_slot:
             h = self.hidden(pooled.flatten(1))
             return {k: head(h) for k, head in self.heads.items()}
-        q = self.queries  # slot i reads the pooled vectors of its queries i*q .. (i+1)*q
+        # slot i reads the pooled vectors of its queries i*q .. (i+1)*q; unbind, not
+        # slicing, so that the backward pass stacks the slots' gradients instead of
+        # adding each into a zero-filled copy of the whole pooled tensor
+        per_slot = pooled.reshape(len(pooled), len(self.slots), -1).unbind(1)
         return {
-            k: self.heads[k](self.hidden[k](pooled[:, i * q : (i + 1) * q].flatten(1)))
-            for i, k in enumerate(self.slots)
+            k: self.heads[k](self.hidden[k](v)) for k, v in zip(self.slots, per_slot, strict=True)
         }
 
     def probabilities(self, states: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
         """Every slot's value probabilities, one slot after another, ``(B, out_dim)``."""
         return torch.cat([v.softmax(-1) for v in self(states, mask).values()], -1)
+
+
+def keep_mask(shape: torch.Size, p: float, gen: torch.Generator) -> torch.Tensor:
+    """Dropout's mask: uint8 ones and zeros of ``shape``, each zero with probability ``p``
+    rounded to a multiple of 1/256 (exact for 0.5). One random byte per element, drawn as
+    64-bit integers eight bytes at a time, and a product with uint8 rather than a
+    boolean fill: on a CPU about 4x faster than ``torch.rand`` and ``masked_fill_``."""
+    count = int(np.prod(shape))
+    words = torch.randint(
+        -(2**63), 2**63 - 1, ((count + 7) // 8,), dtype=torch.int64, generator=gen
+    )
+    drawn = words.view(torch.uint8)[:count].view(shape)
+    return (drawn >= min(round(p * 256), 255)).view(torch.uint8)
 
 
 def fit_reader(
@@ -133,20 +151,24 @@ def fit_reader(
     real = x[m]
     reader.mean.copy_(real.mean(0))
     reader.std.copy_(real.std(0) + 1e-6)
+    # the reader reads (states * keep / (1 - dropout) - mean) / std: scaled once here, a
+    # step then zeroes the dropped features (keep_mask) and subtracts mean / std in place
+    scaled = x / (reader.std * (1.0 - dropout))
+    shift = reader.mean / reader.std
     y = {k: torch.as_tensor(np.asarray(v, np.int64)) for k, v in labels.items()}
     opt = torch.optim.Adam(reader.parameters(), 1e-3)
     n = len(x)
     for _ in range(int(steps)):
         # minibatches and dropout are drawn from the seed's generator: the same seed
         # fits the same reader
-        xb, mb, yb = x, m, y
         if 0 < batch_size < n:
             rows = torch.randint(0, n, (int(batch_size),), generator=gen)
-            xb, mb, yb = x[rows], m[rows], {k: v[rows] for k, v in y.items()}
+            xb, mb, yb = scaled[rows], m[rows], {k: v[rows] for k, v in y.items()}
+        else:
+            xb, mb, yb = scaled.clone(), m, y
         if dropout:
-            keep = torch.rand(xb.shape, generator=gen) >= dropout
-            xb = xb * keep / (1.0 - dropout)
-        logits = reader(xb, mb)
+            xb.mul_(keep_mask(xb.shape, dropout, gen))
+        logits = reader.read(xb.sub_(shift), mb)
         loss = sum(F.cross_entropy(logits[k], yb[k]) for k in reader.slots)
         opt.zero_grad()
         loss.backward()
