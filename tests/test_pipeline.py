@@ -17,16 +17,16 @@ from lcrl.checkpoint import verify_checkpoint
 from lcrl.errors import LcrlError
 
 SMALL = [
-    "--perception-episodes", "120",
-    "--perception-steps", "200",
-    "--teacher-steps", "1500",
+    "--perception-episodes", "80",
+    "--perception-steps", "100",
+    "--teacher-steps", "1000",
     "--rounds", "3",
-    "--episodes-per-round", "8",
-    "--updates-per-round", "200",
+    "--episodes-per-round", "6",
+    "--updates-per-round", "100",
     "--student-frames", "8",
-    "--perception-ft-steps", "60",
+    "--perception-ft-steps", "30",
     "--rounds-ft", "1",
-    "--eval-episodes", "10",
+    "--eval-episodes", "4",
     "--no-reader",
     "--threads", "1",
 ]  # fmt: skip
