@@ -9,7 +9,7 @@ from helpers import tiny
 
 from lcrl.checkpoint import load_checkpoint
 from lcrl.errors import LcrlError
-from lcrl.text_reader import ReadingEncoder, fit_reader
+from lcrl.text_reader import ReadingEncoder, fit_reader, keep_mask
 from train.environments.text_reading import SLOT_VALUES, reading_encoder
 from train.evaluation.evaluate import resolve_checkpoint
 from train.training.loop import Trainer
@@ -56,6 +56,24 @@ def test_reader_dropout_is_seeded_learns_and_refuses_bad_values():
     for bad in (-0.1, 1.0):
         with pytest.raises(ValueError, match="dropout"):
             fit_reader(states, mask, dropout=bad, **fit)
+
+
+@pytest.mark.parametrize("p", [0.5, 0.3, 0.9])
+def test_the_dropout_mask_zeroes_the_fraction_asked_from_the_generator(p):
+    """keep_mask: uint8 ones and zeros, zeros at rate p (to 1/256), an odd element count
+    included, drawn from the generator given (the same seed gives the same mask)."""
+    shape = torch.Size((64, 7, 33))
+    a = keep_mask(shape, p, torch.Generator().manual_seed(5))
+    b = keep_mask(shape, p, torch.Generator().manual_seed(5))
+    c = keep_mask(shape, p, torch.Generator().manual_seed(6))
+    assert a.shape == shape and a.dtype == torch.uint8 and set(a.unique().tolist()) == {0, 1}
+    assert torch.equal(a, b) and not torch.equal(a, c)
+    dropped = 1.0 - a.float().mean().item()
+    assert abs(dropped - round(p * 256) / 256) < 0.01, dropped
+    # the product keeps the kept elements as they are and zeroes the rest
+    x = torch.randn(shape)
+    kept = x * a
+    assert torch.equal(kept[a == 1], x[a == 1]) and (kept[a == 0] == 0).all()
 
 
 class _Encoder:
