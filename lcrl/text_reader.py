@@ -129,8 +129,8 @@ def fit_reader(
         steps: gradient steps.
         seed: the initialisation's seed.
         dropout: the fraction of token-state features zeroed at each step, to 1/256
-            (:func:`keep_mask`; a fresh mask every step; none when reading), so that no single feature direction of the
-            words seen in training decides a slot alone.
+            (:func:`keep_mask`; a fresh mask every step; none when reading), so that no
+            single feature direction of the words seen in training decides a slot alone.
         per_slot, queries, hidden: the reader's design (:class:`TokenReader`).
         batch_size: texts per step, drawn with replacement from the seed's generator; 0
             (or at least the number of texts): every text at every step. Fitted on
