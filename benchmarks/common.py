@@ -22,6 +22,7 @@ __all__ = [
     "RESULTS_DIR",
     "add_arm_options",
     "add_report_only",
+    "by_machine",
     "caption",
     "child_env",
     "command",
@@ -33,6 +34,7 @@ __all__ = [
     "git_commit",
     "keep_timings",
     "machine",
+    "machine_kind",
     "machine_line",
     "new_figure",
     "publish",
@@ -230,11 +232,44 @@ def tried_entries(previous: Sequence[str], given: Sequence[str], run: str) -> li
     return entries
 
 
-def save_json(name: str, payload: dict[str, Any], tried: Sequence[str] = ()) -> Path:
+def machine_kind(info: dict[str, Any]) -> str:
+    """A machine's CPU and its instruction sets, as ``by_machine`` names it."""
+    features = info.get("cpu_features")
+    return f"{info.get('cpu', 'unknown CPU')} ({features})" if features else info.get("cpu", "")
+
+
+def by_machine(old: dict[str, Any], payload: dict[str, Any], keys: Sequence[str]) -> dict:
+    """The latest ``keys`` of the headline on each kind of machine the result was measured
+    on: the file's earlier record (or, in a file from before the record, its own headline),
+    with this run's figures under this machine's kind."""
+    table = dict(old.get("by_machine") or {})
+    if not table and isinstance(old.get("machine"), dict) and "headline" in old:
+        table[machine_kind(old["machine"])] = {
+            **{k: old["headline"][k] for k in keys if k in old["headline"]},
+            "git": old.get("git"),
+            "date": old["machine"].get("date", old.get("date")),
+        }
+    table[machine_kind(payload["machine"])] = {
+        **{k: payload["headline"][k] for k in keys if k in payload["headline"]},
+        "git": payload["git"],
+        "date": payload["machine"].get("date", payload["date"]),
+    }
+    return table
+
+
+def save_json(
+    name: str,
+    payload: dict[str, Any],
+    tried: Sequence[str] = (),
+    by_machine_keys: Sequence[str] = (),
+) -> Path:
     """Write ``results/<name>.json``. The payload gives its ``headline`` and ``machine``;
     the harness adds the ``command`` (this process's, unless given), the ``git`` commit the
     figures were measured on, the ``date`` and ``tried``: the variants ``tried`` (and the
-    payload's own ``tried``) after those the file already listed, then this run."""
+    payload's own ``tried``) after those the file already listed, then this run. With
+    ``by_machine_keys``, ``by_machine`` keeps those headline keys of the latest run on each
+    kind of machine (:func:`by_machine`): a speed measured on one CPU does not replace
+    another CPU's."""
     from lcrl.errors import LcrlError
 
     missing = [key for key in ("headline", "machine") if key not in payload]
@@ -247,11 +282,17 @@ def save_json(name: str, payload: dict[str, Any], tried: Sequence[str] = ()) -> 
     payload.setdefault("git", git_commit())
     payload.setdefault("date", time.strftime("%Y-%m-%d"))
     previous: list[str] = []
+    old: dict[str, Any] = {}
     if path.is_file():
         try:
-            previous = list(json.loads(path.read_text()).get("tried", []))
+            old = json.loads(path.read_text())
+            previous = list(old.get("tried", []))
         except (ValueError, AttributeError):
-            previous = []
+            previous, old = [], {}
+    if by_machine_keys:
+        payload["by_machine"] = by_machine(
+            old if isinstance(old, dict) else {}, payload, by_machine_keys
+        )
     run = f"{payload['command']} (git {payload['git']}, {payload['date']})"
     given = [*payload.get("tried", []), *reported_variants(payload), *tried]
     payload["tried"] = tried_entries(previous, given, run)

@@ -28,6 +28,7 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
+import json
 import shutil
 import statistics
 import tempfile
@@ -52,6 +53,26 @@ WARMUP = 1_000
 BATCH = 256
 HIDDEN = (256, 256)
 TARGET = 1.5
+
+
+#: The headline's ratios, kept per kind of machine (``by_machine``).
+RATIO_KEYS = ("ratio_1thread", "ratio_2threads", "ratio_1thread_bf16", "ratio_2threads_bf16")
+
+
+def machines_rows(table: dict[str, dict]) -> list[str]:
+    """The latest ratios on each kind of machine, as Markdown."""
+    rows = [
+        "",
+        "## Each kind of machine (the latest run on it)",
+        "",
+        "| machine | fp32, 1 thread | fp32, 2 threads | bf16, 1 thread | bf16, 2 threads "
+        "| git, date |",
+        "|---|---:|---:|---:|---:|---|",
+    ]
+    for kind, r in table.items():
+        cells = [f"{r[k]:.2f}x" if k in r else "-" for k in RATIO_KEYS]
+        rows.append(f"| {kind} | {' | '.join(cells)} | {r.get('git')}, {r.get('date')} |")
+    return rows
 
 
 def time_lcrl(steps: int, seed: int, precision: str = "fp32") -> float:
@@ -259,9 +280,7 @@ def main(argv: list[str] | None = None) -> int:
         ]
     if args.note:
         rows += ["", "## What changed in this measurement", "", args.note]
-    table = "\n".join(rows)
-    print(table)
-    save_json(
+    path = save_json(
         "speed_vs_sb3",
         {
             "headline": headline,
@@ -277,7 +296,11 @@ def main(argv: list[str] | None = None) -> int:
             "steps": args.steps,
             "rounds": args.rounds,
         },
+        by_machine_keys=RATIO_KEYS,
     )
+    rows += machines_rows(json.loads(path.read_text())["by_machine"])
+    table = "\n".join(rows)
+    print(table)
     save_markdown("speed_vs_sb3", "Training speed: lcrl vs Stable-Baselines3", table, info)
     fig, ax = plt.subplots(figsize=(6, 3.8))
     width = 0.27

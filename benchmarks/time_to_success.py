@@ -251,6 +251,7 @@ def main(argv: list[str] | None = None) -> int:
             "earlier_runs": [*before.get("earlier_runs", []), *replaced],
         },
         tried=replaced,
+        by_machine_keys=("preset_s", "final_seen_preset", "preset_s_per_seed"),
     )
 
     def fmt(s: float | None) -> str:

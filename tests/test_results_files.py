@@ -53,6 +53,34 @@ def test_save_json_adds_provenance_and_keeps_what_earlier_runs_tried(tmp_path, m
     assert json.loads(common.save_json("y", {"headline": {}, "machine": {}}).read_text())["command"]
 
 
+def test_save_json_keeps_the_latest_figures_of_each_kind_of_machine(tmp_path, monkeypatch):
+    import benchmarks.common as common
+
+    monkeypatch.setattr(common, "RESULTS_DIR", tmp_path)
+    monkeypatch.setattr(common, "git_commit", lambda: "g1")
+    amd = {"cpu": "AMD EPYC", "cpu_features": "avx2", "date": "d1"}
+    intel = {"cpu": "Xeon", "cpu_features": "avx512", "date": "d2"}
+    # a file from before the record: its own headline becomes its machine's entry
+    old = {"headline": {"r": 1.4, "other": 0}, "machine": amd, "git": "g0", "tried": ["t"]}
+    (tmp_path / "x.json").write_text(json.dumps(old))
+    doc = json.loads(
+        common.save_json(
+            "x", {"headline": {"r": 1.6}, "machine": intel}, by_machine_keys=["r"]
+        ).read_text()
+    )
+    assert doc["by_machine"] == {
+        "AMD EPYC (avx2)": {"r": 1.4, "git": "g0", "date": "d1"},
+        "Xeon (avx512)": {"r": 1.6, "git": "g1", "date": "d2"},
+    }
+    # a new run on one kind replaces that kind's entry only
+    again = {"headline": {"r": 1.45}, "machine": {**amd, "date": "d3"}}
+    doc = json.loads(common.save_json("x", again, by_machine_keys=["r"]).read_text())
+    assert doc["by_machine"]["AMD EPYC (avx2)"] == {"r": 1.45, "git": "g1", "date": "d3"}
+    assert doc["by_machine"]["Xeon (avx512)"]["r"] == 1.6
+    # without the keys, no record is written
+    assert "by_machine" not in json.loads(common.save_json("z", again).read_text())
+
+
 def test_the_results_index_and_the_readme_are_short():
     index = (RESULTS / "README.md").read_text()
     assert len(index.encode()) < 12 * 1024, "benchmarks/results/README.md is 12 KB or more"
