@@ -234,8 +234,8 @@ def tried_entries(previous: Sequence[str], given: Sequence[str], run: str) -> li
 
 def machine_kind(info: dict[str, Any]) -> str:
     """A machine's CPU and its instruction sets, as ``by_machine`` names it."""
-    features = info.get("cpu_features")
-    return f"{info.get('cpu', 'unknown CPU')} ({features})" if features else info.get("cpu", "")
+    cpu, features = info.get("cpu", "unknown CPU"), info.get("cpu_features")
+    return f"{cpu} ({features})" if features else cpu
 
 
 def by_machine(old: dict[str, Any], payload: dict[str, Any], keys: Sequence[str]) -> dict:
@@ -290,9 +290,7 @@ def save_json(
         except (ValueError, AttributeError):
             previous, old = [], {}
     if by_machine_keys:
-        payload["by_machine"] = by_machine(
-            old if isinstance(old, dict) else {}, payload, by_machine_keys
-        )
+        payload["by_machine"] = by_machine(old, payload, by_machine_keys)
     run = f"{payload['command']} (git {payload['git']}, {payload['date']})"
     given = [*payload.get("tried", []), *reported_variants(payload), *tried]
     payload["tried"] = tried_entries(previous, given, run)
