@@ -85,6 +85,11 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--threads", type=int, default=1)
     p.add_argument("--work", default="runs/bench/preset-settings")
     p.add_argument(
+        "--name",
+        default="",
+        help="result file name (default preset-settings-PRESET), for a second screen of a preset",
+    )
+    p.add_argument(
         "--total-steps",
         type=int,
         default=0,
@@ -116,7 +121,7 @@ def main(argv: list[str] | None = None) -> int:
             "per_seed": {r["seed"]: r["seconds"] for r in mine},
         }
     chosen = choose(arms)
-    name = f"preset-settings-{args.preset}"
+    name = args.name or f"preset-settings-{args.preset}"
     info = machine()
     headline = {
         **{f"{a}_s": v["seconds"] for a, v in arms.items()},

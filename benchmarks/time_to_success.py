@@ -56,11 +56,11 @@ from train.runtime.machine import available_cores
 NAME = "time_to_success"
 PRESET = "lang2d"
 #: The loop the lang2d preset trained with before: one environment, batch 256.
-OLD_OPTIONS = ["--collect.envs", "1", "--batch-size", "256"]
+OLD_OPTIONS = ["--collect.envs", "1", "--batch-size", "256", "--updates-per-step", "1"]
 #: The new settings: 8 environments acting in one batched forward pass, batch 128 (an
 #: update costs about 0.7 of one at 256, and a 50k-step run learned at least as fast per
 #: step). Both arms name their settings, so the comparison holds whatever the preset says.
-NEW_OPTIONS = ["--collect.envs", "8", "--batch-size", "128"]
+NEW_OPTIONS = ["--collect.envs", "8", "--batch-size", "128", "--updates-per-step", "1"]
 #: The new settings with their updates under bfloat16 autocast.
 BF16_OPTIONS = [*NEW_OPTIONS, "--agent.precision", "bf16"]
 #: The preset exactly as shipped: no option added.

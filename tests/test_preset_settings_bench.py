@@ -45,6 +45,11 @@ def test_the_soonest_arm_that_keeps_the_final_success_is_chosen(tmp_path, monkey
         assert c[c.index("--torch-threads") + 1] == "1"
         assert c[c.index("--eval-every") + 1] == "1000"
         assert "--total-steps" not in c  # the preset's own budget unless one is given
+    # a second screen of the same preset reads the same runs into a file of its own
+    assert ps.main(["lang2d-quick", "--work", str(tmp_path / "work"), "--name", "second"]) == 0
+    assert len(calls) == 4  # finished runs are read, not trained again
+    again = json.loads((tmp_path / "results" / "second.json").read_text())
+    assert again["headline"] == head
 
 
 def test_every_arm_gets_the_same_budget_when_one_is_given(tmp_path):
