@@ -234,6 +234,30 @@ def test_flat_adam_matches_torch_adam():
     assert_views([p.grad for p in flat_model.parameters()], opt.grad)
 
 
+def test_flat_adam_sets_moments_to_zero_before_they_become_subnormal():
+    from lcrl.nets import optim
+
+    w = torch.nn.Parameter(torch.zeros(3))
+    opt = FlatAdam([w], lr=1e-3)
+    opt.grad.copy_(torch.tensor([1e-3, 1.0, 0.0]))
+    opt.step()  # then the gradient of the first entry stays zero, as a unit ReLU keeps off
+    opt.grad.copy_(torch.tensor([0.0, 1.0, 0.0]))
+    tiny = torch.finfo(torch.float32).tiny  # the smallest normal float32
+    m = []
+    for _ in range(3 * optim.FLUSH_EVERY * 4):
+        opt.step()
+        m.append(float(opt.exp_avg[0]))
+        assert not 0.0 < abs(m[-1]) < tiny  # never subnormal
+    # 1e-4 * 0.9**k falls below the threshold after about 610 steps and is zero at the
+    # next multiple of FLUSH_EVERY; without the flush it would still be about 1e-33 there
+    i = m.index(0.0)
+    assert (i + 2) % optim.FLUSH_EVERY == 0  # m[i] is that of step i + 2
+    assert 0.0 < m[i - 1] < optim.FLUSH_BELOW <= m[i - 1 - optim.FLUSH_EVERY]
+    assert m[i - 1] > 1e4 * tiny  # still far from subnormal when it was flushed
+    assert float(opt.exp_avg[1]) == pytest.approx(1.0)  # a live moment is untouched
+    assert float(opt.exp_avg_sq[0]) > 0.0  # the second moment decays far more slowly
+
+
 def test_flat_adam_state_round_trip_keeps_views():
     model = small_mlp(0)
     opt = FlatAdam(model.parameters(), lr=1e-2)

@@ -148,8 +148,21 @@ def flatten_parameters(params: Sequence[nn.Parameter]) -> tuple[torch.Tensor, to
     return flat, grads
 
 
+#: Adam moments below this are set to zero every :data:`FLUSH_EVERY` steps (see FlatAdam).
+FLUSH_BELOW = 1e-30
+FLUSH_EVERY = 64
+
+
 class FlatAdam:
     """Adam over parameters packed by :func:`flatten_parameters` (optional grad clipping).
+
+    The first moment of a parameter whose gradient stays zero (a unit that ReLU keeps
+    off) shrinks by ``beta1`` each step until it is subnormal, and arithmetic on subnormal
+    floats is many times slower on x86 CPUs: after a thousand updates on FetchReach the
+    critics' Adam step took 0.84 ms instead of 0.07. Every :data:`FLUSH_EVERY` steps the
+    moments below :data:`FLUSH_BELOW` are set to zero, before any of them can reach the
+    subnormal range (1.2e-38) at ``beta1 = 0.9``; the parameter change this drops is
+    below ``lr * 1e-30 / eps``.
 
     Args:
         params: the parameters (flattened here, in place).
@@ -195,6 +208,9 @@ class FlatAdam:
             if norm > self.max_grad_norm:
                 g.mul_(self.max_grad_norm / (norm + 1e-6))
         self.step_count += 1
+        if self.step_count % FLUSH_EVERY == 0:
+            for moment in (self.exp_avg, self.exp_avg_sq):
+                moment.masked_fill_(moment.abs() < FLUSH_BELOW, 0.0)
         b1, b2 = self.betas
         if self._fused:
             self._step_t.fill_(self.step_count)
