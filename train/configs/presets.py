@@ -247,8 +247,8 @@ PRESETS: dict[str, tuple[str, TrainConfig]] = {
         "exploration episodes, 8 environments at once, batches of 128, an update every "
         "second step, 100k steps",
         # half an update per step, chosen on validation seeds 100-103: 80% seen success in
-        # 226-378 s of training against 312-594 s, final seen success at 60k steps 0.94
-        # against 0.93 (benchmarks/results/preset-settings-lang2d-60k.md)
+        # 226-378 s of training against 312-594 s; on seeds 102 and 103 final seen success
+        # at 60k steps 0.94 against 0.93 (benchmarks/results/preset-settings-lang2d-60k.md)
         _lang2d(updates_per_step=0.5, **FAST_2D),
     ),
     "lang2d-noher": (
