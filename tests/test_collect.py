@@ -47,7 +47,13 @@ def test_several_envs_train_with_batched_acting(tmp_path):
     """Past learning_starts the policy acts for all environments at once and updates
     follow every environment's steps; the run ends at its budget with every episode
     stored whole."""
-    cfg = tiny("lang2d", tmp_path / "run", collect=CollectionConfig(envs=4), total_steps=400)
+    cfg = tiny(
+        "lang2d",
+        tmp_path / "run",
+        collect=CollectionConfig(envs=4),
+        total_steps=400,
+        updates_per_step=1.0,  # the preset ships 0.5; this counts one update per step
+    )
     trainer = Trainer(cfg)
     try:
         trainer.advance()  # the first 4 episodes: no updates before anything is stored
