@@ -20,6 +20,10 @@ policy (seed 1001, ``camera``) and of the two teachers (seeds 1002 and 1003,
 ``teachers``). No setting is chosen here: steps, loss and thresholds are those
 ``captioner_heads`` chose on its validation episodes.
 
+``--perception MODEL`` trains and evaluates the same arms over another perception model
+(``--arms with-policy``: that arm alone), in folders and a result file named after the
+model's folder (``captioner-robosuite-policy-perception-80x3``).
+
 Datasets and checkpoints go to ``--work`` (default ``data/captioner-policy``); a stage
 whose output is there is not run again. Writes
 ``benchmarks/results/captioner-robosuite-policy.{json,md,png}``.
@@ -90,11 +94,23 @@ def merged(path: Path, parts: list[Path]) -> Path:
     return path
 
 
+def perception_tag(model: str) -> str:
+    """How the folders and the result of a run over another perception model than the kept
+    ``perception-3k`` are named: that model's folder (``perception-80x3``); empty for
+    ``perception-3k``."""
+    if Path(model) == Path(KEPT_PERCEPTION["robosuite"]):
+        return ""
+    path = Path(model)
+    return (path.parent if path.name == "model" else path).name
+
+
 def arm_args(args: argparse.Namespace, arm: str) -> argparse.Namespace:
-    """The ``captioner_heads`` arguments of one arm: the factored head, its own folder."""
+    """The ``captioner_heads`` arguments of one arm: the factored head, its own folder
+    (``ARM-TAG`` over another perception model, :func:`perception_tag`)."""
+    tag = perception_tag(args.perception)
     return argparse.Namespace(
         env="robosuite", heads=["factored"], seeds=args.seeds, steps=args.steps,
-        parallel=args.parallel, work=str(Path(args.work) / arm),
+        parallel=args.parallel, work=str(Path(args.work) / (f"{arm}-{tag}" if tag else arm)),
     )  # fmt: skip
 
 
@@ -103,6 +119,8 @@ def headline_of(results: dict[str, Any]) -> dict[str, Any]:
     arm's beside them."""
     head: dict[str, Any] = {}
     for arm, prefix in (("with-policy", ""), ("scripted", "scripted_")):
+        if arm not in results:
+            continue
         for split in SPLITS:
             s = summary(results[arm]["factored"][split])
             for key in KEYS:
@@ -120,7 +138,7 @@ def table(results: dict[str, Any]) -> str:
         "| held-out reward AUC |",
         "|---|---|---|---|---|---|",
     ]
-    for arm in ARMS:
+    for arm in results:
         for split in ("val", *SPLITS):
             s = summary(results[arm]["factored"][split])
             cells = [
@@ -138,7 +156,7 @@ def family_table(results: dict[str, Any]) -> str:
     seeds."""
     rows = ["| trained on | test set | family | seen | held-out combinations |"]
     rows.append("|---|---|---|---|---|")
-    for arm in ARMS:
+    for arm in results:
         for split in ("camera", "teachers"):
             per = results[arm]["factored"][split]
             seen, held = by_family(per, "seen"), by_family(per, "heldout_combinations")
@@ -159,7 +177,7 @@ def figure(results: dict[str, Any]) -> Any:
     fig, axes = new_figure(ncols=2, figsize=(10, 3.8))
     x = np.arange(len(SPLITS))
     for ax, key in zip(axes, KEYS[1::2], strict=True):
-        for i, arm in enumerate(ARMS):
+        for i, arm in enumerate(results):
             s = [summary(results[arm]["factored"][split])[key] for split in SPLITS]
             mean = np.array([v["mean"] for v in s])
             err = np.array(
@@ -179,8 +197,18 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--steps", type=int, default=3000, help="training steps per model")
     parser.add_argument("--parallel", type=int, default=2)
     parser.add_argument("--work", default="data/captioner-policy")
+    parser.add_argument(
+        "--perception",
+        default=KEPT_PERCEPTION["robosuite"],
+        help="the perception model the captioners read (a model other than the kept "
+        "perception-3k trains in ARM-NAME folders and writes "
+        "captioner-robosuite-policy-NAME, NAME its folder)",
+    )
+    parser.add_argument("--arms", nargs="+", choices=ARMS, default=list(ARMS))
     add_report_only(parser, "the checkpoints' evaluations in --work")
     args = parser.parse_args(argv)
+    if "with-policy" not in args.arms:
+        parser.error("--arms: the headline is the with-policy arm's; name it")
     work = Path(args.work)
     work.mkdir(parents=True, exist_ok=True)
     base = argparse.Namespace(env="robosuite", work=args.work)
@@ -198,9 +226,12 @@ def main(argv: list[str] | None = None) -> int:
             work / "robosuite-train-policy.h5", [train, *(s["train"] for s in sets.values())]
         ),
     }
-    model = Path(KEPT_PERCEPTION["robosuite"])
+    model = Path(args.perception)
+    if not (model / "meta.json").is_file():
+        raise SystemExit(f"captioner_policy: --perception {model} holds no perception model")
+    tag = perception_tag(args.perception)
     results: dict[str, Any] = {}
-    for arm in ARMS:
+    for arm in args.arms:
         a = arm_args(args, arm)
         if not args.report_only:
             train_heads(a, data[arm], model)
@@ -221,8 +252,9 @@ def main(argv: list[str] | None = None) -> int:
         "policies": {k: {"policy": v[0], "train": v[1], "test": v[2]} for k, v in POLICIES.items()},
         "summary": {
             arm: {s: summary(results[arm]["factored"][s]) for s in results[arm]["factored"]}
-            for arm in ARMS
+            for arm in results
         },
+        "perception": str(model),
         "results": results,
     }
     body = "\n\n".join(
@@ -237,7 +269,7 @@ def main(argv: list[str] | None = None) -> int:
         ]
     )
     publish(
-        "captioner-robosuite-policy", payload,
+        f"captioner-robosuite-policy-{tag}" if tag else "captioner-robosuite-policy", payload,
         "Learned captioner on robosuite: trained with and without the policies' episodes",
         body, figure(results),
     )  # fmt: skip

@@ -263,6 +263,15 @@ def main(argv: list[str] | None = None) -> int:
         "the image_policy.py reach run), to take as the rule runs instead of training them",
     )
     parser.add_argument(
+        "--rule-from",
+        default="",
+        metavar="DIR",
+        help="the rule runs of an earlier invocation's --keep DIR, trained by this "
+        "invocation's rule command: each seed's kept rule policy (DIR/rule/seedS) is "
+        "evaluated again at --eval-seed, its curve and seconds read from DIR/seedS.json; "
+        "only the learned runs train",
+    )
+    parser.add_argument(
         "--seeds",
         type=int,
         nargs="+",
@@ -306,7 +315,11 @@ def main(argv: list[str] | None = None) -> int:
     seeds = list(dict.fromkeys(args.seeds or [args.seed]))
     if args.reuse_rule and len(args.reuse_rule) != len(seeds):
         parser.error(f"--reuse-rule takes one run per seed ({len(seeds)}: {seeds})")
+    if args.rule_from and args.reuse_rule:
+        parser.error("--rule-from and --reuse-rule both name the rule runs: give one")
     per_seed = [seed_args(args, s, multi=len(seeds) > 1) for s in seeds]
+    for ns in per_seed if args.rule_from and not args.commands else ():
+        ns.rule_record = rule_record(args.rule_from, ns)
 
     if args.commands:
         for ns in per_seed:
@@ -328,7 +341,7 @@ def main(argv: list[str] | None = None) -> int:
         return 0
     final = evaluate_pairs(fresh, runs, sets, args.final_episodes, args.eval_seed)
     kept = keep_runs(args.keep, fresh, runs) if args.keep else {}
-    curves = {str(ns.seed): {n: curve(Path(ns.work) / n) for n in runs} for ns in fresh}
+    curves = {str(ns.seed): {n: run_curve(ns, n) for n in runs} for ns in fresh}
     agreement = {str(ns.seed): last_agreement(Path(ns.work) / "learned") for ns in fresh}
     for ns in fresh if args.keep else ():
         s = str(ns.seed)
@@ -539,8 +552,12 @@ def evaluate_pairs(
     from concurrent.futures import ThreadPoolExecutor
 
     def one(run: Path) -> dict:
-        done = run / f"eval-seed{seed}.json"
-        if seed and done.is_file() and done.stat().st_mtime > (run / "report.md").stat().st_mtime:
+        done, report = run / f"eval-seed{seed}.json", run / "report.md"
+        if (
+            seed
+            and done.is_file()
+            and (not report.is_file() or done.stat().st_mtime > report.stat().st_mtime)
+        ):
             got = json.loads(done.read_text())["sets"]
             if set(got) == set(sets) and all(got[k]["episodes"] == episodes for k in sets):
                 return got
@@ -548,7 +565,7 @@ def evaluate_pairs(
 
     with ThreadPoolExecutor(max_workers=2) as pool_:
         jobs = {
-            (str(ns.seed), n): pool_.submit(one, Path(ns.work) / n) for ns in per_seed for n in runs
+            (str(ns.seed), n): pool_.submit(one, run_path(ns, n)) for ns in per_seed for n in runs
         }
         return {str(ns.seed): {n: jobs[str(ns.seed), n].result() for n in runs} for ns in per_seed}
 
@@ -573,12 +590,50 @@ def read_record(folder: str, ns: argparse.Namespace) -> dict | None:
     record = json.loads(path.read_text())
     wanted = {"commands": record_commands(ns), "eval_seed": ns.eval_seed}
     wanted["final_episodes"] = ns.final_episodes
+    if (
+        getattr(ns, "rule_record", None) is not None
+        and path.resolve() == Path(ns.rule_from, f"seed{ns.seed}.json").resolve()
+        and {k: record.get(k) for k in wanted} != wanted
+    ):
+        return None  # the rule runs' source, which this invocation's record replaces
     if {k: record.get(k) for k in wanted} != wanted:
         raise SystemExit(
             f"{path}: kept by runs of other settings; remove it to train seed {ns.seed} again"
         )
     print(f"seed {ns.seed}: evaluations read from {path}")
     return record
+
+
+def rule_record(folder: str, ns: argparse.Namespace) -> dict:
+    """The record of a seed's kept runs in ``folder`` (``--rule-from``) whose rule run
+    this invocation's rule command trained.
+
+    Raises:
+        SystemExit: no such record or policy, or one of another rule command.
+    """
+    path = Path(folder, f"seed{ns.seed}.json")
+    if not path.is_file() or not Path(folder, "rule", f"seed{ns.seed}").is_dir():
+        raise SystemExit(f"--rule-from {folder}: no kept rule run of seed {ns.seed} there")
+    record = json.loads(path.read_text())
+    if record.get("commands", {}).get("rule") != record_commands(ns)["rule"]:
+        raise SystemExit(f"{path}: its rule run was trained by another command than this one's")
+    return record
+
+
+def run_path(ns: argparse.Namespace, name: str) -> Path:
+    """Where a seed's ``name`` run is: its folder in WORK, or the kept rule policy of
+    ``--rule-from``."""
+    if name == "rule" and getattr(ns, "rule_record", None) is not None:
+        return Path(ns.rule_from, "rule", f"seed{ns.seed}")
+    return Path(ns.work) / name
+
+
+def run_curve(ns: argparse.Namespace, name: str) -> list[dict]:
+    """A seed's ``name`` run's periodic evaluations (those ``--rule-from`` recorded for a
+    kept rule run)."""
+    if name == "rule" and getattr(ns, "rule_record", None) is not None:
+        return ns.rule_record["curves"]["rule"]
+    return curve(Path(ns.work) / name)
 
 
 def write_record(
@@ -619,12 +674,20 @@ def keep_runs(
 ) -> dict[str, dict[str, str]]:
     """Keep each seed's runs to act in ``folder/<run>/seedS`` (:func:`keep_to_act`, no
     critics); returns the folders, per seed and run."""
+    import shutil
+
     kept: dict[str, dict[str, str]] = {}
     for ns in per_seed:
-        dest = Path(folder)
-        kept[str(ns.seed)] = {
-            n: keep_to_act(Path(ns.work) / n, dest / n / f"seed{ns.seed}") for n in runs
-        }
+        kept[str(ns.seed)] = {}
+        for n in runs:
+            run, dest = run_path(ns, n), Path(folder) / n / f"seed{ns.seed}"
+            if not (run / "report.md").is_file():  # a kept policy (--rule-from)
+                if run.resolve() != dest.resolve():
+                    shutil.rmtree(dest, ignore_errors=True)
+                    shutil.copytree(run, dest)
+                kept[str(ns.seed)][n] = str(dest)
+            else:
+                kept[str(ns.seed)][n] = keep_to_act(run, dest)
     return kept
 
 
@@ -633,7 +696,7 @@ def report_validation(
 ) -> dict:
     """The runs' last periodic evaluations (validation: the training seed's episodes),
     per seed and as the mean over seeds; written to ``WORK/validation.json``."""
-    last = {str(ns.seed): {n: curve(Path(ns.work) / n)[-1] for n in runs} for ns in per_seed}
+    last = {str(ns.seed): {n: run_curve(ns, n)[-1] for n in runs} for ns in per_seed}
     mean = {
         n: {k: sum(r[n][f"{k}/success"] for r in last.values()) / len(last) for k in sets}
         for n in runs
@@ -661,6 +724,9 @@ def train_pair(args: argparse.Namespace, reuse_rule: str) -> dict[str, float]:
     names: tuple[str, ...] = ("rule", "learned")
     if reuse_rule:
         seconds["rule"] = reuse(Path(reuse_rule), Path(args.work) / "rule", args)
+        names = ("learned",)
+    if getattr(args, "rule_record", None) is not None:
+        seconds["rule"] = args.rule_record["seconds"]["rule"]
         names = ("learned",)
     if args.existing:
         for name in names:

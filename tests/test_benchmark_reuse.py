@@ -349,3 +349,34 @@ def test_learned_her_seeds_kept_by_an_earlier_invocation_are_read_back_only_if_a
     for change in ({"threshold": 0.7}, {"eval_seed": 7}, {"steps": 2000}):
         with pytest.raises(SystemExit, match="other settings"):
             read_record(keep, argparse.Namespace(**{**vars(ns), **change}))
+
+
+def test_learned_her_takes_kept_rule_runs_only_from_the_same_rule_command(tmp_path):
+    import argparse
+    import shutil
+
+    from benchmarks.learned_her import keep_runs, read_record, rule_record, run_curve, write_record
+
+    ns = argparse.Namespace(
+        env="lang2d", work=str(tmp_path / "work"), steps=1000, eval_every=500, eval_episodes=5,
+        seed=1, perception="", target_clip=0.0, captioner="cap/seed{seed}/model",
+        threshold=0.5, eval_seed=1000, final_episodes=100,
+    )  # fmt: skip
+    keep = tmp_path / "kept"
+    models = Path(__file__).resolve().parent.parent / "benchmarks" / "models"
+    shutil.copytree(models / "learned-her-lang2d" / "rule" / "seed1", keep / "rule" / "seed1")
+    curve = [{"step": 500.0, "train/success": 0.4}]
+    final = {"rule": {"train": {"success": 0.9}}, "learned": {"train": {"success": 0.8}}}
+    write_record(str(keep), ns, final, {"rule": curve}, {"rule": 10.0}, {}, {})
+    # another learned run (a new captioner), another evaluation seed: the same rule run
+    new = argparse.Namespace(**{**vars(ns), "captioner": "other/seed{seed}", "eval_seed": 1001})
+    new.rule_from = str(keep)
+    new.rule_record = rule_record(str(keep), new)
+    assert run_curve(new, "rule") == curve
+    assert read_record(str(keep), new) is None  # the source it replaces, not its own record
+    kept = keep_runs(str(keep), [new], ("rule",))
+    assert kept == {"1": {"rule": str(keep / "rule" / "seed1")}}  # kept where it is
+    with pytest.raises(SystemExit, match="another command"):
+        rule_record(str(keep), argparse.Namespace(**{**vars(new), "steps": 2000}))
+    with pytest.raises(SystemExit, match="no kept rule run of seed 2"):
+        rule_record(str(keep), argparse.Namespace(**{**vars(new), "seed": 2}))

@@ -57,3 +57,20 @@ def test_policy_episodes_are_collected_once_per_policy_and_split(tmp_path, monke
     for _, argv in calls:
         assert Path(argv[argv.index("--policy") + 1]).is_dir()  # the kept policies
         assert "--families" not in argv  # every family labelled
+
+
+def test_another_perception_model_trains_in_folders_of_its_own():
+    import argparse
+
+    from benchmarks.captioner_heads import KEPT_PERCEPTION
+
+    args = argparse.Namespace(seeds=[0], steps=10, parallel=1, work="w")
+    args.perception = KEPT_PERCEPTION["robosuite"]
+    assert cp.arm_args(args, "with-policy").work == str(Path("w", "with-policy"))
+    args.perception = "benchmarks/models/perception-80x3/model"
+    assert cp.perception_tag(args.perception) == "perception-80x3"
+    assert cp.arm_args(args, "with-policy").work == str(Path("w", "with-policy-perception-80x3"))
+    # one arm alone: the headline and the tables hold that arm
+    head = cp.headline_of({"with-policy": _results(0.1)})
+    assert head["exact_match"] == 0.91 and not any(k.startswith("scripted_") for k in head)
+    assert "| scripted |" not in cp.table({"with-policy": _results(0.1)})
