@@ -294,7 +294,7 @@ def save_json(
     run = f"{payload['command']} (git {payload['git']}, {payload['date']})"
     given = [*payload.get("tried", []), *reported_variants(payload), *tried]
     payload["tried"] = tried_entries(previous, given, run)
-    path.write_text(json.dumps(payload, indent=1))
+    path.write_text(json.dumps(payload, indent=1) + "\n")
     return path
 
 

@@ -620,12 +620,21 @@ def rule_record(folder: str, ns: argparse.Namespace) -> dict:
     return record
 
 
+def kept_rule(ns: argparse.Namespace) -> Path:
+    """The kept rule policy of ``--rule-from`` for a seed."""
+    return Path(ns.rule_from, "rule", f"seed{ns.seed}")
+
+
 def run_path(ns: argparse.Namespace, name: str) -> Path:
-    """Where a seed's ``name`` run is: its folder in WORK, or the kept rule policy of
-    ``--rule-from``."""
-    if name == "rule" and getattr(ns, "rule_record", None) is not None:
-        return Path(ns.rule_from, "rule", f"seed{ns.seed}")
-    return Path(ns.work) / name
+    """Where a seed's ``name`` run is: its folder in WORK. With ``--rule-from`` the rule
+    run's folder is a copy of the kept policy, made here (an evaluation writes beside the
+    policy, and the kept folder's files are sealed by their checksums)."""
+    path = Path(ns.work) / name
+    if name == "rule" and getattr(ns, "rule_record", None) is not None and not path.exists():
+        import shutil
+
+        shutil.copytree(kept_rule(ns), path)
+    return path
 
 
 def run_curve(ns: argparse.Namespace, name: str) -> list[dict]:
@@ -681,10 +690,10 @@ def keep_runs(
         kept[str(ns.seed)] = {}
         for n in runs:
             run, dest = run_path(ns, n), Path(folder) / n / f"seed{ns.seed}"
-            if not (run / "report.md").is_file():  # a kept policy (--rule-from)
-                if run.resolve() != dest.resolve():
+            if n == "rule" and getattr(ns, "rule_record", None) is not None:  # --rule-from
+                if kept_rule(ns).resolve() != dest.resolve():
                     shutil.rmtree(dest, ignore_errors=True)
-                    shutil.copytree(run, dest)
+                    shutil.copytree(kept_rule(ns), dest)
                 kept[str(ns.seed)][n] = str(dest)
             else:
                 kept[str(ns.seed)][n] = keep_to_act(run, dest)

@@ -355,7 +355,14 @@ def test_learned_her_takes_kept_rule_runs_only_from_the_same_rule_command(tmp_pa
     import argparse
     import shutil
 
-    from benchmarks.learned_her import keep_runs, read_record, rule_record, run_curve, write_record
+    from benchmarks.learned_her import (
+        keep_runs,
+        read_record,
+        rule_record,
+        run_curve,
+        run_path,
+        write_record,
+    )
 
     ns = argparse.Namespace(
         env="lang2d", work=str(tmp_path / "work"), steps=1000, eval_every=500, eval_episodes=5,
@@ -374,8 +381,13 @@ def test_learned_her_takes_kept_rule_runs_only_from_the_same_rule_command(tmp_pa
     new.rule_record = rule_record(str(keep), new)
     assert run_curve(new, "rule") == curve
     assert read_record(str(keep), new) is None  # the source it replaces, not its own record
+    # evaluated in a copy (an evaluation writes beside the policy), kept where it is
+    assert run_path(new, "rule") == tmp_path / "work" / "rule"
+    assert (tmp_path / "work" / "rule" / "weights.safetensors").is_file()
+    (tmp_path / "work" / "rule" / "eval-seed1001.json").write_text("{}")
     kept = keep_runs(str(keep), [new], ("rule",))
-    assert kept == {"1": {"rule": str(keep / "rule" / "seed1")}}  # kept where it is
+    assert kept == {"1": {"rule": str(keep / "rule" / "seed1")}}
+    assert not (keep / "rule" / "seed1" / "eval-seed1001.json").exists()
     with pytest.raises(SystemExit, match="another command"):
         rule_record(str(keep), argparse.Namespace(**{**vars(new), "steps": 2000}))
     with pytest.raises(SystemExit, match="no kept rule run of seed 2"):
