@@ -104,6 +104,24 @@ def perception_tag(model: str) -> str:
     return (path.parent if path.name == "model" else path).name
 
 
+def perception_beside(head: dict[str, Any]) -> list[str]:
+    """A table of the with-policy arm's headline beside the kept (``perception-3k``)
+    captioner-robosuite-policy.json's, key by key; empty without that file."""
+    import json
+
+    from benchmarks.common import RESULTS_DIR
+
+    path = RESULTS_DIR / "captioner-robosuite-policy.json"
+    if not path.is_file():
+        return []
+    kept = json.loads(path.read_text())["headline"]
+    rows = ["| figure (seed means) | perception-3k | this perception |", "|---|---:|---:|"]
+    for key, value in head.items():
+        if isinstance(value, float) and isinstance(kept.get(key), float):
+            rows.append(f"| {key} | {kept[key]:.3f} | {value:.3f} |")
+    return ["\n".join(rows)]
+
+
 def arm_args(args: argparse.Namespace, arm: str) -> argparse.Namespace:
     """The ``captioner_heads`` arguments of one arm: the factored head, its own folder
     (``ARM-TAG`` over another perception model, :func:`perception_tag`)."""
@@ -257,8 +275,18 @@ def main(argv: list[str] | None = None) -> int:
         "perception": str(model),
         "results": results,
     }
+    beside = perception_beside(payload["headline"]) if tag else []
     body = "\n\n".join(
         [
+            *(
+                [
+                    f"The captioners read perception `{model}`; `perception-3k`'s (the kept "
+                    "captioner-robosuite-policy.json) beside them:",
+                    *beside,
+                ]
+                if beside
+                else []
+            ),
             f"**{payload['verdict']}** (the with-policy arm on the random and scripted test "
             "set). Targets: " + ", ".join(f"`{k}` >= {v}" for k, v in payload["targets"].items()),
             payload["protocol"] + ".",
@@ -270,6 +298,8 @@ def main(argv: list[str] | None = None) -> int:
     )
     publish(
         f"captioner-robosuite-policy-{tag}" if tag else "captioner-robosuite-policy", payload,
+        f"Learned captioner on robosuite over {model.parent.name}: trained with the policies' "
+        "episodes" if tag else
         "Learned captioner on robosuite: trained with and without the policies' episodes",
         body, figure(results),
     )  # fmt: skip

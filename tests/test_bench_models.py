@@ -76,13 +76,23 @@ def test_the_kept_factored_captioner_captions_and_scores_robosuite_frames():
     assert "`captioner-factored-robosuite/`" in (MODELS / "README.md").read_text()
 
 
-def test_the_kept_robosuite_captioners_trained_with_policy_episodes_match_their_figures():
-    """The three with-policy captioners of captioner-robosuite-policy.json: each loads,
-    scores frames, and the seed means of their test figures are the file's headline."""
+@pytest.mark.parametrize(
+    "kept, result",
+    [
+        ("captioner-factored-robosuite-policy", "captioner-robosuite-policy"),
+        ("captioner-factored-robosuite-80x3", "captioner-robosuite-policy-perception-80x3"),
+    ],
+)
+def test_the_kept_robosuite_captioners_trained_with_policy_episodes_match_their_figures(
+    kept, result
+):
+    """The three with-policy captioners of a captioner-robosuite-policy result (over
+    perception-3k, and over perception-80x3): each loads, scores frames, and the seed means
+    of their test figures are the file's headline."""
     from captioner.learned import LearnedCaptioner
 
-    folder = MODELS / "captioner-factored-robosuite-policy"
-    head = json.loads((RESULTS / "captioner-robosuite-policy.json").read_text())["headline"]
+    folder = MODELS / kept
+    head = json.loads((RESULTS / f"{result}.json").read_text())["headline"]
     held, auc = [], []
     for seed in range(3):
         lc = LearnedCaptioner.load(folder / f"seed{seed}" / "model")
@@ -96,7 +106,7 @@ def test_the_kept_robosuite_captioners_trained_with_policy_episodes_match_their_
         auc.append(test["heldout_combinations"]["auc"])
     assert round(float(np.mean(held)), 3) == head["heldout_combinations_exact_match"]
     assert round(float(np.mean(auc)), 3) == head["heldout_combinations_reward_auc"]
-    assert "`captioner-factored-robosuite-policy/`" in (MODELS / "README.md").read_text()
+    assert f"`{kept}/`" in (MODELS / "README.md").read_text()
 
 
 @pytest.mark.parametrize("seed", [0, 1, 2])
