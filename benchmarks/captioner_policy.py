@@ -32,6 +32,7 @@ whose output is there is not run again. Writes
 from __future__ import annotations
 
 import argparse
+import json
 from pathlib import Path
 from typing import Any
 
@@ -49,6 +50,7 @@ from benchmarks.captioner_heads import (
 )
 from benchmarks.common import (
     LCRL,
+    RESULTS_DIR,
     add_report_only,
     new_figure,
     publish,
@@ -98,19 +100,15 @@ def perception_tag(model: str) -> str:
     """How the folders and the result of a run over another perception model than the kept
     ``perception-3k`` are named: that model's folder (``perception-80x3``); empty for
     ``perception-3k``."""
-    if Path(model) == Path(KEPT_PERCEPTION["robosuite"]):
-        return ""
     path = Path(model)
+    if path == Path(KEPT_PERCEPTION["robosuite"]):
+        return ""
     return (path.parent if path.name == "model" else path).name
 
 
 def perception_beside(head: dict[str, Any]) -> list[str]:
     """A table of the with-policy arm's headline beside the kept (``perception-3k``)
     captioner-robosuite-policy.json's, key by key; empty without that file."""
-    import json
-
-    from benchmarks.common import RESULTS_DIR
-
     path = RESULTS_DIR / "captioner-robosuite-policy.json"
     if not path.is_file():
         return []

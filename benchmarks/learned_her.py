@@ -590,13 +590,14 @@ def read_record(folder: str, ns: argparse.Namespace) -> dict | None:
     record = json.loads(path.read_text())
     wanted = {"commands": record_commands(ns), "eval_seed": ns.eval_seed}
     wanted["final_episodes"] = ns.final_episodes
+    alike = {k: record.get(k) for k in wanted} == wanted
     if (
-        getattr(ns, "rule_record", None) is not None
+        not alike
+        and getattr(ns, "rule_record", None) is not None
         and path.resolve() == Path(ns.rule_from, f"seed{ns.seed}.json").resolve()
-        and {k: record.get(k) for k in wanted} != wanted
     ):
         return None  # the rule runs' source, which this invocation's record replaces
-    if {k: record.get(k) for k in wanted} != wanted:
+    if not alike:
         raise SystemExit(
             f"{path}: kept by runs of other settings; remove it to train seed {ns.seed} again"
         )
