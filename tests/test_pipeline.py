@@ -404,6 +404,16 @@ def test_parts_of_a_build_are_kept_and_taken_up_by_another(tmp_path, monkeypatch
     assert (tmp_path / "b" / "teachers" / "stack" / "latest.json").is_file()
     assert wall_clock([r for r in records.values() if r]) > 0
     assert "from " + str(parts) in capsys.readouterr().out
+    # with another perception model the parts' perception stages are left unused
+    del log[:]
+    model = tmp_path / "a" / "perception" / "model"
+    third = dataclasses.replace(second, out=str(tmp_path / "d"), perception=str(model))
+    records = run_pipeline(third)
+    assert "perception" not in records and "perception-data" not in records
+    assert records["teacher-put"]["from_parts"] == str(parts)
+    assert not (tmp_path / "d" / "perception").exists()
+    ran = [args[0] + " " + args[1] for args, _, _ in log]
+    assert "train robosuite-put" not in ran and ran.count("perception train") == 1
     # a folder that is no parts is refused in one line
     bad = dataclasses.replace(second, out=str(tmp_path / "c"), parts=str(tmp_path))
     with pytest.raises(LcrlError, match="no stages/ folder"):

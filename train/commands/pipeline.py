@@ -64,6 +64,8 @@ from train.runtime.run_lock import lock_run, unlock_run
 STAGE_DIR = "stages"
 #: The stages of a student that acts through perception (left out with ``--state``).
 CAMERA_ONLY = ("perception-data", "perception", "student-frames", "perception-ft", "student-ft")
+#: The stages that build a perception model (left out with ``--perception MODEL``).
+PERCEPTION_BUILD = ("perception-data", "perception")
 
 
 @dataclass
@@ -567,7 +569,7 @@ def run_pipeline(p: CameraPipeline) -> dict[str, Any]:
         print(f"lcrl: {note}", file=sys.stderr)
     (out / "pipeline.json").write_text(json.dumps(dataclasses.asdict(p), indent=1))
     if p.parts:
-        unused = CAMERA_ONLY if p.state else ()
+        unused = CAMERA_ONLY if p.state else PERCEPTION_BUILD if p.perception else ()
         taken = import_parts(out, every, Path(p.parts), unused)
         print(f"from {p.parts}: {' '.join(taken) or 'nothing new'}", flush=True)
     signals = Signals()
