@@ -320,6 +320,49 @@ def test_a_signal_at_any_instant_of_start_up_stops_the_console_script(tmp_path, 
     assert len(said) == 1 and said[0].startswith(("lcrl: interrupted", "interrupted at"))
 
 
+@pytest.mark.parametrize("sig", [signal.SIGINT, signal.SIGTERM])
+def test_a_signal_where_python_drops_exceptions_is_raised_at_the_next_safe_point(sig):
+    """A signal that lands in a weakref callback (the import system's module-lock
+    clean-up) or a ``__del__``, where a raised exception would be printed and dropped, is
+    sent again and raised a moment later; anywhere else it is raised at once."""
+    from train.commands import cli as commands
+    from train.training.trainer import RunInterrupted
+
+    raised = KeyboardInterrupt if sig == signal.SIGINT else RunInterrupted
+    space: dict = {"sys": sys}
+    exec(
+        compile("def cb():\n    return sys._getframe()", "<frozen importlib._bootstrap>", "exec"),
+        space,
+    )
+    previous = {s: signal.getsignal(s) for s in (signal.SIGINT, signal.SIGTERM)}
+    commands.stop_on_signals()
+    try:
+        with pytest.raises(raised):
+            commands._stopped(sig, sys._getframe())  # a plain frame: at once
+        for frame in (space["cb"](), _del_frame()):
+            with pytest.raises(raised):
+                commands._stopped(sig, frame)  # returns: nothing raised here
+                deadline = time.monotonic() + 5
+                while time.monotonic() < deadline:  # ... but the signal comes again
+                    time.sleep(0.01)
+                raise AssertionError("the deferred signal never came")
+    finally:
+        for s, handler in previous.items():
+            signal.signal(s, handler)
+
+
+def _del_frame():
+    """A frame of a ``__del__`` method."""
+    frames = []
+
+    class Dropped:
+        def __del__(self):
+            frames.append(sys._getframe())
+
+    Dropped()
+    return frames[0]
+
+
 def test_a_signal_during_a_periodic_save_waits_for_it_and_prints_nothing(capsys):
     """The first signal inside a checkpoint write is held silently and raised as the write
     ends, so the run prints its one ``interrupted at`` line and nothing else; a second

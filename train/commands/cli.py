@@ -31,6 +31,7 @@ shell started ``lcrl`` in the background with SIGINT ignored (:func:`stop_on_sig
 from __future__ import annotations
 
 import json
+import os
 import signal
 import sys
 import threading
@@ -437,12 +438,33 @@ def stop_on_signals() -> None:
     """
     if threading.current_thread() is not threading.main_thread():
         return
-    signal.signal(signal.SIGINT, signal.default_int_handler)
-    signal.signal(signal.SIGTERM, _terminated)
+    signal.signal(signal.SIGINT, _stopped)
+    signal.signal(signal.SIGTERM, _stopped)
 
 
-def _terminated(signum: int, frame: Any) -> None:
+def _stopped(signum: int, frame: Any) -> None:
+    """Raise ``KeyboardInterrupt`` (SIGINT) or :class:`RunInterrupted` (SIGTERM), unless
+    the signal landed where Python swallows an exception (a weakref callback such as the
+    import system's module-lock clean-up, or a ``__del__``): there the signal is sent
+    again a moment later, so it is raised at the next safe point instead of lost."""
+    if _swallows(frame):
+        threading.Timer(0.02, os.kill, (os.getpid(), signum)).start()
+        return
+    if signum == signal.SIGINT:
+        signal.default_int_handler(signum, frame)
     raise RunInterrupted(signum)
+
+
+def _swallows(frame: Any) -> bool:
+    """Whether an exception raised in ``frame`` would be printed and dropped."""
+    if frame is None:
+        return False
+    code = frame.f_code
+    if code.co_name == "__del__":
+        return True
+    if code.co_filename.startswith("<frozen importlib") and code.co_name == "cb":
+        return True
+    return Path(code.co_filename).name in {"weakref.py", "_weakrefset.py"}
 
 
 def main(argv: Sequence[str] | None = None) -> None:
