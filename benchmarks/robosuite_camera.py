@@ -315,6 +315,37 @@ def findings(
     return lines
 
 
+def perception_lines(perception: dict[str, Any]) -> list[str]:
+    """The perception model built before the pipeline, counted in ``wall_clock_s``."""
+    if not perception:
+        return []
+    return [
+        "",
+        f"The build took the perception model `{perception['model']}` (`--perception`); "
+        f"building it from nothing took {perception['seconds']:.0f} s "
+        f"(`{perception['record']}`), counted in wall_clock_s.",
+    ]
+
+
+def perception_build(work: Path) -> dict[str, Any]:
+    """How a perception model the build took with ``--perception`` was built (``build.json``
+    beside its ``model/`` folder: its stages and their seconds), so that ``wall_clock_s``
+    counts every stage from nothing; nothing when the build made its own. A model without
+    that record is refused in one line."""
+    settings = work / "pipeline.json"
+    model = json.loads(settings.read_text()).get("perception") if settings.is_file() else ""
+    if not model:
+        return {}
+    record = Path(model).parent / "build.json"
+    if not record.is_file():
+        raise SystemExit(
+            f"--perception {model}: no {record} says how long it took to build, and "
+            "wall_clock_s counts every stage from nothing"
+        )
+    doc = json.loads(record.read_text())
+    return {"model": model, "record": str(record), "seconds": float(doc["seconds"])}
+
+
 def beside(name: str) -> dict[str, Any]:
     """The headline of the result file ``name`` (composite systems reported beside), or
     nothing where it is missing."""
@@ -355,6 +386,8 @@ def main() -> None:
     )
     summary = summarise(ev)
     wall = wall_clock(list(stages.values()))  # stages side by side count once
+    perception = perception_build(work)
+    wall += perception.get("seconds", 0.0)
     headline = {
         **{k: summary[k] for k in (*FAMILIES, "chain2", "heldout_ratio", "paraphrase_ratio")},
         "wall_clock_s": round(wall, 1),
@@ -380,6 +413,7 @@ def main() -> None:
         "stages": {
             k: {"seconds": v["seconds"], "commands": v["commands"]} for k, v in stages.items()
         },
+        **({"perception_build": perception} if perception else {}),
         "validation": "the pipeline's eval stage (lcrl eval ... --seed 1) is the validation "
         f"evaluation; seed {seed} was evaluated once, for this file",
         "tried": list(build.tried),
@@ -425,6 +459,7 @@ def main() -> None:
             *rows,
             "",
             *findings(summary, ev, payload["validation_seed1"], stages, targets, seed),
+            *perception_lines(perception),
             *composite_lines(composite),
         ]
     )

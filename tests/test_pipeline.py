@@ -8,6 +8,7 @@ from __future__ import annotations
 import csv
 import dataclasses
 import json
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -202,6 +203,33 @@ def test_stopping_the_camera_benchmark_stops_its_build(monkeypatch):
     robosuite_camera.lcrl("train", "robosuite-camera", "--out", "W")
     assert seen["cmd"][-4:] == ["train", "robosuite-camera", "--out", "W"]
     assert seen["preexec_fn"] is die_with_parent
+
+
+def test_the_camera_benchmarks_wall_clock_counts_a_perception_model_built_before(
+    tmp_path, monkeypatch
+):
+    """A build that took a perception model with ``--perception`` adds the seconds its
+    ``build.json`` records (the kept ``perception-80x3`` has one); a model without that
+    record is refused in one line; a build that made its own adds nothing."""
+    from benchmarks.robosuite_camera import perception_build
+
+    root = Path(__file__).resolve().parent.parent
+    monkeypatch.chdir(root)  # the model's path is the repository's, as the pipeline took it
+    work = tmp_path / "work"
+    work.mkdir()
+    assert perception_build(work) == {}  # no pipeline.json: nothing to add
+    (work / "pipeline.json").write_text(json.dumps({"perception": ""}))
+    assert perception_build(work) == {}
+    kept = "benchmarks/models/perception-80x3/model"
+    (work / "pipeline.json").write_text(json.dumps({"perception": kept}))
+    record = json.loads((root / "benchmarks/models/perception-80x3/build.json").read_text())
+    assert record["seconds"] == sum(s["seconds"] for s in record["stages"]) > 0
+    got = perception_build(work)
+    assert got["seconds"] == record["seconds"] and got["model"] == kept
+    bare = tmp_path / "bare" / "model"
+    (work / "pipeline.json").write_text(json.dumps({"perception": str(bare)}))
+    with pytest.raises(SystemExit, match=r"no .*build\.json says how long"):
+        perception_build(work)
 
 
 def test_the_camera_benchmark_summarises_an_evaluation_with_intervals():
