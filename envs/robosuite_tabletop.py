@@ -154,6 +154,22 @@ _MIN_OBJECTS, _MAX_OBJECTS = 2, 4
 _TOUCH, _LEFT_PAD, _RIGHT_PAD = 1, 2, 4
 
 
+def _reraise_interrupt(exc: BaseException) -> None:
+    """Raise the interrupt behind ``exc``, if a signal handler's exception is in its chain.
+
+    A KeyboardInterrupt (or a run's SIGTERM) raised inside compiled simulator code, such as
+    numba's controller functions, comes back as a SystemError whose cause or context is the
+    interrupt. That is the user stopping the run, not a simulation error.
+    """
+    seen: set[int] = set()
+    e: BaseException | None = exc
+    while e is not None and id(e) not in seen:
+        seen.add(id(e))
+        if not isinstance(e, Exception):
+            raise e
+        e = e.__cause__ or e.__context__
+
+
 class RobosuiteTabletopEnv(gym.Env):
     """Panda arm and coloured objects on a table, with a goal-conditioned dict observation.
 
@@ -673,6 +689,7 @@ class RobosuiteTabletopEnv(gym.Env):
         try:
             self._task.step(rs_action)
         except Exception as exc:  # any simulator failure ends the episode, never the caller
+            _reraise_interrupt(exc)
             return f"{type(exc).__name__}: {exc}"
         new = d.warning.number[self._bad_warnings] != before
         if new.any():

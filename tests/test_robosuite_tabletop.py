@@ -6,6 +6,7 @@ resets them with its own seed.
 
 from __future__ import annotations
 
+import signal
 import subprocess
 import sys
 import warnings
@@ -365,6 +366,33 @@ def test_simulator_exception_truncates_cleanly(
     env.reset(seed=1)
     _, _, _, truncated, _ = env.step(np.zeros(4))
     assert not truncated
+
+
+@pytest.mark.parametrize("how", ["direct", "cause", "context"])
+def test_a_signal_inside_the_simulator_stops_the_run_instead_of_truncating(
+    env: RobosuiteTabletopEnv, monkeypatch: pytest.MonkeyPatch, how: str
+) -> None:
+    """A SIGTERM handler's exception raised inside numba code comes back as a SystemError."""
+    from train.training.trainer import RunInterrupted
+
+    env.reset(seed=0)
+    errors = env.sim_errors
+    stop = RunInterrupted(signal.SIGTERM)
+
+    def interrupted(*args: object, **kwargs: object) -> None:
+        if how == "direct":
+            raise stop
+        if how == "cause":
+            raise SystemError("CPUDispatcher(opspace_matrices) returned a result") from stop
+        try:
+            raise stop
+        except RunInterrupted:  # numba's wrapper: the interrupt is only the context
+            raise SystemError("returned a result with an exception set") from None
+
+    monkeypatch.setattr(env._task, "step", interrupted)
+    with pytest.raises(RunInterrupted) as info:
+        env.step(np.zeros(4))
+    assert info.value is stop and env.sim_errors == errors
 
 
 def test_bad_actions(env: RobosuiteTabletopEnv) -> None:

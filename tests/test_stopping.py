@@ -363,6 +363,28 @@ def _del_frame():
     return frames[0]
 
 
+def test_a_second_signal_raises_again_when_the_first_never_reached_the_loop(capsys):
+    """A library's catch-all (a simulator wrapping the interrupt in its own error) can
+    swallow the first signal's exception; the next signal must stop the run, not wait for
+    a final save that never comes."""
+    from train.training.trainer import RunInterrupted, StopSignals
+
+    with StopSignals() as stops:
+        try:
+            os.kill(os.getpid(), signal.SIGTERM)
+            time.sleep(0.05)
+        except RunInterrupted:
+            pass  # swallowed on its way up
+        with pytest.raises(RunInterrupted) as raised:
+            os.kill(os.getpid(), signal.SIGTERM)
+            time.sleep(0.05)
+        assert raised.value.signum == signal.SIGTERM
+        stops.received = True  # the loop has it now: a further signal waits for the save
+        os.kill(os.getpid(), signal.SIGINT)
+        time.sleep(0.05)
+    assert "SIGINT while the checkpoint is written" in capsys.readouterr().err
+
+
 def test_a_signal_during_a_periodic_save_waits_for_it_and_prints_nothing(capsys):
     """The first signal inside a checkpoint write is held silently and raised as the write
     ends, so the run prints its one ``interrupted at`` line and nothing else; a second

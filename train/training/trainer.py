@@ -161,6 +161,9 @@ class StopSignals:
 
     def __init__(self) -> None:
         self.pending: int | None = None
+        #: Set by the loop once the interrupt has reached it; until then a later signal
+        #: raises again (a library's catch-all may have swallowed the first on its way up).
+        self.received = False
         self._holding = 0
         self._stopping = False
         self._previous: dict[int, Any] = {}
@@ -177,6 +180,8 @@ class StopSignals:
         self._previous = {}
 
     def _handle(self, signum: int, frame: Any) -> None:
+        if self._stopping and not self.received and not self._holding:
+            raise RunInterrupted(signum)  # the first never reached the loop
         if self._holding or self._stopping:
             self.pending = self.pending or signum
             if not self._stopping:
@@ -633,6 +638,7 @@ class BaseTrainer(ABC):
                 bar.close()
                 return self.finish()  # a stop during the final evaluation saves too
             except KeyboardInterrupt as e:
+                self.signals.received = True
                 bar.close()
                 self.interrupted(e)
                 raise
