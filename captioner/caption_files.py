@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import os
+import shutil
 from collections.abc import Iterator, Sequence
 from pathlib import Path
 from typing import Any
@@ -54,6 +55,10 @@ class CaptionDatasetWriter:
         meta: JSON-able description (env, families, settings).
         state_dim: width of the privileged observation stored per frame (0: none).
         overwrite: replace an existing file instead of refusing.
+        resume: go on with the finished file at ``path`` (one an interrupted collection
+            kept): its episodes are kept and new ones follow them. Its instruction table,
+            frame, proprioception and state widths must be those given; ``meta``
+            replaces its own.
     """
 
     def __init__(
@@ -66,9 +71,13 @@ class CaptionDatasetWriter:
         meta: dict[str, Any],
         overwrite: bool = False,
         state_dim: int = 0,
+        resume: bool = False,
     ) -> None:
         h5py = _h5py()
         self.path = Path(path)
+        if resume:
+            self._resume(instructions, instruction_set, frame_shape, proprio_dim, meta, state_dim)
+            return
         if self.path.exists() and not overwrite:
             raise LcrlError(f"{self.path} exists; pass --overwrite to replace it")
         if len(instructions) != len(instruction_set):
@@ -110,6 +119,46 @@ class CaptionDatasetWriter:
         f.create_dataset("label_ids", (0,), np.int16, maxshape=(None,), chunks=(4096,))
         self.episodes = 0
         self.observations = 0
+
+    def _resume(
+        self,
+        instructions: Sequence[str],
+        instruction_set: Sequence[str],
+        frame_shape: Sequence[int],
+        proprio_dim: int,
+        meta: dict[str, Any],
+        state_dim: int,
+    ) -> None:
+        """Open a copy of the file at ``self.path`` to append to (the file itself stays
+        as it is until :meth:`close` moves the copy into place)."""
+        with CaptionDataset(self.path) as old:
+            found = {
+                "instruction table": (old.instructions, old.instruction_set),
+                "frame shape": old.frame_shape,
+                "proprioception width": old.proprio.shape[1],
+                "state width": 0 if old.state is None else old.state.shape[1],
+            }
+            episodes, observations = old.num_episodes, old.num_observations
+        wanted = {
+            "instruction table": (list(instructions), list(instruction_set)),
+            "frame shape": tuple(int(v) for v in frame_shape),
+            "proprioception width": int(proprio_dim),
+            "state width": int(state_dim),
+        }
+        for what, value in wanted.items():
+            if found[what] != value:
+                raise LcrlError(
+                    f"{self.path} has another {what} ({found[what]}) than this collection's "
+                    f"({value}): it cannot be resumed"
+                )
+        self._tmp = self.path.with_name(self.path.name + ".part")
+        self._ids = {t: i for i, t in enumerate(instructions)}
+        self.num_instructions = len(instructions)
+        self.state_dim = int(state_dim)
+        shutil.copyfile(self.path, self._tmp)
+        self._file = _h5py().File(self._tmp, "a")
+        self._file.attrs["meta"] = json.dumps(meta)
+        self.episodes, self.observations = episodes, observations
 
     def ids(self, texts: Sequence[str]) -> list[int]:
         """Table ids of canonical instructions (texts outside the table are dropped)."""

@@ -42,6 +42,7 @@ lazily (frames are read per batch, not loaded whole).
 
 from __future__ import annotations
 
+import json
 from collections.abc import Callable, Sequence
 from dataclasses import asdict, dataclass
 from pathlib import Path
@@ -137,8 +138,15 @@ class CollectConfig:
     """Seed of layouts, instructions and actions."""
     overwrite: bool = False
     """Replace an existing file."""
+    resume: bool = False
+    """Go on with the file at ``out`` that an interrupted collection kept: its episodes
+    stay and the ones it lacks are added (no file there: a new one). A file collected with
+    other settings is refused, or replaced when ``overwrite`` is given too."""
     progress: bool = True
     """Show a progress bar."""
+    torch_threads: int = 0
+    """Torch threads of the policy that acts the ``policy`` episodes (0: this machine's
+    share, fewer where other processes keep cores busy)."""
 
     def validate(self, simulator: CaptionSimulator | None = None) -> None:
         """Raise :class:`LcrlError` for bad settings (with ``simulator``: also families
@@ -260,6 +268,9 @@ class EpisodeSource(Protocol):
     """Something that acts whole labelled episodes (a trained policy: see
     :class:`train.commands.captions.PolicyEpisodes`)."""
 
+    #: The checkpoint that acts (a resumed collection must be acted by the same one).
+    checkpoint_name: str
+
     def episode(self, cfg: CollectConfig, seed: int, writer: CaptionDatasetWriter) -> dict:
         """One episode from reset seed ``seed``: ``frames``, ``proprio``, ``labels`` (ids
         of ``writer``), ``source`` and ``instruction`` (an id, or -1)."""
@@ -312,6 +323,16 @@ def collect(
         # where the object slots are in each stored state (what perception predicts)
         "slot_layout": [*src.slot_layout, src.position_dims],
     }
+    if policy is not None:  # which weights acted: a later checkpoint is another dataset
+        meta["policy_checkpoint"] = policy.checkpoint_name
+    resume = cfg.resume and Path(cfg.out).exists()
+    if resume:
+        problem = resume_problem(cfg.out, meta)
+        if problem and not cfg.overwrite:
+            raise LcrlError(
+                f"--resume: {cfg.out} {problem}; pass --overwrite as well to collect it anew"
+            )
+        resume = not problem
     first = src.env.reset(seed=cfg.seed)[0]
     writer = CaptionDatasetWriter(
         cfg.out,
@@ -322,10 +343,18 @@ def collect(
         meta,
         overwrite=cfg.overwrite,
         state_dim=int(np.shape(first["observation"])[0]),
+        resume=resume,
     )
-    bar = tqdm(total=cfg.episodes, disable=not cfg.progress, desc="collect", unit="ep")
+    start = writer.episodes
+    if start:  # the rest of an interrupted collection (its own stream of random draws)
+        rng = np.random.default_rng([cfg.seed, start])
+        print(f"resumed {cfg.out}: {start} episodes kept, {max(cfg.episodes - start, 0)} to add")
+    bar = tqdm(
+        total=cfg.episodes, initial=min(start, cfg.episodes), disable=not cfg.progress,
+        desc="collect", unit="ep",
+    )  # fmt: skip
     try:
-        for e in range(cfg.episodes):
+        for e in range(start, cfg.episodes):
             kind = cfg.sources[e % len(cfg.sources)]
             seed = int(cfg.seed * 1_000_003 + e)
             if kind == "policy":
@@ -346,6 +375,31 @@ def collect(
     bar.close()
     src.close()
     return writer.close()
+
+
+#: Collection settings a resumed collection may change (the rest must be the file's).
+RESUMABLE = ("episodes", "overwrite", "resume", "progress", "out", "torch_threads")
+
+
+def resume_problem(path: str | Path, meta: dict[str, Any]) -> str:
+    """Why the dataset at ``path`` cannot be resumed by a collection of ``meta``, or ""."""
+    with CaptionDataset(path) as old:
+        found = old.meta
+
+    def settings(m: dict[str, Any]) -> dict[str, Any]:
+        collect = {k: v for k, v in m.get("collect", {}).items() if k not in RESUMABLE}
+        return json.loads(json.dumps({**m, "collect": collect}))
+
+    a, b = settings(found), settings(meta)
+    differ = sorted(
+        {
+            f"collect.{k}"
+            for k in {**a["collect"], **b["collect"]}
+            if a["collect"].get(k) != b["collect"].get(k)
+        }
+        | {k for k in {**a, **b} if k != "collect" and a.get(k) != b.get(k)}
+    )
+    return f"was collected with other settings ({', '.join(differ)})" if differ else ""
 
 
 def _episode(

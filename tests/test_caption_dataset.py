@@ -3,6 +3,8 @@ errors."""
 
 from __future__ import annotations
 
+import dataclasses
+
 import h5py
 import numpy as np
 import pytest
@@ -166,6 +168,43 @@ def test_interrupt_keeps_finished_episodes(tmp_path, monkeypatch):
         collect(CollectConfig(out=str(path), episodes=10, progress=False))
     with CaptionDataset(path) as data:
         assert data.num_episodes == 3
+    assert not path.with_name(path.name + ".part").exists()
+
+
+def test_an_interrupted_collection_resumes_where_it_stopped(tmp_path, monkeypatch):
+    path = tmp_path / "cut.h5"
+    real = ds._episode
+    calls = {"n": 0}
+
+    def flaky(*args, **kwargs):
+        calls["n"] += 1
+        if calls["n"] == 4:
+            raise KeyboardInterrupt
+        return real(*args, **kwargs)
+
+    monkeypatch.setattr(ds, "_episode", flaky)
+    cfg = CollectConfig(out=str(path), episodes=6, progress=False, resume=True, overwrite=True)
+    with pytest.raises(KeyboardInterrupt):
+        collect(cfg)  # no file yet: --resume starts one
+    with CaptionDataset(path) as data:
+        kept = [data.episode(e)["frames"] for e in range(data.num_episodes)]
+    assert len(kept) == 3
+    collect(cfg)
+    with CaptionDataset(path) as data:
+        assert data.num_episodes == 6 and data.meta["collect"]["episodes"] == 6
+        for e, frames in enumerate(kept):
+            np.testing.assert_array_equal(data.episode(e)["frames"], frames)
+        assert data.counts()["episodes_per_source"] == {"random": 3, "scripted": 3, "policy": 0}
+        size = data.num_observations
+    collect(cfg)  # nothing left to add
+    with CaptionDataset(path) as data:
+        assert data.num_episodes == 6 and data.num_observations == size
+    other = dataclasses.replace(cfg, seed=3, episodes=2, overwrite=False)
+    with pytest.raises(LcrlError, match=r"other settings \(collect.seed\).*--overwrite"):
+        collect(other)
+    collect(dataclasses.replace(other, overwrite=True))  # replaced, not resumed
+    with CaptionDataset(path) as data:
+        assert data.num_episodes == 2 and data.meta["collect"]["seed"] == 3
     assert not path.with_name(path.name + ".part").exists()
 
 
@@ -362,3 +401,13 @@ def test_policy_episodes_are_labelled_with_every_family_of_the_dataset(tmp_path)
     with CaptionDataset(out) as data:
         assert data.meta["families"] == list(FAMILIES_2D)
         assert data.num_episodes == 3
+        assert data.meta["policy_checkpoint"] == episodes.checkpoint_name
+        first = [data.episode(e)["frames"] for e in range(3)]
+    collect(dataclasses.replace(config, episodes=4, resume=True))  # one more episode
+    with CaptionDataset(out) as resumed:
+        assert resumed.num_episodes == 4
+        for e in range(3):
+            np.testing.assert_array_equal(resumed.episode(e)["frames"], first[e])
+    Trainer(dataclasses.replace(cfg, total_steps=70, resume=True)).run()  # a later checkpoint
+    with pytest.raises(LcrlError, match="policy_checkpoint"):
+        collect(dataclasses.replace(config, episodes=5, resume=True))

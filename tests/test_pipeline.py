@@ -101,8 +101,10 @@ def test_scripted_families_have_no_teacher_stage_and_a_trained_teacher_is_the_ba
     threaded = dataclasses.replace(p, threads=1)  # every training stage on one thread
     for stage in stages(threaded):
         for cmd in stage.commands:
-            if cmd[0] in ("train", "distill"):
+            if cmd[0] in ("train", "distill") or stage.name == "student-frames":
                 assert cmd[cmd.index("--torch-threads") + 1] == "1", stage.name
+            if cmd[:2] == ["perception", "collect"]:  # a stopped collection goes on
+                assert "--resume" in cmd, stage.name
     # put and stack share one file of demonstrations of every family, recorded by a stage
     # of its own before them
     assert names[names.index("teacher-put") - 1] == "demos-robosuite-manip"
@@ -339,7 +341,7 @@ def test_jobs_run_stages_side_by_side_where_none_needs_another(tmp_path, monkeyp
     # each training stage on its share of the (four) cores: the teachers beside another
     # stage on two, the student alone on all four
     threads = {a[0]: a[a.index("--torch-threads") + 1] for a, _, _ in log if "--torch-threads" in a}
-    assert threads == {"train": "2", "distill": "4"}
+    assert threads == {"train": "2", "distill": "4", "perception": "4"}  # student-frames alone
     # stages that write one folder never run at once, even when named alone
     active["most"] = 0
     run_pipeline(dataclasses.replace(p, stages=("student", "student-frames", "student-ft")))

@@ -54,6 +54,7 @@ class PolicyEpisodes:
             )
         extra = {**p.cfg.env.extra, "image": True, "image_size": cfg.image_size}
         self.policy: LoadedPolicy = load_policy(cfg.policy, env_overrides={"extra": extra})
+        self.checkpoint_name = str(self.policy.checkpoint.path)
         # every frame is labelled with the dataset's families, not only those the policy
         # was trained on: a put teacher's episodes also reach and lift, and a frame left
         # without those labels would teach the captioner a false negative
@@ -161,5 +162,10 @@ def collect(cfg: CollectConfig) -> Path:
     simulator = caption_simulator(cfg.env)
     cfg.validate(simulator)
     families = cfg.resolved_families(simulator)
-    policy = PolicyEpisodes(cfg, families) if "policy" in cfg.sources else None
+    policy = None
+    if "policy" in cfg.sources:
+        from train.runtime.machine import apply_threads
+
+        apply_threads(cfg.torch_threads)
+        policy = PolicyEpisodes(cfg, families)
     return collect_dataset(cfg, simulator, policy)

@@ -23,9 +23,9 @@ goes), each writing into the pipeline's folder (``--out``)::
 
 A stage that finished is recorded in ``OUT/stages/STAGE.json`` and skipped the next time:
 the artefact is there. A stage that was stopped goes on where it stopped (``--resume``
-for the training stages; the collection and perception stages start again, writing their
-files atomically). ``--stages`` runs some of them only; a stage whose inputs are missing
-says which stage makes them. Ctrl-C and SIGTERM stop the stage in hand (it saves what it
+for the training and collection stages, which keep what they finished; the perception
+stages start again, writing their files atomically). ``--stages`` runs some of them
+only; a stage whose inputs are missing says which stage makes them. Ctrl-C and SIGTERM stop the stage in hand (it saves what it
 can) and the pipeline, with the status of the signal.
 
 ``--jobs 2`` runs stages side by side where neither needs what the other makes (the
@@ -117,7 +117,7 @@ def stages(p: CameraPipeline) -> list[Stage]:
                         "--episodes", str(p.perception_episodes),
                         "--max-episode-steps", str(p.perception_episode_steps),
                         "--image-size", str(p.image_size), "--seed", str(p.seed),
-                        "--out", str(data / "perception.h5"), "--overwrite",
+                        "--out", str(data / "perception.h5"), "--resume", "--overwrite",
                     ]
                 ],
                 outputs=(str(data / "perception.h5"),),
@@ -241,7 +241,7 @@ def stages(p: CameraPipeline) -> list[Stage]:
                     "--episodes", str(p.student_frames),
                     "--max-episode-steps", str(p.max_episode_steps),
                     "--image-size", str(p.image_size), "--seed", str(p.seed + 101),
-                    "--out", str(frames), "--overwrite",
+                    "--out", str(frames), "--resume", "--overwrite", *torch_threads,
                 ]
             ],
             needs=(f"{student}<student",),
