@@ -764,3 +764,18 @@ def test_cli_errors(lang_run, state_run, tmp_path, capsys, monkeypatch):
         line = error_line(err)
         assert line.startswith("lcrl: error:") and message in line, (args, line)
         assert "Traceback" not in err
+
+
+def test_eval_steps_one_environment_per_core_other_processes_leave_free(monkeypatch):
+    """On robosuite every environment is a process: beside a busy training run on two
+    cores, ``lcrl eval`` starts one, not two."""
+    from train.evaluation import eval_suite
+    from train.runtime import machine
+
+    for name in ("OMP_NUM_THREADS", machine.PROCESSES_VARIABLE):
+        monkeypatch.delenv(name, raising=False)
+    monkeypatch.setattr(machine, "available_cores", lambda: 4)
+    monkeypatch.setattr(machine, "busy_cores", lambda: 3)
+    assert eval_suite.default_num_envs() == 1
+    monkeypatch.setattr(machine, "busy_cores", lambda: 0)
+    assert eval_suite.default_num_envs() == 4

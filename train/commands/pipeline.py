@@ -25,8 +25,9 @@ A stage that finished is recorded in ``OUT/stages/STAGE.json`` and skipped the n
 the artefact is there. A stage that was stopped goes on where it stopped (``--resume``
 for the training and collection stages, which keep what they finished; the perception
 stages start again, writing their files atomically). ``--stages`` runs some of them
-only; a stage whose inputs are missing says which stage makes them. Ctrl-C and SIGTERM stop the stage in hand (it saves what it
-can) and the pipeline, with the status of the signal.
+only; a stage whose inputs are missing says which stage makes them. Ctrl-C and SIGTERM
+stop the stage in hand (it saves what it can) and the pipeline, with the status of the
+signal.
 
 ``--jobs 2`` runs stages side by side where neither needs what the other makes (the
 perception stages beside the teachers), each on its share of the cores: on two cores the

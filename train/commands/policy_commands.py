@@ -69,7 +69,7 @@ class EvalCommand:
     """Seed of the evaluation layouts and instruction draws."""
     num_envs: int = 0
     """Environments stepped together, the policy acting on the batch (0: one per CPU
-    core). Results do not depend on it."""
+    core that other busy processes leave free). Results do not depend on it."""
     vector: str = "auto"
     """Vector env: ``sync`` (one process), ``async`` (a process per env) or ``auto``
     (async on robosuite, whose steps are slow, sync otherwise)."""

@@ -34,7 +34,6 @@ average number of instructions completed in a row.
 
 from __future__ import annotations
 
-import os
 from collections import defaultdict
 from collections.abc import Callable, Sequence
 from dataclasses import asdict
@@ -97,11 +96,12 @@ def episode_seed(seed: int, i: int) -> int:
 
 
 def default_num_envs() -> int:
-    """The number of CPU cores this process may use."""
-    try:
-        return max(1, len(os.sched_getaffinity(0)))
-    except AttributeError:
-        return max(1, os.cpu_count() or 1)
+    """The CPU cores this process may use, less those other busy processes keep
+    (:func:`train.runtime.machine.default_threads`): on robosuite each environment is a
+    process of its own, and one more busy process than cores slows every one of them."""
+    from train.runtime.machine import default_threads
+
+    return default_threads()
 
 
 def _vector_kind(kind: str, cfg: TrainConfig, num_envs: int) -> str:
