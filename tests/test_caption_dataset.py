@@ -152,18 +152,23 @@ def test_labels_name_what_the_rule_captioner_says(tmp_path):
         assert data.instructions[back["instruction"]] in said  # its target, at the end
 
 
-def test_interrupt_keeps_finished_episodes(tmp_path, monkeypatch):
-    path = tmp_path / "cut.h5"
+def interrupt_at_episode(monkeypatch, n):
+    """Ctrl-C as the ``n``-th episode of a collection starts (the first is 1)."""
     real = ds._episode
     calls = {"n": 0}
 
     def flaky(*args, **kwargs):
         calls["n"] += 1
-        if calls["n"] == 4:
+        if calls["n"] == n:
             raise KeyboardInterrupt
         return real(*args, **kwargs)
 
     monkeypatch.setattr(ds, "_episode", flaky)
+
+
+def test_interrupt_keeps_finished_episodes(tmp_path, monkeypatch):
+    path = tmp_path / "cut.h5"
+    interrupt_at_episode(monkeypatch, 4)
     with pytest.raises(KeyboardInterrupt):
         collect(CollectConfig(out=str(path), episodes=10, progress=False))
     with CaptionDataset(path) as data:
@@ -173,16 +178,7 @@ def test_interrupt_keeps_finished_episodes(tmp_path, monkeypatch):
 
 def test_an_interrupted_collection_resumes_where_it_stopped(tmp_path, monkeypatch):
     path = tmp_path / "cut.h5"
-    real = ds._episode
-    calls = {"n": 0}
-
-    def flaky(*args, **kwargs):
-        calls["n"] += 1
-        if calls["n"] == 4:
-            raise KeyboardInterrupt
-        return real(*args, **kwargs)
-
-    monkeypatch.setattr(ds, "_episode", flaky)
+    interrupt_at_episode(monkeypatch, 4)
     cfg = CollectConfig(out=str(path), episodes=6, progress=False, resume=True, overwrite=True)
     with pytest.raises(KeyboardInterrupt):
         collect(cfg)  # no file yet: --resume starts one
