@@ -13,7 +13,8 @@ File layout (``format = "lcrl-caption-dataset"``, ``version = 1``)::
 
     attrs      format, version, meta (JSON: env (the simulator's name, ``lang2d`` for
                the 2D tabletop), families, split seed, image size, sources, collect
-               settings)
+               settings; with policy episodes, policy_checkpoint: the checkpoint that
+               acted them)
     instructions         (I,) str   canonical instructions: the split's train set first,
                                     then its held-out combinations
     instruction_set      (I,) str   "train" or "heldout" for each instruction
