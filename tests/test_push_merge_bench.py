@@ -5,6 +5,8 @@ from __future__ import annotations
 
 import json
 import shutil
+import sys
+import types
 from pathlib import Path
 
 import pytest
@@ -48,6 +50,8 @@ def test_distill_push_only_keeps_reach_and_adds_push(results, tmp_path, monkeypa
     monkeypatch.setattr(distill, "push_stage", lambda args: dict(fake))
     argv = ["--perception", "p", "--push-teacher", "runs/push-teacher", "--push-only"]
     monkeypatch.setattr("sys.argv", ["benchmarks/distill.py", *argv])
+    # run as a script, however pytest itself was started (python -m pytest has a spec)
+    monkeypatch.setitem(sys.modules, "__main__", types.ModuleType("__main__"))
     assert distill.main(argv) == 0
     after = json.loads((results / "distill-robosuite.json").read_text())
     h = after["headline"]
