@@ -388,18 +388,14 @@ def resume_problem(path: str | Path, meta: dict[str, Any]) -> str:
         found = old.meta
 
     def settings(m: dict[str, Any]) -> dict[str, Any]:
-        collect = {k: v for k, v in m.get("collect", {}).items() if k not in RESUMABLE}
-        return json.loads(json.dumps({**m, "collect": collect}))
+        flat = {k: v for k, v in m.items() if k != "collect"}
+        flat.update(
+            (f"collect.{k}", v) for k, v in m.get("collect", {}).items() if k not in RESUMABLE
+        )
+        return json.loads(json.dumps(flat))  # tuples and lists alike
 
     a, b = settings(found), settings(meta)
-    differ = sorted(
-        {
-            f"collect.{k}"
-            for k in {**a["collect"], **b["collect"]}
-            if a["collect"].get(k) != b["collect"].get(k)
-        }
-        | {k for k in {**a, **b} if k != "collect" and a.get(k) != b.get(k)}
-    )
+    differ = sorted(k for k in a.keys() | b.keys() if a.get(k) != b.get(k))
     return f"was collected with other settings ({', '.join(differ)})" if differ else ""
 
 
