@@ -16,6 +16,7 @@ learned several times faster (see the README).
 
 from __future__ import annotations
 
+from collections.abc import Mapping
 from typing import Any
 
 import gymnasium as gym
@@ -205,6 +206,18 @@ class SlotFeatures(gym.ObservationWrapper):
         for key, raw in self._raws.items():
             self._origins[key] = self._slots(raw)[..., : self._dims].copy()
         return self.features(self._raw)
+
+    def restarted(self, obs: Mapping[str, Any]) -> dict[str, Any]:
+        """``obs`` (the last observation this wrapper returned) with displacements
+        restarted from now (:meth:`restart_displacements`) in every entry that has them:
+        the observation and, beside an estimated one, the true state (``"privileged"``),
+        so that a teacher or critic reading the true state sees the same restart."""
+        out = dict(obs)
+        out["observation"] = self.restart_displacements()
+        for key in self.keys[1:]:
+            if key in self._raws:
+                out[key] = self.features(self._raws[key], self._with_slots(self._origins[key]))
+        return out
 
 
 class RelativePositions(SlotFeatures):

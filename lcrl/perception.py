@@ -261,7 +261,11 @@ class HeldSlots:
     So each object's estimated position is held while the gripper (the first two values of
     the proprioception: its place on the table) is farther than ``radius`` from it, in
     this frame and in the one before; near it, the frame's own estimate is taken, and held
-    from then on. Presence flags and the proprioception pass through unchanged.
+    from then on. Near means that the position held or the frame's own estimate is within
+    ``radius``: an object the gripper carried off while its estimate lagged behind (it is
+    hidden under the gripper) is taken again where the frame sees it by the gripper,
+    instead of staying held where the estimate was left. Presence flags and the
+    proprioception pass through unchanged.
 
     Args:
         layout: the slot layout of the estimates.
@@ -296,7 +300,8 @@ class HeldSlots:
         held = self._held[:, lay.start : lay.dim].reshape(len(x), lay.count, lay.width)
         near = np.zeros(slots.shape[:2], bool)
         for where in (agent, self._agent):
-            near |= np.linalg.norm(held[..., :2] - where[:, None, :], axis=-1) < self.radius
+            for seen in (held, slots):  # the position held, or this frame's own estimate
+                near |= np.linalg.norm(seen[..., :2] - where[:, None, :], axis=-1) < self.radius
         slots[..., :d] = np.where(near[..., None], slots[..., :d], held[..., :d])
         slots[..., :d] *= slots[..., d:]  # an object absent has the position 0
         x[:, lay.start : lay.dim] = slots.reshape(len(x), -1)

@@ -15,6 +15,7 @@ import re
 import shutil
 from pathlib import Path
 
+import gymnasium as gym
 import numpy as np
 import pytest
 from helpers import cli, error_line, tiny
@@ -438,6 +439,40 @@ def test_restart_displacements_measures_from_now():
     np.testing.assert_array_equal(fresh[others], obs["observation"][others])
     obs, *_ = env.step(np.zeros(2, np.float32))  # still: displacements stay 0 from here
     np.testing.assert_allclose(obs["observation"][disp], 0.0, atol=1e-6)
+
+
+class _WithTrueState(gym.ObservationWrapper):
+    """A tabletop whose observation stands for an estimate, the true state beside it
+    (``privileged``), as a camera policy's env gives both."""
+
+    def __init__(self, env: gym.Env) -> None:
+        super().__init__(env)
+        spaces = env.observation_space.spaces
+        self.observation_space = gym.spaces.Dict({**spaces, "privileged": spaces["observation"]})
+
+    def observation(self, observation):
+        return {**observation, "privileged": np.asarray(observation["observation"]).copy()}
+
+
+def test_a_chained_instruction_restarts_the_true_states_displacements_too():
+    base = Tabletop2DEnv(num_objects=(2, 2))
+    env = SlotFeatures(_WithTrueState(base), relative=True, displacement=True)
+    start, _, width, dims = slot_layout(env)
+    obs, _ = env.reset(seed=3)
+    slot = base.scene().names[0].split()
+    k = OBJECT_KINDS.index((slot[0], slot[1]))
+    disp = slice(start + k * width + width - dims, start + (k + 1) * width)
+    ctl, s0 = ScriptedController2D(), base.scene()
+    meaning = parse(f"push the {slot[0]} {slot[1]} right")
+    for _ in range(40):
+        obs, *_ = env.step(ctl.act(meaning, s0, base.scene()))
+    assert np.abs(obs["privileged"][disp]).max() > 0.02
+    fresh = env.restarted(obs)
+    for key in ("observation", "privileged"):
+        np.testing.assert_array_equal(fresh[key][disp], 0.0)
+    np.testing.assert_array_equal(fresh["privileged"], fresh["observation"])
+    later, *_ = env.step(np.zeros(2, np.float32))
+    np.testing.assert_allclose(later["privileged"][disp], 0.0, atol=1e-6)
 
 
 # --- evaluation runs -----------------------------------------------------------------------

@@ -623,6 +623,33 @@ def test_held_slots_keep_what_the_gripper_stays_away_from():
     np.testing.assert_array_equal(HeldSlots(layout, 0.0)(moved), moved)
 
 
+def test_held_slots_take_an_object_again_where_the_frame_sees_it_by_the_gripper():
+    """An object carried off while its estimate lagged behind (hidden under the gripper)
+    is not held where the estimate was left: the frame that sees it by the gripper is
+    taken, although the position held is far from it."""
+    from lcrl.perception import HeldSlots
+
+    layout = SlotLayout(2, 1, 3, 2)  # the agent (x, y); one slot [x, y, present]
+
+    def obs(agent, a):
+        return np.array([[*agent, *a, 1.0]], np.float32)
+
+    held = HeldSlots(layout, 0.1)
+    held(obs((0.0, 0.0), (0.5, 0.5)))
+    held(obs((0.45, 0.5), (0.5, 0.5)))  # the gripper reaches the object
+    # it carries it off; under the gripper the frame misreads it, far behind: the
+    # misreading is near the gripper one frame before, so it is taken and held
+    lagged = held(obs((0.6, 0.5), (0.35, 0.5)))
+    np.testing.assert_array_equal(lagged, obs((0.6, 0.5), (0.35, 0.5)))
+    # the gripper goes on: the position held is far from it now, but the frame sees the
+    # object by the gripper again, and that is taken
+    np.testing.assert_array_equal(held(obs((0.8, 0.5), (0.78, 0.5))), obs((0.8, 0.5), (0.78, 0.5)))
+    # the gripper leaves; then a frame that misreads it away from the gripper, with the
+    # position held away too, is not taken
+    held(obs((0.0, 0.0), (0.78, 0.5)))
+    np.testing.assert_array_equal(held(obs((0.0, 0.0), (0.5, 0.2))), obs((0.0, 0.0), (0.78, 0.5)))
+
+
 def test_evaluation_judges_held_positions_and_each_frame_alone():
     """Evaluation reads positions as policies do (held away from the gripper) and reports
     each frame's own estimates beside."""

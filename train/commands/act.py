@@ -336,10 +336,8 @@ class ActSession:
                 if k:
                     if lang.switch_instruction(meanings[k].text) is None:
                         break
-                    obs = dict(obs)
+                    obs = dict(obs) if features is None else features.restarted(obs)
                     obs["instruction"] = meanings[k].text
-                    if features is not None:
-                        obs["observation"] = features.restart_displacements()
                 raw = [env.render()] if video is not None else None
                 first, steps, success = obs, 0, False
                 while steps < budget:

@@ -289,11 +289,9 @@ def switch_in_place(env: gym.Env, obs: Mapping[str, Any]) -> dict[str, Any] | No
     wrapper = find_language_wrapper(env)
     if wrapper.switch_instruction() is None:
         return None
-    out = dict(obs)
-    out["instruction"] = wrapper.instruction
     features = features_wrapper(env)
-    if features is not None:
-        out["observation"] = features.restart_displacements()
+    out = dict(obs) if features is None else features.restarted(obs)
+    out["instruction"] = wrapper.instruction
     e: Any = env
     while isinstance(e, gym.Wrapper):
         if isinstance(e, gym.wrappers.TimeLimit):

@@ -258,10 +258,8 @@ class EvalEpisodes(gym.Wrapper):
                 res.stop = "no_feasible"
                 return self._end(out, reward)
             self._reads = self.aliases.get(self.lang.instruction)
-            obs = dict(obs)
+            obs = dict(obs) if self.features is None else self.features.restarted(obs)
             obs["instruction"] = self._reads or self.lang.instruction
-            if self.features is not None:
-                obs["observation"] = self.features.restart_displacements()
             self._begin_attempt(out)
             self._last_obs = obs
             return obs, float(reward), False, False, out
