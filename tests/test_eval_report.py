@@ -415,21 +415,27 @@ def test_switch_instruction_draws_feasible_instructions():
         env.switch_instruction("fly to the moon")
 
 
-def test_restart_displacements_measures_from_now():
-    base = Tabletop2DEnv(num_objects=(2, 2))
-    env = SlotFeatures(base, relative=True, displacement=True)
+def _pushed(base: Tabletop2DEnv, env: SlotFeatures) -> tuple[dict, slice]:
+    """The observation after the scripted controller pushed the scene's first object right
+    for 40 steps from reset seed 3, and where that object's displacement sits in it."""
     start, _, width, dims = slot_layout(env)
-    with pytest.raises(LcrlError, match="reset"):
-        env.restart_displacements()
     obs, _ = env.reset(seed=3)
     slot = base.scene().names[0].split()
     k = OBJECT_KINDS.index((slot[0], slot[1]))
     disp = slice(start + k * width + width - dims, start + (k + 1) * width)
-    ctl = ScriptedController2D()
+    ctl, s0 = ScriptedController2D(), base.scene()
     meaning = parse(f"push the {slot[0]} {slot[1]} right")
-    s0 = base.scene()
     for _ in range(40):
         obs, *_ = env.step(ctl.act(meaning, s0, base.scene()))
+    return obs, disp
+
+
+def test_restart_displacements_measures_from_now():
+    base = Tabletop2DEnv(num_objects=(2, 2))
+    env = SlotFeatures(base, relative=True, displacement=True)
+    with pytest.raises(LcrlError, match="reset"):
+        env.restart_displacements()
+    obs, disp = _pushed(base, env)
     moved = obs["observation"][disp].copy()
     assert np.abs(moved).max() > 0.02
     fresh = env.restart_displacements()
@@ -457,15 +463,7 @@ class _WithTrueState(gym.ObservationWrapper):
 def test_a_chained_instruction_restarts_the_true_states_displacements_too():
     base = Tabletop2DEnv(num_objects=(2, 2))
     env = SlotFeatures(_WithTrueState(base), relative=True, displacement=True)
-    start, _, width, dims = slot_layout(env)
-    obs, _ = env.reset(seed=3)
-    slot = base.scene().names[0].split()
-    k = OBJECT_KINDS.index((slot[0], slot[1]))
-    disp = slice(start + k * width + width - dims, start + (k + 1) * width)
-    ctl, s0 = ScriptedController2D(), base.scene()
-    meaning = parse(f"push the {slot[0]} {slot[1]} right")
-    for _ in range(40):
-        obs, *_ = env.step(ctl.act(meaning, s0, base.scene()))
+    obs, disp = _pushed(base, env)
     assert np.abs(obs["privileged"][disp]).max() > 0.02
     fresh = env.restarted(obs)
     for key in ("observation", "privileged"):
