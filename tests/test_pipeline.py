@@ -162,6 +162,61 @@ def test_a_student_of_the_state_has_no_perception_stage(tmp_path):
         stages(dataclasses.replace(p, perception="some/model"))
 
 
+def test_a_camera_student_of_the_state_student_has_it_as_its_one_teacher(tmp_path):
+    """``--state-rounds N``: a stage ``state-student`` (the robosuite-privileged student,
+    from every teacher) before the camera student, which it alone teaches, every
+    instruction of a chain included, the camera student starting as its copy;
+    ``--state-student MODEL`` takes a kept one instead of building it."""
+    from train.commands.pipeline import (
+        FINE_TUNE,
+        STATE_STUDENT,
+        _without_chain_teacher,
+        robosuite_camera,
+        stages,
+    )
+
+    p = dataclasses.replace(
+        robosuite_camera(), out=str(tmp_path / "camera"), state_rounds=100, state_student=""
+    )
+    every = {s.name: s for s in stages(p)}
+    names = list(every)
+    assert names[names.index("student") - 1] == STATE_STUDENT
+    state = every[STATE_STUDENT].commands[0]
+    assert state[:4] == ["distill", f"{p.out}/teachers/put", "--out", f"{p.out}/{STATE_STUDENT}"]
+    assert "--state" in state and state[state.index("--rounds") + 1] == "100"
+    assert "--teacher-for" in state and state[state.index("--chain-teacher") + 1] == "scripted"
+    assert every[STATE_STUDENT].needs == tuple(
+        f"{p.out}/teachers/{f}<teacher-{f}" for f in ("put", "stack")
+    )
+    camera = every["student"].commands[0]
+    assert camera[:2] == ["distill", f"{p.out}/{STATE_STUDENT}"]
+    assert "--init-from-teacher" in camera and "--perception" in camera
+    assert "--teacher-for" not in camera and "--chain-teacher" not in camera
+    assert camera[camera.index("--chain-length") + 1] == "3"  # the other options stay
+    assert f"{p.out}/{STATE_STUDENT}<{STATE_STUDENT}" in every["student"].needs
+    assert every["student-ft"].commands[0][1] == f"{p.out}/{STATE_STUDENT}"
+    # a kept state student: no stage builds one, the camera student waits on no teacher
+    kept = dataclasses.replace(p, state_rounds=0, state_student="kept/state")
+    every = {s.name: s for s in stages(kept)}
+    assert STATE_STUDENT not in every
+    assert every["student"].commands[0][1] == "kept/state"
+    assert not any("<teacher-" in n for n in every["student"].needs)
+    # no rounds through a fine-tuned perception: no stage fine-tunes it
+    plain = dataclasses.replace(kept, rounds_ft=0, rounds_aug=5)
+    every = {s.name: s for s in stages(plain)}
+    assert not set(FINE_TUNE) & set(every)
+    aug = every["student-aug"].commands[0]
+    assert aug[aug.index("--rounds") + 1] == str(p.rounds + 5)
+    assert aug[aug.index("--perception") + 1] == f"{p.out}/perception/model"
+    assert "--new-perception" not in aug
+    assert every["student-aug"].needs[0].endswith("<student")
+    with pytest.raises(LcrlError, match="--state and --state-student"):
+        stages(dataclasses.replace(kept, state=True, perception=""))
+    assert _without_chain_teacher(["--a", "1", "--chain-teacher", "x", "--chain-teacher=y"]) == [
+        "--a", "1"
+    ]  # fmt: skip
+
+
 def test_stages_writing_to_a_log_update_their_bars_twice_a_minute(monkeypatch):
     from train.commands.pipeline_steps import LOG_BAR_INTERVAL, child_env
 
@@ -207,13 +262,15 @@ def test_stopping_the_camera_benchmark_stops_its_build(monkeypatch):
     assert seen["preexec_fn"] is die_with_parent
 
 
-def test_the_camera_benchmarks_wall_clock_counts_a_perception_model_built_before(
+def test_the_camera_benchmarks_wall_clock_counts_the_models_it_took_built_before(
     tmp_path, monkeypatch
 ):
     """A build that took a perception model with ``--perception`` adds the seconds its
-    ``build.json`` records (the kept ``perception-80x3`` has one); a model without that
-    record is refused in one line; a build that made its own adds nothing."""
-    from benchmarks.robosuite_camera import perception_build
+    ``build.json`` records (the kept ``perception-80x3`` has one), and one that took a
+    state student with ``--state-student`` the seconds of the student stage of the result
+    file that keeps it; a model without such a record is refused in one line; a build
+    that made its own adds nothing."""
+    from benchmarks.robosuite_camera import perception_build, state_student_build
 
     root = Path(__file__).resolve().parent.parent
     monkeypatch.chdir(root)  # the model's path is the repository's, as the pipeline took it
@@ -232,6 +289,16 @@ def test_the_camera_benchmarks_wall_clock_counts_a_perception_model_built_before
     (work / "pipeline.json").write_text(json.dumps({"perception": str(bare)}))
     with pytest.raises(SystemExit, match=r"no .*build\.json says how long"):
         perception_build(work)
+    # a kept privileged-state student: the student stage of the result file that keeps it
+    state = "benchmarks/models/robosuite-privileged"
+    (work / "pipeline.json").write_text(json.dumps({"state_student": state}))
+    result = json.loads((root / "benchmarks/results/robosuite-manipulation.json").read_text())
+    got = state_student_build(work)
+    assert got["seconds"] == result["stages"]["student"]["seconds"] > 0
+    assert got["record"] == "benchmarks/results/robosuite-manipulation.json"
+    (work / "pipeline.json").write_text(json.dumps({"state_student": "elsewhere/model"}))
+    with pytest.raises(SystemExit, match="no result file in benchmarks/results keeps it"):
+        state_student_build(work)
 
 
 def test_the_camera_benchmark_summarises_an_evaluation_with_intervals():

@@ -63,8 +63,13 @@ from train.configs.sections import SCRIPTED
 from train.runtime.run_lock import lock_run, unlock_run
 
 STAGE_DIR = "stages"
+#: The privileged-state student that teaches the camera student (``--state-rounds``).
+STATE_STUDENT = "state-student"
+#: The stages that fine-tune perception on the student's frames (left out with
+#: ``--rounds-ft 0``).
+FINE_TUNE = ("student-frames", "perception-ft", "student-ft")
 #: The stages of a student that acts through perception (left out with ``--state``).
-CAMERA_ONLY = ("perception-data", "perception", "student-frames", "perception-ft", "student-ft")
+CAMERA_ONLY = ("perception-data", "perception", STATE_STUDENT, *FINE_TUNE)
 #: The stages that build a perception model (left out with ``--perception MODEL``).
 PERCEPTION_BUILD = ("perception-data", "perception")
 
@@ -97,6 +102,21 @@ def _running(path: Path) -> bool:
     return (path / "latest.json").is_file()
 
 
+def _without_chain_teacher(options: Sequence[str]) -> list[str]:
+    """``options`` less ``--chain-teacher X``: a student of one teacher has it teach every
+    instruction of a chain."""
+    kept: list[str] = []
+    skip = False
+    for o in options:
+        if skip:
+            skip = False
+        elif o == "--chain-teacher":
+            skip = True
+        elif not o.startswith("--chain-teacher="):
+            kept.append(o)
+    return kept
+
+
 def stages(p: CameraPipeline) -> list[Stage]:
     """The pipeline's stages, in order, with their commands as they would run now."""
     out = Path(p.out)
@@ -106,6 +126,8 @@ def stages(p: CameraPipeline) -> list[Stage]:
     found: list[Stage] = []
     if p.state and p.perception:
         raise LcrlError("--state and --perception: a student of the privileged state reads none")
+    if p.state and p.state_student:
+        raise LcrlError("--state and --state-student: a student of the state has the teachers")
     camera = not p.state
     if camera and not p.perception:
         found.append(
@@ -198,38 +220,80 @@ def stages(p: CameraPipeline) -> list[Stage]:
     base = p.trained[0]
     others = [t for t in p.teachers if t is not base]
     student = out / "student"
-    distill = ["distill", str(_teacher_dir(p, base.family)), "--out", str(student)]
+    teacher_needs = tuple(f"{_teacher_dir(p, t.family)}<teacher-{t.family}" for t in p.trained)
+    perception_need = () if p.perception or not camera else (f"{_perception_model(p)}<perception",)
+    common = [
+        "--episodes-per-round", str(p.episodes_per_round),
+        "--updates-per-round", str(p.updates_per_round),
+        "--hidden", *map(str, p.student_hidden), "--slot-mode", "attributes",
+        "--grounding", "1.0", "--seed", str(p.seed), "--overwrite",
+        "--families", *p.families, "--max-episode-steps", str(p.max_episode_steps),
+    ]  # fmt: skip
+    chains = [
+        *(["--chain", str(p.chain)] if p.chain else []),
+        *([] if p.initial else ["--no-initial"]),
+    ]
+    of_teachers = [
+        *(["--teacher-for", *(f"{t.family}={_teacher_source(p, t)}" for t in others)]
+          if others else []),
+    ]  # fmt: skip
+    through_state = camera and bool(p.state_rounds or p.state_student)
+    if through_state and not p.state_student:
+        state_run = out / STATE_STUDENT
+        state = ["distill", str(_teacher_dir(p, base.family)), "--out", str(state_run)]
+        state += ["--no-progress", "--eval-every", "0", "--eval-sets", "train", *torch_threads]
+        if _running(state_run):
+            state += ["--resume", "--rounds", str(p.state_rounds), "--state"]
+        else:
+            state += [
+                "--state", "--rounds", str(p.state_rounds), *common, *of_teachers, *chains,
+                *p.extra_student,
+            ]  # fmt: skip
+        found.append(
+            Stage(
+                STATE_STUDENT,
+                "one student of every teacher (DAgger), acting from the privileged state: "
+                "the camera student's one teacher",
+                [state],
+                needs=teacher_needs,
+                outputs=(str(state_run),),
+            )
+        )
+    # the camera student's teacher: the state student (it alone), or the teachers
+    teacher = (p.state_student or str(out / STATE_STUDENT)) if through_state else None
+    distill = ["distill", teacher or str(_teacher_dir(p, base.family)), "--out", str(student)]
     distill += ["--no-progress", "--eval-every", "0", "--eval-sets", "train", *torch_threads]
     reads = ["--perception", _perception_model(p)] if camera else ["--state"]
     if _running(student):
         distill += ["--resume", "--rounds", str(p.rounds), *reads]
+    elif teacher:
+        distill += [
+            *reads, "--rounds", str(p.rounds), *common, *chains, "--init-from-teacher",
+            *_without_chain_teacher(p.extra_student),
+        ]  # fmt: skip
     else:
         distill += [
-            *reads, "--rounds", str(p.rounds),
-            "--episodes-per-round", str(p.episodes_per_round),
-            "--updates-per-round", str(p.updates_per_round),
-            "--hidden", *map(str, p.student_hidden), "--slot-mode", "attributes",
-            "--grounding", "1.0", "--seed", str(p.seed), "--overwrite",
-            "--families", *p.families, "--max-episode-steps", str(p.max_episode_steps),
-            *(["--teacher-for", *(f"{t.family}={_teacher_source(p, t)}" for t in others)]
-              if others else []),
-            *(["--chain", str(p.chain)] if p.chain else []),
-            *([] if p.initial else ["--no-initial"]),
-            *p.extra_student,
+            *reads, "--rounds", str(p.rounds), *common, *of_teachers, *chains, *p.extra_student
         ]  # fmt: skip
-    teacher_needs = tuple(f"{_teacher_dir(p, t.family)}<teacher-{t.family}" for t in p.trained)
-    perception_need = () if p.perception or not camera else (f"{_perception_model(p)}<perception",)
+    if teacher is None:
+        student_needs = teacher_needs
+    elif p.state_student:
+        student_needs = ()
+    else:
+        student_needs = (f"{out / STATE_STUDENT}<{STATE_STUDENT}",)
     found.append(
         Stage(
             "student",
-            "one student of every teacher (DAgger), acting from the camera through perception"
+            ("one student of the privileged-state student (DAgger), acting from the camera "
+             "through perception" if teacher else
+             "one student of every teacher (DAgger), acting from the camera through perception")
             if camera
             else "one student of every teacher (DAgger), acting from the privileged state",
             [distill],
-            needs=(*teacher_needs, *perception_need),
+            needs=(*student_needs, *perception_need),
             outputs=(str(student),),
         )
-    )
+    )  # fmt: skip
     frames = data / "student-frames.h5"
     found.append(
         Stage(
@@ -281,14 +345,16 @@ def stages(p: CameraPipeline) -> list[Stage]:
     )  # fmt: skip
     total = p.rounds + (p.rounds_ft if camera else 0)
     reader = ["--canonical-reader"] if p.reader else []
-    tuned = str(out / "perception-ft" / "model")
+    tuned = str(out / "perception-ft" / "model") if p.rounds_ft else _perception_model(p)
 
     def more_rounds(rounds: int, *extra: str) -> list[str]:
         """The student resumed to ``rounds`` rounds, acting through the tuned perception."""
         return [
-            "distill", str(_teacher_dir(p, base.family)), "--out", str(student), "--resume",
+            "distill", teacher or str(_teacher_dir(p, base.family)), "--out", str(student),
+            "--resume",
             "--rounds", str(rounds), "--no-progress", *torch_threads, *extra,
-            *(["--perception", tuned, "--new-perception", tuned] if camera else ["--state"]),
+            *(["--perception", tuned, *(["--new-perception", tuned] if p.rounds_ft else [])]
+              if camera else ["--state"]),
         ]  # fmt: skip
 
     found.append(
@@ -306,7 +372,7 @@ def stages(p: CameraPipeline) -> list[Stage]:
                 "student-aug",
                 f"more DAgger rounds, every update's rows augmented ({p.augment})",
                 [more_rounds(total + p.rounds_aug, "--augment", p.augment)],
-                needs=(f"{student}<{'student-ft' if camera else 'student'}",),
+                needs=(f"{student}<{'student-ft' if camera and p.rounds_ft else 'student'}",),
                 outputs=(str(student),),
             )
         )
@@ -343,6 +409,8 @@ def stages(p: CameraPipeline) -> list[Stage]:
     )
     if not camera:  # the student reads the state: nothing to fine-tune perception on
         found = [s for s in found if s.name not in CAMERA_ONLY]
+    elif not p.rounds_ft:  # no rounds through a fine-tuned perception: none to fine-tune
+        found = [s for s in found if s.name not in FINE_TUNE]
     return found
 
 
@@ -597,11 +665,15 @@ def robosuite_camera() -> CameraPipeline:
     The teachers are those of the best privileged-state student measured
     (``docs/training.md``, one policy from per-family teachers): the memoryless scripted
     controller for reach, push and lift and for every chained instruction, SAC teachers
-    for put and stack (grounded slots, from 2,000 scripted demonstrations); the student
-    learns over chains of up to three instructions, with the teacher acting the first
-    instruction of half the episodes (roll-in), then 50 more rounds with the colours of
-    every update's rows renamed (``student-aug``; chosen on validation seed 1 over 50 more
-    rounds without: ``benchmarks/results/robosuite-camera-choice.md``)."""
+    for put and stack (grounded slots, from 2,000 scripted demonstrations). They teach a
+    student of the privileged state (``state-student``, 100 DAgger rounds over chains of up
+    to three instructions, the teacher acting the first instruction of half the episodes,
+    as ``lcrl train robosuite-privileged``), and it alone teaches the camera student, which
+    starts as its copy: 30 rounds, 10 through perception fine-tuned on its own frames, then
+    20 with the colours of every update's rows renamed (``student-aug``). Chosen on
+    validation seed 1 over the student of every teacher (110 rounds) and over the same
+    student stopped at round 30 or 40:
+    ``benchmarks/results/robosuite-camera-privileged-teacher.md``."""
     bf16 = ("--agent.precision", "bf16")
     return CameraPipeline(
         env="robosuite",
@@ -613,11 +685,12 @@ def robosuite_camera() -> CameraPipeline:
             TeacherRecipe("put", "robosuite-put", 150_000, 2000, bf16, "robosuite-manip"),
             TeacherRecipe("stack", "robosuite-stack", 40_000, 2000, bf16, "robosuite-manip"),
         ),
-        rounds=50,
+        state_rounds=100,
+        rounds=30,
         episodes_per_round=30,
         updates_per_round=1000,
         chain=1.0,
-        rounds_aug=50,
+        rounds_aug=20,
         extra_student=(
             "--chain-length", "3", "--chain-teacher", SCRIPTED, "--roll-in", "0.5",
             "--batch-size", "512", "--lr", "3e-4", "--beta-decay", "0.7",

@@ -60,6 +60,15 @@ class CameraPipeline:
     """Steps of each such episode (more layouts, not longer episodes, is what helps)."""
     perception_steps: int = 10_000
     """Training steps of ``perception``."""
+    state_rounds: int = 0
+    """DAgger rounds of ``state-student``: a student of every teacher that reads the
+    privileged state (as ``lcrl train robosuite-privileged`` builds), then the camera
+    student's one teacher, for every instruction of a chain, the camera student starting
+    as a copy of it (``lcrl distill --init-from-teacher``). 0: the teachers teach the
+    camera student themselves."""
+    state_student: str = ""
+    """Take this privileged-state student as the camera student's teacher instead of
+    building one (skips ``state-student``)."""
     rounds: int = 30
     """DAgger rounds of ``student``."""
     episodes_per_round: int = 40
@@ -83,7 +92,8 @@ class CameraPipeline:
     perception_ft_steps: int = 4000
     """Training steps of ``perception-ft``."""
     rounds_ft: int = 10
-    """More DAgger rounds through the fine-tuned perception (``student-ft``)."""
+    """More DAgger rounds through the fine-tuned perception (``student-ft``); 0: no
+    fine-tuning (no ``student-frames``, ``perception-ft`` or ``student-ft``)."""
     rounds_aug: int = 0
     """More DAgger rounds after those with every update's rows augmented
     (``student-aug``, ``--augment``); 0: no such stage."""
