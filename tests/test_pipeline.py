@@ -84,7 +84,8 @@ def test_the_2d_camera_pipeline_builds_a_kept_student_stage_by_stage(tmp_path, c
 def test_scripted_families_have_no_teacher_stage_and_a_trained_teacher_is_the_base(tmp_path):
     from train.commands.pipeline import SCRIPTED, robosuite_camera, stages
 
-    p = dataclasses.replace(robosuite_camera(), out=str(tmp_path / "camera"))
+    # the student of every teacher (no state student between them)
+    p = dataclasses.replace(robosuite_camera(), out=str(tmp_path / "camera"), state_rounds=0)
     names = [s.name for s in stages(p)]
     assert "teacher-put" in names and "teacher-stack" in names
     assert not any(n in names for n in ("teacher-reach", "teacher-push", "teacher-lift"))
@@ -578,7 +579,7 @@ def test_augmented_rounds_are_a_stage_of_their_own_before_the_evaluation(tmp_pat
     assert names[names.index("student-ft") + 1] == "student-aug"
     (aug,) = [s for s in every if s.name == "student-aug"]
     cmd = aug.commands[0]
-    assert cmd[:4] == ["distill", f"{p.out}/teachers/put", "--out", f"{p.out}/student"]
+    assert cmd[:4] == ["distill", f"{p.out}/state-student", "--out", f"{p.out}/student"]
     assert "--resume" in cmd and cmd[cmd.index("--augment") + 1] == "colours"
     assert cmd[cmd.index("--rounds") + 1] == str(p.rounds + p.rounds_ft + 40)
     assert cmd[cmd.index("--perception") + 1] == f"{p.out}/perception-ft/model"
