@@ -237,18 +237,30 @@ def stages(p: CameraPipeline) -> list[Stage]:
         *(["--teacher-for", *(f"{t.family}={_teacher_source(p, t)}" for t in others)]
           if others else []),
     ]  # fmt: skip
+    head = ["--no-progress", "--eval-every", "0", "--eval-sets", "train", *torch_threads]
+
+    def distill(
+        source: str,
+        run: Path,
+        rounds: int,
+        reads: list[str],
+        teachers: Sequence[str],
+        extra: Sequence[str],
+    ) -> list[str]:
+        """``lcrl distill`` of ``source`` into ``run``: resumed where it has a checkpoint,
+        else from the start with the shared options, ``teachers`` and ``extra``."""
+        cmd = ["distill", source, "--out", str(run), *head]
+        if _running(run):
+            return [*cmd, "--resume", "--rounds", str(rounds), *reads]
+        return [*cmd, *reads, "--rounds", str(rounds), *common, *teachers, *chains, *extra]
+
     through_state = camera and bool(p.state_rounds or p.state_student)
     if through_state and not p.state_student:
         state_run = out / STATE_STUDENT
-        state = ["distill", str(_teacher_dir(p, base.family)), "--out", str(state_run)]
-        state += ["--no-progress", "--eval-every", "0", "--eval-sets", "train", *torch_threads]
-        if _running(state_run):
-            state += ["--resume", "--rounds", str(p.state_rounds), "--state"]
-        else:
-            state += [
-                "--state", "--rounds", str(p.state_rounds), *common, *of_teachers, *chains,
-                *p.extra_student,
-            ]  # fmt: skip
+        state = distill(
+            str(_teacher_dir(p, base.family)), state_run, p.state_rounds, ["--state"],
+            of_teachers, p.extra_student,
+        )  # fmt: skip
         found.append(
             Stage(
                 STATE_STUDENT,
@@ -261,20 +273,13 @@ def stages(p: CameraPipeline) -> list[Stage]:
         )
     # the camera student's teacher: the state student (it alone), or the teachers
     teacher = (p.state_student or str(out / STATE_STUDENT)) if through_state else None
-    distill = ["distill", teacher or str(_teacher_dir(p, base.family)), "--out", str(student)]
-    distill += ["--no-progress", "--eval-every", "0", "--eval-sets", "train", *torch_threads]
     reads = ["--perception", _perception_model(p)] if camera else ["--state"]
-    if _running(student):
-        distill += ["--resume", "--rounds", str(p.rounds), *reads]
-    elif teacher:
-        distill += [
-            *reads, "--rounds", str(p.rounds), *common, *chains, "--init-from-teacher",
-            *_without_chain_teacher(p.extra_student),
-        ]  # fmt: skip
+    if teacher:
+        one = ["--init-from-teacher", *_without_chain_teacher(p.extra_student)]
+        student_cmd = distill(teacher, student, p.rounds, reads, (), one)
     else:
-        distill += [
-            *reads, "--rounds", str(p.rounds), *common, *of_teachers, *chains, *p.extra_student
-        ]  # fmt: skip
+        base_dir = str(_teacher_dir(p, base.family))
+        student_cmd = distill(base_dir, student, p.rounds, reads, of_teachers, p.extra_student)
     if teacher is None:
         student_needs = teacher_needs
     elif p.state_student:
@@ -289,7 +294,7 @@ def stages(p: CameraPipeline) -> list[Stage]:
              "one student of every teacher (DAgger), acting from the camera through perception")
             if camera
             else "one student of every teacher (DAgger), acting from the privileged state",
-            [distill],
+            [student_cmd],
             needs=(*student_needs, *perception_need),
             outputs=(str(student),),
         )
