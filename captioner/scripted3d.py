@@ -476,9 +476,10 @@ class MarkovController3D(ScriptedController3D):
     approach starts again.
     """
 
-    def __init__(self, *args: Any, **kwargs: Any) -> None:
+    def __init__(self, *args: Any, funnel: float = 0.0, **kwargs: Any) -> None:
         kwargs["damping"] = 0.0
         super().__init__(*args, **kwargs)
+        self.funnel = float(funnel)
 
     def act(self, instruction: str | Instruction, s0: SceneState, s: SceneState) -> np.ndarray:
         """Action for the current scene (see :meth:`ScriptedController3D.act`), from the
@@ -543,8 +544,9 @@ class MarkovController3D(ScriptedController3D):
         hover = self._hover_z(s, skip=i)
         dest = self._drop_point(ins, s0, s, i, j) if ins.family != "lift" else None
         xy_err = float(np.linalg.norm(dest[:2] - o[:2])) if dest is not None else np.inf
+        release = 0.012 if self.funnel > 0 else 0.008  # how near the drop point X is let go
         if not held:
-            if dest is not None and xy_err < 0.01 and o[2] - dest[2] < 0.006:
+            if dest is not None and xy_err < release + 0.002 and o[2] - dest[2] < 0.006:
                 return self._move(g, np.array([g[0], g[1], hover + 0.03]), OPEN)  # let go
             xy = float(np.linalg.norm(g[:2] - o[:2]))
             if xy < 0.008 and abs(g[2] - o[2]) < 0.006:
@@ -556,17 +558,41 @@ class MarkovController3D(ScriptedController3D):
             rise = self.thresholds.lift_height + self.lift_margin
             target_o = np.array([o[0], o[1], s0.positions[i, 2] + rise])
             return self._move(g, g + (target_o - o), CLOSE)
+        carry_z = hover + (o[2] - g[2]) + s.half_extents[i, 2]
+        if self.funnel > 0:
+            return self._funnel(g, o, dest, xy_err, carry_z, release)
         if xy_err < 0.008:
             if o[2] - dest[2] < 0.003:
                 return np.array([0.0, 0.0, 0.0, OPEN])  # resting at the drop point: release
             target_o = dest if xy_err < 0.006 else np.array([dest[0], dest[1], o[2]])
             return self._move(g, g + (target_o - o), CLOSE, 0.5)  # lower
-        carry_z = hover + (o[2] - g[2]) + s.half_extents[i, 2]
         if o[2] < carry_z - 0.015 and xy_err > 0.01:
             target_o = np.array([o[0], o[1], carry_z])  # up first
         else:
             target_o = np.array([dest[0], dest[1], carry_z])
         return self._move(g, g + (target_o - o), CLOSE)
+
+    def _funnel(
+        self,
+        g: np.ndarray,
+        o: np.ndarray,
+        dest: np.ndarray,
+        xy_err: float,
+        carry_z: float,
+        release: float,
+    ) -> np.ndarray:
+        """Carry X to the drop point along a funnel: the height aimed for falls from the
+        carry height to the drop height as X's centre closes the last ``funnel`` metres,
+        so every label is a smooth function of the distance left (no threshold to cross
+        before X is lowered); X is let go once it rests within ``release`` of the point."""
+        if xy_err < release and o[2] - dest[2] < 0.004:
+            return np.array([0.0, 0.0, 0.0, OPEN])  # resting at the drop point: release
+        if o[2] < carry_z - 0.015 and xy_err > self.funnel + release:
+            return self._move(g, g + (np.array([o[0], o[1], carry_z]) - o), CLOSE)  # up first
+        frac = float(np.clip((xy_err - 0.5 * release) / self.funnel, 0.0, 1.0))
+        z = dest[2] + frac * max(carry_z - dest[2], 0.0)
+        target_o = np.array([dest[0], dest[1], z])
+        return self._move(g, g + (target_o - o), CLOSE, 0.5 + 0.5 * frac)
 
 
 def evaluate(
@@ -574,6 +600,7 @@ def evaluate(
     seeds: Iterable[int] = range(20),
     max_steps: int = 100,
     markov: bool = False,
+    funnel: float = 0.0,
     **env_kwargs: Any,
 ) -> dict[str, dict[int, int | None]]:
     """Run the scripted controller (``markov``: :class:`MarkovController3D`) on
@@ -597,7 +624,7 @@ def evaluate(
     from envs.robosuite_tabletop import RobosuiteTabletopEnv
 
     env = RobosuiteTabletopEnv(**env_kwargs)
-    controller = MarkovController3D() if markov else ScriptedController3D()
+    controller = MarkovController3D(funnel=funnel) if markov else ScriptedController3D()
     out: dict[str, dict[int, int | None]] = {}
     try:
         for family in families:
@@ -633,15 +660,18 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument(
         "--markov", action="store_true", help="the controller without memory (a DAgger teacher)"
     )
+    parser.add_argument(
+        "--funnel", type=float, default=0.0, help="with --markov: the drop funnel's width (m)"
+    )
     args = parser.parse_args(argv)
     env_kwargs: dict[str, Any] = {"controller_period": args.controller_period}
     if args.num_objects is not None:
         env_kwargs["num_objects"] = args.num_objects
     print(f"{'family':8s} {'success':>9s} {'steps: median':>14s} {'max':>5s}")
     for family in args.families:
-        steps = evaluate([family], range(args.episodes), args.max_steps, args.markov, **env_kwargs)[
-            family
-        ]
+        steps = evaluate(
+            [family], range(args.episodes), args.max_steps, args.markov, args.funnel, **env_kwargs
+        )[family]
         done = [n for n in steps.values() if n is not None]
         rate = len(done) / max(len(steps), 1)
         median = f"{float(np.median(done)):.0f}" if done else "-"

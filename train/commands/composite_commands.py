@@ -48,6 +48,10 @@ class DistillCommand:
     roll_in: float = 0.0
     """Probability that the teacher acts an episode's whole first instruction, the
     student taking over at the second (with ``--chain``)."""
+    scripted_funnel: float = 0.0
+    """With a ``scripted`` teacher on robosuite: the width (m) of the drop funnel of its
+    put and stack, lowering the carried object as it closes in on the drop point (0: only
+    once within 8 mm of it)."""
     hidden: list[int] = field(default_factory=list)
     """The student's hidden layer sizes (default: the teacher's)."""
     init_from_teacher: bool = False
@@ -152,6 +156,7 @@ class DistillCommand:
             chain_length=self.chain_length,
             chain_teacher=self.chain_teacher,
             roll_in=self.roll_in,
+            scripted_funnel=self.scripted_funnel,
             init_from_teacher=self.init_from_teacher,
             augment=self.augment,
         )

@@ -456,6 +456,11 @@ class DistillConfig:
     chain_teacher: str = ""
     """The teacher of every instruction after the first of a chain: ``scripted`` (the
     env's scripted controller) or a run; empty: the instruction family's teacher."""
+    scripted_funnel: float = 0.0
+    """The width (m) of the drop funnel of the scripted teacher's put and stack
+    (``scripted``, :class:`captioner.scripted3d.MarkovController3D`): the carried object
+    is lowered as it closes the last ``scripted_funnel`` metres to the drop point, so the
+    labels change smoothly with the distance left. 0: lowered only once within 8 mm."""
     roll_in: float = 0.0
     """The probability that the teacher acts an episode's whole first instruction (its
     states labelled as every other), so that the student acts from where it left the
@@ -480,6 +485,10 @@ class DistillConfig:
         if self.episodes_per_round <= 0 or self.updates_per_round < 0:
             raise LcrlError(
                 "distill.episodes_per_round must be positive and distill.updates_per_round >= 0"
+            )
+        if not 0.0 <= self.scripted_funnel <= 0.2:
+            raise LcrlError(
+                f"distill.scripted_funnel must be in [0, 0.2] metres, got {self.scripted_funnel}"
             )
         for name in ("beta", "beta_decay", "chain", "roll_in"):
             value = getattr(self, name)

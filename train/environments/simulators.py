@@ -354,10 +354,10 @@ def _scripted_3d() -> Any:
     return ScriptedController3D()
 
 
-def _teacher_3d() -> Any:
+def _teacher_3d(funnel: float = 0.0) -> Any:
     from captioner.scripted3d import MarkovController3D
 
-    return MarkovController3D()
+    return MarkovController3D(funnel=funnel)
 
 
 def _families(name: str) -> tuple[str, ...]:

@@ -239,7 +239,9 @@ class ScriptedActor:
         LcrlError: the env has no scripted controller.
     """
 
-    def __init__(self, cfg: EnvConfig, task: Task, noise: float, teacher: bool = False) -> None:
+    def __init__(
+        self, cfg: EnvConfig, task: Task, noise: float, teacher: bool = False, funnel: float = 0.0
+    ) -> None:
         spec = env_spec(cfg.kind)
         if not has_instructions(cfg) or spec.scripted is None:
             raise LcrlError(
@@ -247,7 +249,12 @@ class ScriptedActor:
                 f"controller (env kind {cfg.kind!r}, goal type {cfg.goal_type!r} has none)"
             )
         make = spec.teacher if teacher and spec.teacher is not None else spec.scripted
-        self.controller: Any = make()
+        if funnel and not (teacher and cfg.kind == "robosuite"):
+            raise LcrlError(
+                "a drop funnel (distill.scripted_funnel) is a setting of the robosuite "
+                f"scripted teacher only (env kind {cfg.kind!r})"
+            )
+        self.controller: Any = make(funnel=funnel) if funnel else make()
         self.scene = spec.scene or (lambda env: env.unwrapped.scene())
         self.task, self.noise = task, float(noise)
 

@@ -408,7 +408,9 @@ class DistillTrainer(BaseTrainer):
         self.scripted = None
         if self.scripted_families or cfg.distill.chain_teacher == SCRIPTED:
             # the controller that reads everything off the scene
-            self.scripted = ScriptedActor(cfg.env, self.task, 0.0, teacher=True)
+            self.scripted = ScriptedActor(
+                cfg.env, self.task, 0.0, teacher=True, funnel=cfg.distill.scripted_funnel
+            )
         if ckpt is not None:
             self.restore(ckpt)
         elif cfg.distill.init_from_teacher:
@@ -457,6 +459,9 @@ class DistillTrainer(BaseTrainer):
             chain += f"; every update's rows augmented{since}: {self.augment.describe()}"
         if cfg.distill.roll_in:
             chain += f", the teacher acting the first instruction of {cfg.distill.roll_in:.0%}"
+        if self.scripted is not None and cfg.distill.scripted_funnel:
+            width = cfg.distill.scripted_funnel * 100
+            chain += f"; the scripted put and stack lower along a {width:g} cm funnel"
         print(
             f"DAgger: teacher {self.teacher.checkpoint.path} (step "
             f"{self.teacher.checkpoint.meta.get('step')}){others} -> student {how}; "
