@@ -77,8 +77,25 @@ def summary(doc: dict[str, Any], chains: dict[str, Any] | None = None) -> dict[s
             out[s] = sets[s]["success"]
             out[f"{s}_families"] = {f: v["success"] for f, v in sets[s].get("families", {}).items()}
     if chain is not None:
+        out["chain_links"] = chain_links(chains)
         out["chain"] = chain[0]
         out["chain_ci"] = list(wilson_interval(round(chain[0] * chain[1]), chain[1]))
+    return out
+
+
+def chain_links(chains: dict[str, Any]) -> dict[str, dict[str, list[int]]]:
+    """Per family, ``[successes, attempts]`` of the chains' first instructions and of the
+    later ones (each from where the one before it left the scene), from the episodes of a
+    ``--chain`` document."""
+    out: dict[str, dict[str, list[int]]] = {"first": {}, "later": {}}
+    for episode in chains["sets"]["train"].get("episode_results", []):
+        for k, attempt in enumerate(episode["attempts"]):
+            if attempt.get("checked", True):
+                tally = out["first" if k == 0 else "later"].setdefault(
+                    attempt["slots"]["family"], [0, 0]
+                )
+                tally[0] += int(bool(attempt["success"]))
+                tally[1] += 1
     return out
 
 
@@ -99,6 +116,10 @@ def main(argv: list[str] | None = None) -> int:
         "--chain", type=int, default=0, help="also chains of this many seen instructions"
     )
     parser.add_argument("--note", default="", help="what the candidates are, for the report")
+    parser.add_argument(
+        "--title", default="Choosing a camera student on a validation seed", help="the report's"
+    )
+
     args = parser.parse_args(argv)
     runs = candidates(args.candidates)
     if args.seed not in VALIDATION_SEEDS:
@@ -174,6 +195,23 @@ def main(argv: list[str] | None = None) -> int:
             + " | ".join(f"{fams.get(f, float('nan')):.2f}" for f in FAMILIES)
             + " |"
         )
+    if args.chain:
+        lines += [
+            "",
+            f"In the chains of {args.chain}, each family's instructions as the first of a "
+            "chain and as a later one (from where the one before left the scene), "
+            "successes of attempts:",
+            "",
+            "| candidate | " + " | ".join(f"{f}: first, later" for f in FAMILIES) + " |",
+            "|---|" + "---|" * len(FAMILIES),
+        ]
+        for name, r in results.items():
+            links = r["chain_links"]
+            cells = [
+                ", ".join("{}/{}".format(*links[k].get(f, [0, 0])) for k in ("first", "later"))
+                for f in FAMILIES
+            ]
+            lines.append(f"| {name} | " + " | ".join(cells) + " |")
     lines += ["", f"Chosen: **{chosen}**."]
     if args.note:
         lines += ["", args.note]
@@ -188,8 +226,7 @@ def main(argv: list[str] | None = None) -> int:
     ax.set_xticklabels([*(f"seen {f}" for f in FAMILIES), "pooled"], fontsize=7)
     ax.set(ylim=(0, 1.02), ylabel=f"success (seed {args.seed})")
     ax.legend(fontsize=7)
-    title = "Choosing a camera student on a validation seed"
-    publish(args.name, payload, title, "\n".join(lines), fig)
+    publish(args.name, payload, args.title, "\n".join(lines), fig)
     print("\n".join(lines))
     return 0
 

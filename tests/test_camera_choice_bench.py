@@ -114,3 +114,23 @@ def test_chains_run_per_candidate_and_count_in_the_pooled_choice(tmp_path, monke
     assert head["chosen"] == "current"
     assert head["current_chain2"] == pytest.approx(0.4)
     assert head["first_pooled"] == pytest.approx((60 + 50 + 10) / 300, abs=1e-3)
+
+
+def test_chain_links_count_each_familys_first_and_later_instructions():
+    """Each attempt of a chain counts for its family, as the chain's first instruction or
+    as a later one; an attempt that could not be checked counts for neither."""
+
+    def attempt(family: str, success: bool, checked: bool = True) -> dict:
+        return {"slots": {"family": family}, "success": success, "checked": checked}
+
+    doc = _chains(0.5)
+    doc["sets"]["train"]["episode_results"] = [
+        {"attempts": [attempt("lift", True), attempt("put", False)]},
+        {"attempts": [attempt("put", True), attempt("stack", True), attempt("put", True)]},
+        {"attempts": [attempt("stack", False)]},
+        {"attempts": [attempt("reach", True), attempt("push", True, checked=False)]},
+    ]
+    links = cc.chain_links(doc)
+    assert links["first"] == {"lift": [1, 1], "put": [1, 1], "stack": [0, 1], "reach": [1, 1]}
+    assert links["later"] == {"put": [1, 2], "stack": [1, 1]}
+    assert cc.summary(_doc(0.5, 0.5), doc)["chain_links"] == links
