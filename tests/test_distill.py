@@ -490,9 +490,7 @@ def test_family_teachers_that_cannot_teach_are_refused(two_families, teacher, tm
     assert "distill.scripted_funnel must be in [0, 0.2]" in error_line(capsys.readouterr().err)
     # a funnel for the 2D tabletop's scripted teacher, which has none
     assert cli(*base, "--teacher-for", "push=scripted", "--scripted-funnel", "0.05") == 2
-    assert "setting of the robosuite scripted teacher only" in error_line(
-        capsys.readouterr().err
-    )
+    assert "setting of the robosuite scripted teacher only" in error_line(capsys.readouterr().err)
 
 
 def test_the_teacher_acting_on_perceptions_estimate(teacher, perception):
